@@ -1,0 +1,17 @@
+"""torch_isc: implicit simplicial curves in PyTorch (Taubin & Ronfard, PAMI 1996).
+
+Reconstruct 2D curves of unknown topology from unorganized points, batched, on CPU or GPU.
+"""
+from .config import ConfigError, ReconstructConfig, load_config
+from .curve import ImplicitCurve, InvalidValuesError
+from .extract import Polylines, extract_zero_set
+from .locate import barycentric, locate_children, locate_grid, locate_walk
+from .mesh import InvalidMeshError, MeshBatch, hexagon_mesh, square_mesh
+from .result import ReconstructionResult
+
+__version__ = "0.1.0"
+
+try:  # the reconstruction loop (added by the reconstruction issue)
+    from .reconstruct import reconstruct, reconstruct_batch  # noqa: F401
+except ImportError:  # pragma: no cover
+    pass

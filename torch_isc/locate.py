@@ -1,0 +1,211 @@
+"""Point location in a packed mesh batch: containing triangle and barycentric coordinates.
+
+Three routes, one for each situation of the reconstruction loop, all near-linear:
+
+* :func:`locate_grid` — a uniform grid per item over its triangles' bounding boxes
+  (initial meshes, and the fallback of the others);
+* :func:`locate_children` — after a subdivision, a point of a split triangle is
+  looked for among that triangle's children only;
+* :func:`locate_walk` — after small vertex moves, a point walks from its old
+  triangle across the edge whose barycentric coordinate turned negative.
+
+Every point gets exactly one triangle, also on shared edges and vertices: the one
+whose smallest barycentric coordinate is largest, ties to the lowest index. A point
+outside its item's mesh gets ``-1`` (and NaN barycentrics): it is reported, not guessed.
+"""
+from __future__ import annotations
+
+from typing import Tuple
+
+import torch
+
+from .mesh import MeshBatch
+
+__all__ = ["barycentric", "locate_grid", "locate_children", "locate_walk", "inside_tolerance"]
+
+_MAX_CANDIDATES = 1 << 22
+
+
+def inside_tolerance(dtype: torch.dtype) -> float:
+    """Barycentric slack under which a point still counts as inside a triangle."""
+    return 64.0 * torch.finfo(dtype).eps
+
+
+def barycentric(verts: torch.Tensor, faces: torch.Tensor, face_idx: torch.Tensor,
+                points: torch.Tensor) -> torch.Tensor:
+    """Barycentric coordinates of ``points (P, 2)`` in triangles ``faces[face_idx] (P,)``.
+
+    Returns ``(P, 3)``; differentiable in ``verts`` and ``points``. Rows of an invalid
+    ``face_idx`` (< 0) are NaN.
+
+    Example:
+        >>> v = torch.tensor([[0., 0.], [1., 0.], [0., 1.]]); f = torch.tensor([[0, 1, 2]])
+        >>> barycentric(v, f, torch.tensor([0]), torch.tensor([[0.25, 0.25]]))
+        tensor([[0.5000, 0.2500, 0.2500]])
+    """
+    ok = face_idx >= 0
+    fi = face_idx.clamp_min(0)
+    tri = verts[faces[fi]]                                   # (P,3,2)
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+
+    def cross(u, w):
+        return u[:, 0] * w[:, 1] - u[:, 1] * w[:, 0]
+
+    det = cross(b - a, c - a)
+    l0 = cross(c - b, points - b)
+    l1 = cross(a - c, points - c)
+    l2 = cross(b - a, points - a)
+    out = torch.stack([l0, l1, l2], 1) / det[:, None]
+    return torch.where(ok[:, None], out, torch.full_like(out, float("nan")))
+
+
+def _best_candidate(point_of_cand: torch.Tensor, face_of_cand: torch.Tensor, score: torch.Tensor,
+                    n_points: int) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Per point: the candidate face with the largest score, ties to the lowest face index."""
+    best = torch.full((n_points,), float("-inf"), dtype=score.dtype, device=score.device)
+    best = best.scatter_reduce(0, point_of_cand, score, "amax")
+    is_best = score == best[point_of_cand]
+    big = torch.iinfo(torch.long).max
+    face = torch.full((n_points,), big, dtype=torch.long, device=score.device)
+    face = face.scatter_reduce(0, point_of_cand[is_best], face_of_cand[is_best], "amin")
+    face[face == big] = -1
+    return face, best
+
+
+def locate_grid(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor,
+                cells_per_face: float = 1.0) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Locate ``points (P, 2)`` of items ``point_item (P,)`` in ``mesh``.
+
+    Each item gets a uniform grid of about ``cells_per_face · T_b`` cells over its
+    vertices' bounding box; triangles are listed in the cells their bounding box
+    touches, and each point is tested against the triangles of its cell only.
+
+    Returns:
+        face ``(P,)`` long (-1 outside), bary ``(P, 3)``.
+    """
+    with torch.no_grad():
+        dev, dt = points.device, mesh.verts.dtype
+        P = points.shape[0]
+        v = mesh.verts.detach()
+        pts = points.detach().to(dt)
+        if P == 0:
+            return torch.empty(0, dtype=torch.long, device=dev), torch.empty(0, 3, dtype=dt, device=dev)
+        B = mesh.num_items
+        bbox = mesh.item_bbox()                               # (B,4)
+        lo = bbox[:, :2]
+        ext = (bbox[:, 2:] - bbox[:, :2]).clamp_min(torch.finfo(dt).tiny)
+        g = torch.ceil(torch.sqrt(mesh.faces_per_item.to(dt) * cells_per_face)).clamp(1, 2048).long()  # (B,)
+        cs = ext / g[:, None].to(dt)                          # (B,2) cell size
+        cell_off = torch.cumsum(g * g, 0) - g * g
+
+        tri = v[mesh.faces]                                   # (T,3,2)
+        fi = mesh.face_item
+        gi = g[fi]
+        c0 = torch.floor((tri.min(1).values - lo[fi]) / cs[fi]).long()
+        c1 = torch.floor((tri.max(1).values - lo[fi]) / cs[fi]).long()
+        c0 = torch.minimum(c0.clamp_min(0), gi[:, None] - 1)
+        c1 = torch.minimum(c1.clamp_min(0), gi[:, None] - 1)
+        nx = c1[:, 0] - c0[:, 0] + 1
+        ny = c1[:, 1] - c0[:, 1] + 1
+        cnt = nx * ny
+        pf = torch.repeat_interleave(torch.arange(mesh.faces.shape[0], device=dev), cnt)
+        r = torch.arange(pf.shape[0], device=dev) - torch.repeat_interleave(torch.cumsum(cnt, 0) - cnt, cnt)
+        ix = c0[pf, 0] + r % nx[pf]
+        iy = c0[pf, 1] + r // nx[pf]
+        key = cell_off[fi[pf]] + iy * g[fi[pf]] + ix
+        key, order = torch.sort(key, stable=True)
+        pf = pf[order]
+
+        pi = point_item
+        pc = torch.floor((pts - lo[pi]) / cs[pi]).long()
+        pc = torch.minimum(pc.clamp_min(0), g[pi][:, None] - 1)
+        pkey = cell_off[pi] + pc[:, 1] * g[pi] + pc[:, 0]
+        start = torch.searchsorted(key, pkey, right=False)
+        stop = torch.searchsorted(key, pkey, right=True)
+        ncand = stop - start
+
+        face = torch.full((P,), -1, dtype=torch.long, device=dev)
+        score = torch.full((P,), float("-inf"), dtype=dt, device=dev)
+        # chunk over points to bound the candidate list
+        csum = torch.cumsum(ncand, 0)
+        i0 = 0
+        while i0 < P:
+            base = int(csum[i0 - 1]) if i0 > 0 else 0
+            i1 = int(torch.searchsorted(csum, torch.tensor(base + _MAX_CANDIDATES, device=dev), right=True))
+            i1 = min(max(i1, i0 + 1), P)
+            sl = slice(i0, i1)
+            n = ncand[sl]
+            cp = torch.repeat_interleave(torch.arange(i0, i1, device=dev), n)
+            off = torch.arange(cp.shape[0], device=dev) - torch.repeat_interleave(torch.cumsum(n, 0) - n, n)
+            cf = pf[start[cp] + off]
+            bc = barycentric(v, mesh.faces, cf, pts[cp])
+            s = bc.min(1).values
+            f_, b_ = _best_candidate(cp - i0, cf, s, i1 - i0)
+            face[sl], score[sl] = f_, b_
+            i0 = i1
+        face[score < -inside_tolerance(dt)] = -1
+        return face, barycentric(v, mesh.faces, face, pts)
+
+
+def locate_children(mesh: MeshBatch, points: torch.Tensor, parent_face: torch.Tensor,
+                    children: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Hand points from a parent triangle to one of its children after subdivision.
+
+    Args:
+        mesh: the subdivided mesh.
+        points: ``(P, 2)``. parent_face: ``(P,)`` each point's triangle before subdivision.
+        children: ``(T_old, 4)`` new triangle indices of each old triangle (ascending,
+            -1 padded; an unsplit triangle lists itself once).
+
+    Returns:
+        face ``(P,)``, bary ``(P, 3)``.
+    """
+    with torch.no_grad():
+        v = mesh.verts.detach()
+        pts = points.detach().to(v.dtype)
+        cand = children[parent_face.clamp_min(0)]             # (P,4)
+        cand[parent_face < 0] = -1
+        P = pts.shape[0]
+        k = cand.shape[1]
+        bc = barycentric(v, mesh.faces, cand.reshape(-1), pts.repeat_interleave(k, 0)).view(P, k, 3)
+        s = bc.min(2).values
+        s = torch.where(cand >= 0, s, torch.full_like(s, float("-inf")))
+        j = torch.argmax(s, 1)                                 # first max: children are ascending
+        face = cand.gather(1, j[:, None]).squeeze(1)
+        best = s.gather(1, j[:, None]).squeeze(1)
+        face[~(best >= -inside_tolerance(v.dtype))] = -1
+        return face, barycentric(v, mesh.faces, face, pts)
+
+
+def locate_walk(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor,
+                start_face: torch.Tensor, max_steps: int = 16) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Re-locate points after the mesh vertices moved a little.
+
+    Each point starts at its old triangle and steps across the edge opposite its most
+    negative barycentric coordinate; points that do not settle within ``max_steps``
+    (or that started outside) are located on the grid.
+    """
+    with torch.no_grad():
+        v = mesh.verts.detach()
+        pts = points.detach().to(v.dtype)
+        tol = inside_tolerance(v.dtype)
+        face = start_face.clone()
+        nbr = mesh.face_neighbors
+        active = (face >= 0).nonzero().squeeze(1)
+        for _ in range(max_steps):
+            if active.numel() == 0:
+                break
+            bc = barycentric(v, mesh.faces, face[active], pts[active])
+            mn, arg = bc.min(1)
+            moving = mn < -tol
+            nxt = nbr[face[active[moving]], arg[moving]]
+            face[active[moving]] = nxt                          # -1 when it walked off the mesh
+            active = active[moving][nxt >= 0]
+        unresolved = face < 0
+        if active.numel():
+            unresolved[active] = True
+        if unresolved.any():
+            idx = unresolved.nonzero().squeeze(1)
+            f2, _ = locate_grid(mesh, pts[idx], point_item[idx])
+            face[idx] = f2
+        return face, barycentric(v, mesh.faces, face, pts)

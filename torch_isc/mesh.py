@@ -1,0 +1,462 @@
+"""Packed batches of 2D triangle meshes.
+
+A :class:`MeshBatch` holds the meshes of ``B`` items in *packed* form, the way
+PyTorch3D's ``Meshes`` does: the vertices of all items concatenated into one
+``(V, 2)`` tensor, the triangles into one ``(T, 3)`` tensor of *global* vertex
+indices, each item's rows contiguous, with per-item counts and first indices and
+a per-row item index. A single mesh is a batch of one.
+
+Everything combinatorial (edges, adjacency, boundary) is computed lazily under
+``torch.no_grad`` and cached; only vertex positions carry autograd.
+
+Conventions: triangle ``(i, j, k)`` is positively oriented when the determinant
+of eq. 2.2 (twice its signed area) is > 0. Edge ``k`` of a triangle is the edge
+*opposite* its vertex ``k``: ``(v[(k+1)%3], v[(k+2)%3])``.
+"""
+from __future__ import annotations
+
+import math
+from functools import cached_property
+from typing import List, Optional, Sequence, Tuple
+
+import torch
+
+__all__ = ["MeshBatch", "hexagon_mesh", "square_mesh", "InvalidMeshError"]
+
+
+class InvalidMeshError(ValueError):
+    """A mesh that violates the ISC requirements (orientation, manifoldness, ...)."""
+
+
+def _segment_first(counts: torch.Tensor) -> torch.Tensor:
+    return torch.cumsum(counts, 0) - counts
+
+
+class MeshBatch:
+    """A batch of triangle meshes in packed form.
+
+    Args:
+        verts: ``(V, 2)`` vertex positions of all items, item by item.
+        faces: ``(T, 3)`` long, global vertex indices, item by item.
+        verts_per_item: ``(B,)`` long, number of vertices of each item.
+        faces_per_item: ``(B,)`` long, number of triangles of each item.
+
+    Example:
+        >>> m = hexagon_mesh(torch.zeros(2, 2), torch.ones(2), resolution=2)
+        >>> m.num_items, m.faces.shape
+        (2, torch.Size([48, 3]))
+        >>> bool((m.signed_areas() > 0).all())
+        True
+    """
+
+    def __init__(self, verts: torch.Tensor, faces: torch.Tensor,
+                 verts_per_item: torch.Tensor, faces_per_item: torch.Tensor):
+        if verts.dim() != 2 or verts.shape[1] != 2:
+            raise InvalidMeshError(f"verts must have shape (V, 2), got {tuple(verts.shape)}")
+        if faces.dim() != 2 or faces.shape[1] != 3:
+            raise InvalidMeshError(f"faces must have shape (T, 3), got {tuple(faces.shape)}")
+        dev = verts.device
+        self.verts = verts
+        self.faces = faces.to(device=dev, dtype=torch.long)
+        self.verts_per_item = torch.as_tensor(verts_per_item, dtype=torch.long, device=dev)
+        self.faces_per_item = torch.as_tensor(faces_per_item, dtype=torch.long, device=dev)
+        if int(self.verts_per_item.sum()) != verts.shape[0] or int(self.faces_per_item.sum()) != faces.shape[0]:
+            raise InvalidMeshError("verts_per_item / faces_per_item do not add up to the packed sizes")
+
+    # ------------------------------------------------------------------ basics
+    @property
+    def num_items(self) -> int:
+        return int(self.verts_per_item.shape[0])
+
+    @property
+    def device(self) -> torch.device:
+        return self.verts.device
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.verts.dtype
+
+    @cached_property
+    def verts_first_idx(self) -> torch.Tensor:
+        """``(B,)`` index of each item's first vertex in the packed tensor."""
+        return _segment_first(self.verts_per_item)
+
+    @cached_property
+    def faces_first_idx(self) -> torch.Tensor:
+        """``(B,)`` index of each item's first triangle in the packed tensor."""
+        return _segment_first(self.faces_per_item)
+
+    @cached_property
+    def vert_item(self) -> torch.Tensor:
+        """``(V,)`` item index of every vertex."""
+        return torch.repeat_interleave(torch.arange(self.num_items, device=self.device), self.verts_per_item)
+
+    @cached_property
+    def face_item(self) -> torch.Tensor:
+        """``(T,)`` item index of every triangle."""
+        return torch.repeat_interleave(torch.arange(self.num_items, device=self.device), self.faces_per_item)
+
+    def with_verts(self, verts: torch.Tensor) -> "MeshBatch":
+        """Same topology, new positions; the combinatorial caches are shared."""
+        if verts.shape != self.verts.shape:
+            raise InvalidMeshError(f"new verts have shape {tuple(verts.shape)}, expected {tuple(self.verts.shape)}")
+        new = MeshBatch.__new__(MeshBatch)
+        new.__dict__.update({k: v for k, v in self.__dict__.items() if k in _TOPOLOGY_CACHES})
+        new.verts = verts
+        new.faces = self.faces
+        new.verts_per_item = self.verts_per_item
+        new.faces_per_item = self.faces_per_item
+        return new
+
+    def detach(self) -> "MeshBatch":
+        return self.with_verts(self.verts.detach())
+
+    def to(self, device=None, dtype=None) -> "MeshBatch":
+        return MeshBatch(self.verts.to(device=device, dtype=dtype), self.faces.to(device),
+                         self.verts_per_item.to(device), self.faces_per_item.to(device))
+
+    # ------------------------------------------------------------ list views
+    def verts_list(self) -> List[torch.Tensor]:
+        return list(torch.split(self.verts, self.verts_per_item.tolist()))
+
+    def faces_list(self) -> List[torch.Tensor]:
+        """Faces of each item with *local* vertex indices."""
+        out = torch.split(self.faces - self.vert_offset_of_face[:, None], self.faces_per_item.tolist())
+        return list(out)
+
+    @cached_property
+    def vert_offset_of_face(self) -> torch.Tensor:
+        return self.verts_first_idx[self.face_item]
+
+    def __getitem__(self, b: int) -> "MeshBatch":
+        v0, nv = int(self.verts_first_idx[b]), int(self.verts_per_item[b])
+        f0, nf = int(self.faces_first_idx[b]), int(self.faces_per_item[b])
+        return MeshBatch(self.verts[v0:v0 + nv], self.faces[f0:f0 + nf] - v0,
+                         self.verts_per_item[b:b + 1], self.faces_per_item[b:b + 1])
+
+    def __len__(self) -> int:
+        return self.num_items
+
+    def __repr__(self) -> str:
+        return (f"MeshBatch(items={self.num_items}, verts={self.verts.shape[0]}, "
+                f"faces={self.faces.shape[0]}, dtype={self.dtype}, device={self.device})")
+
+    @staticmethod
+    def from_list(verts: Sequence[torch.Tensor], faces: Sequence[torch.Tensor]) -> "MeshBatch":
+        """Pack per-item ``(V_b, 2)`` vertices and ``(T_b, 3)`` local-index faces."""
+        if len(verts) != len(faces) or len(verts) == 0:
+            raise InvalidMeshError("from_list needs as many face lists as vertex lists, at least one")
+        nv = torch.tensor([v.shape[0] for v in verts], dtype=torch.long)
+        nf = torch.tensor([f.shape[0] for f in faces], dtype=torch.long)
+        off = _segment_first(nv)
+        dev = verts[0].device
+        fs = torch.cat([f.to(dev).long() + int(o) for f, o in zip(faces, off)], 0)
+        return MeshBatch(torch.cat(list(verts), 0), fs, nv.to(dev), nf.to(dev))
+
+    @staticmethod
+    def cat(meshes: Sequence["MeshBatch"]) -> "MeshBatch":
+        """Concatenate batches item-wise."""
+        vs, fs, nvs, nfs, off = [], [], [], [], 0
+        for m in meshes:
+            vs.append(m.verts)
+            fs.append(m.faces + off)
+            nvs.append(m.verts_per_item)
+            nfs.append(m.faces_per_item)
+            off += m.verts.shape[0]
+        return MeshBatch(torch.cat(vs), torch.cat(fs), torch.cat(nvs), torch.cat(nfs))
+
+    def select_items(self, items: torch.Tensor) -> Tuple["MeshBatch", torch.Tensor, torch.Tensor]:
+        """Sub-batch of the given items (sorted). Returns the mesh, the kept vertex
+        indices and the kept face indices (into this batch's packed tensors)."""
+        with torch.no_grad():
+            keep_item = torch.zeros(self.num_items, dtype=torch.bool, device=self.device)
+            keep_item[items] = True
+            vkeep = keep_item[self.vert_item].nonzero().squeeze(1)
+            fkeep = keep_item[self.face_item].nonzero().squeeze(1)
+            remap = torch.full((self.verts.shape[0],), -1, dtype=torch.long, device=self.device)
+            remap[vkeep] = torch.arange(vkeep.shape[0], device=self.device)
+            faces = remap[self.faces[fkeep]]
+        m = MeshBatch(self.verts[vkeep], faces, self.verts_per_item[keep_item], self.faces_per_item[keep_item])
+        return m, vkeep, fkeep
+
+    # ---------------------------------------------------------- geometry
+    def signed_areas(self, verts: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """``(T,)`` the determinants of eq. 2.2 (twice the signed areas); differentiable."""
+        v = self.verts if verts is None else verts
+        a, b, c = v[self.faces[:, 0]], v[self.faces[:, 1]], v[self.faces[:, 2]]
+        return (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
+
+    def bary_gradients(self, verts: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """``(T, 3, 2)`` the constant gradients of the barycentric coordinates
+        (rows of ``G_t``): the edge opposite each vertex rotated inward, over twice the area."""
+        v = self.verts if verts is None else verts
+        p = v[self.faces]                                    # (T,3,2)
+        e = p[:, [2, 0, 1]] - p[:, [1, 2, 0]]                # edge opposite k: v[k+2]-v[k+1]
+        det = self.signed_areas(v)
+        # rotate (x, y) -> (-y, x) gives the inward normal for a positive triangle
+        g = torch.stack([-e[..., 1], e[..., 0]], -1)
+        return g / det[:, None, None]
+
+    def quality(self, verts: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """``(T,)`` shape quality in (−∞, 1]: 4√3·area / Σ edge², 1 for equilateral."""
+        v = self.verts if verts is None else verts
+        p = v[self.faces]
+        l2 = ((p[:, [1, 2, 0]] - p) ** 2).sum(-1).sum(-1)
+        return 2.0 * math.sqrt(3.0) * self.signed_areas(v) / l2.clamp_min(torch.finfo(v.dtype).tiny)
+
+    def item_bbox(self) -> torch.Tensor:
+        """``(B, 4)`` xmin, ymin, xmax, ymax of each item's vertices."""
+        return _segment_bbox(self.verts.detach(), self.vert_item, self.num_items)
+
+    # ---------------------------------------------------------- topology
+    @cached_property
+    def _edge_data(self):
+        with torch.no_grad():
+            T = self.faces.shape[0]
+            V = max(self.verts.shape[0], 1)
+            a = self.faces[:, [1, 2, 0]].reshape(-1)        # edge opposite k = (v[k+1], v[k+2])
+            b = self.faces[:, [2, 0, 1]].reshape(-1)
+            lo, hi = torch.minimum(a, b), torch.maximum(a, b)
+            key = lo * V + hi
+            uniq, inv, counts = torch.unique(key, return_inverse=True, return_counts=True)
+            edges = torch.stack([uniq // V, uniq % V], 1)
+            face_edges = inv.view(T, 3)
+            E = edges.shape[0]
+            # two slots per edge: the face in which the edge runs lo->hi, and the one hi->lo
+            forward = (a < b).view(T, 3)
+            slot = torch.where(forward, 0, 1)
+            edge_faces = torch.full((E, 2), -1, dtype=torch.long, device=self.device)
+            fid = torch.arange(T, device=self.device)[:, None].expand(T, 3)
+            # detect a non-manifold or inconsistently oriented mesh: two faces on one slot
+            slot_count = torch.zeros((E, 2), dtype=torch.long, device=self.device)
+            slot_count.view(-1).index_add_(0, (face_edges * 2 + slot).reshape(-1),
+                                           torch.ones(3 * T, dtype=torch.long, device=self.device))
+            edge_faces.view(-1).scatter_(0, (face_edges * 2 + slot).reshape(-1), fid.reshape(-1))
+            return edges, face_edges, edge_faces, counts, slot_count
+
+    @property
+    def edges(self) -> torch.Tensor:
+        """``(E, 2)`` long, each undirected edge once, ``edges[:,0] < edges[:,1]``; sorted, so
+        each item's edges are contiguous."""
+        return self._edge_data[0]
+
+    @property
+    def face_edges(self) -> torch.Tensor:
+        """``(T, 3)`` edge index of the edge opposite each triangle corner."""
+        return self._edge_data[1]
+
+    @property
+    def edge_faces(self) -> torch.Tensor:
+        """``(E, 2)`` the triangle in which the edge runs low->high, and the one in which
+        it runs high->low; -1 where there is none (boundary)."""
+        return self._edge_data[2]
+
+    @cached_property
+    def edge_item(self) -> torch.Tensor:
+        return self.vert_item[self.edges[:, 0]]
+
+    @cached_property
+    def edges_per_item(self) -> torch.Tensor:
+        return torch.bincount(self.edge_item, minlength=self.num_items)
+
+    @cached_property
+    def face_neighbors(self) -> torch.Tensor:
+        """``(T, 3)`` the triangle across the edge opposite each corner, -1 on the boundary."""
+        with torch.no_grad():
+            ef = self.edge_faces[self.face_edges]             # (T,3,2)
+            me = torch.arange(self.faces.shape[0], device=self.device)[:, None]
+            return torch.where(ef[..., 0] == me, ef[..., 1], ef[..., 0])
+
+    @cached_property
+    def is_boundary_edge(self) -> torch.Tensor:
+        """``(E,)`` bool."""
+        return (self.edge_faces < 0).any(1)
+
+    @cached_property
+    def is_boundary_vert(self) -> torch.Tensor:
+        """``(V,)`` bool."""
+        out = torch.zeros(self.verts.shape[0], dtype=torch.bool, device=self.device)
+        out[self.edges[self.is_boundary_edge].reshape(-1)] = True
+        return out
+
+    @cached_property
+    def degrees(self) -> torch.Tensor:
+        """``(V,)`` long, number of edges at each vertex."""
+        return torch.bincount(self.edges.reshape(-1), minlength=self.verts.shape[0])
+
+    @cached_property
+    def vert_neighbors(self) -> Tuple[torch.Tensor, torch.Tensor]:
+        """CSR adjacency: ``(first (V+1,), nbrs (2E,))``; the neighbours of ``v`` are
+        ``nbrs[first[v]:first[v+1]]``."""
+        with torch.no_grad():
+            src = torch.cat([self.edges[:, 0], self.edges[:, 1]])
+            dst = torch.cat([self.edges[:, 1], self.edges[:, 0]])
+            order = torch.argsort(src * max(self.verts.shape[0], 1) + dst)
+            first = torch.zeros(self.verts.shape[0] + 1, dtype=torch.long, device=self.device)
+            first[1:] = torch.cumsum(self.degrees, 0)
+            return first, dst[order]
+
+    @cached_property
+    def boundary_edge_dir(self) -> torch.Tensor:
+        """``(V, 2)`` for a non-corner boundary vertex the unit direction of its boundary
+        side, zero elsewhere (used to let such vertices slide along the boundary)."""
+        return self._boundary_data[1]
+
+    @cached_property
+    def is_corner_vert(self) -> torch.Tensor:
+        """``(V,)`` bool, boundary vertices where the outer boundary turns."""
+        return self._boundary_data[0]
+
+    @cached_property
+    def _boundary_data(self):
+        with torch.no_grad():
+            V = self.verts.shape[0]
+            be = self.edges[self.is_boundary_edge]
+            v = self.verts.detach()
+            d = v[be[:, 1]] - v[be[:, 0]]
+            d = d / d.norm(dim=1, keepdim=True).clamp_min(torch.finfo(v.dtype).tiny)
+            # sign the direction consistently with the boundary-vertex pair, sum |cross| per vertex
+            acc = torch.zeros(V, 2, 2, dtype=v.dtype, device=v.device)
+            outer = d[:, :, None] * d[:, None, :]
+            acc.index_add_(0, be[:, 0], outer)
+            acc.index_add_(0, be[:, 1], outer)
+            # two collinear boundary edges give a rank-1 sum of outer products
+            det = acc[:, 0, 0] * acc[:, 1, 1] - acc[:, 0, 1] * acc[:, 1, 0]
+            tr = acc[:, 0, 0] + acc[:, 1, 1]
+            corner = self.is_boundary_vert & (det > 1e-6 * tr.clamp_min(1e-30) ** 2)
+            direc = torch.zeros(V, 2, dtype=v.dtype, device=v.device)
+            direc.index_copy_(0, be[:, 0], d)
+            direc.index_copy_(0, be[:, 1], d)
+            direc[corner | ~self.is_boundary_vert] = 0
+            return corner, direc
+
+    # ---------------------------------------------------------- validity
+    def validate(self, min_det: float = 0.0) -> None:
+        """Raise :class:`InvalidMeshError` unless every item is a positively oriented,
+        edge-manifold, consistently oriented triangle mesh."""
+        with torch.no_grad():
+            V = self.verts.shape[0]
+            if self.faces.numel() and (self.faces.min() < 0 or self.faces.max() >= V):
+                raise InvalidMeshError("a triangle refers to a vertex that does not exist")
+            if not torch.isfinite(self.verts).all():
+                raise InvalidMeshError("vertex positions contain NaN or Inf")
+            if (self.vert_item[self.faces] != self.face_item[:, None]).any():
+                raise InvalidMeshError("a triangle uses vertices of another item")
+            f = self.faces
+            if ((f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])).any():
+                raise InvalidMeshError("a triangle repeats a vertex")
+            det = self.signed_areas()
+            bad = det <= min_det
+            if bad.any():
+                t = int(bad.nonzero()[0])
+                raise InvalidMeshError(
+                    f"{int(bad.sum())} triangle(s) not positively oriented (e.g. triangle {t}, det {float(det[t]):.3g})")
+            counts, slot_count = self._edge_data[3], self._edge_data[4]
+            if (counts > 2).any():
+                raise InvalidMeshError("an edge is shared by more than two triangles")
+            if (slot_count > 1).any():
+                raise InvalidMeshError("two triangles traverse a shared edge in the same direction")
+
+    def is_valid(self, min_det: float = 0.0) -> bool:
+        try:
+            self.validate(min_det)
+        except InvalidMeshError:
+            return False
+        return True
+
+
+_TOPOLOGY_CACHES = {"verts_first_idx", "faces_first_idx", "vert_item", "face_item", "_edge_data",
+                    "edge_item", "edges_per_item", "face_neighbors", "is_boundary_edge",
+                    "is_boundary_vert", "degrees", "vert_neighbors", "vert_offset_of_face",
+                    "_boundary_data", "is_corner_vert", "boundary_edge_dir"}
+
+
+def _segment_bbox(x: torch.Tensor, seg: torch.Tensor, n: int) -> torch.Tensor:
+    big = torch.finfo(x.dtype).max
+    lo = torch.full((n, 2), big, dtype=x.dtype, device=x.device)
+    hi = torch.full((n, 2), -big, dtype=x.dtype, device=x.device)
+    idx = seg[:, None].expand(-1, 2)
+    lo = lo.scatter_reduce(0, idx, x, "amin")
+    hi = hi.scatter_reduce(0, idx, x, "amax")
+    return torch.cat([lo, hi], 1)
+
+
+# ---------------------------------------------------------------- initial meshes
+def _replicate(tv: torch.Tensor, tf: torch.Tensor, center: torch.Tensor, scale: torch.Tensor) -> MeshBatch:
+    B = center.shape[0]
+    nv, nf = tv.shape[0], tf.shape[0]
+    verts = (tv[None] * scale.view(B, 1, 1) + center[:, None, :]).reshape(B * nv, 2)
+    offs = (torch.arange(B, device=center.device) * nv).view(B, 1, 1)
+    faces = (tf[None] + offs).reshape(B * nf, 3)
+    full = lambda n: torch.full((B,), n, dtype=torch.long, device=center.device)  # noqa: E731
+    return MeshBatch(verts, faces, full(nv), full(nf))
+
+
+def hexagon_mesh(center: torch.Tensor, radius: torch.Tensor, resolution: int = 1) -> MeshBatch:
+    """Regular hexagons cut into ``6·resolution²`` equilateral triangles, one per item.
+
+    Args:
+        center: ``(B, 2)`` centres. radius: ``(B,)`` circumradii (centre to corner).
+        resolution: triangles along each hexagon side.
+
+    Example:
+        >>> m = hexagon_mesh(torch.zeros(1, 2), torch.ones(1), 1)
+        >>> m.verts.shape, m.faces.shape
+        (torch.Size([7, 2]), torch.Size([6, 3]))
+    """
+    r = int(resolution)
+    if r < 1:
+        raise ValueError(f"resolution must be >= 1, got {resolution}")
+    dev, dt = center.device, center.dtype
+    # triangular lattice in axial coordinates (q, s), |q|,|s|,|q+s| <= r
+    q, s = torch.meshgrid(torch.arange(-r, r + 1, device=dev), torch.arange(-r, r + 1, device=dev), indexing="ij")
+    q, s = q.reshape(-1), s.reshape(-1)
+    keep = (q + s).abs() <= r
+    q, s = q[keep], s[keep]
+    idx = torch.full((2 * r + 1, 2 * r + 1), -1, dtype=torch.long, device=dev)
+    idx[q + r, s + r] = torch.arange(q.shape[0], device=dev)
+    # lattice vectors a=(1,0), b=(1/2, √3/2): corners of the hexagon at distance r
+    x = (q.to(dt) + 0.5 * s.to(dt)) / r
+    y = (math.sqrt(3.0) / 2.0) * s.to(dt) / r
+    tv = torch.stack([x, y], 1)
+    # up triangles (q,s),(q+1,s),(q,s+1); down triangles (q+1,s),(q+1,s+1),(q,s+1)
+    Q, S = torch.meshgrid(torch.arange(-r, r, device=dev), torch.arange(-r, r, device=dev), indexing="ij")
+    Q, S = Q.reshape(-1), S.reshape(-1)
+
+    def at(a, b):
+        ok = (a >= -r) & (a <= r) & (b >= -r) & (b <= r)
+        out = torch.full_like(a, -1)
+        out[ok] = idx[a[ok] + r, b[ok] + r]
+        return out
+
+    up = torch.stack([at(Q, S), at(Q + 1, S), at(Q, S + 1)], 1)
+    dn = torch.stack([at(Q + 1, S), at(Q + 1, S + 1), at(Q, S + 1)], 1)
+    tf = torch.cat([up, dn], 0)
+    tf = tf[(tf >= 0).all(1)]
+    return _replicate(tv, tf, center, radius.to(dt))
+
+
+def square_mesh(center: torch.Tensor, half_width: torch.Tensor, resolution: int = 1) -> MeshBatch:
+    """Squares cut into ``resolution²`` cells of two triangles each, one per item.
+
+    Diagonals alternate in a checkerboard so the mesh has no preferred direction.
+
+    Args:
+        center: ``(B, 2)``. half_width: ``(B,)``. resolution: cells per side.
+    """
+    n = int(resolution)
+    if n < 1:
+        raise ValueError(f"resolution must be >= 1, got {resolution}")
+    dev, dt = center.device, center.dtype
+    t = torch.linspace(-1.0, 1.0, n + 1, device=dev, dtype=dt)
+    yy, xx = torch.meshgrid(t, t, indexing="ij")
+    tv = torch.stack([xx.reshape(-1), yy.reshape(-1)], 1)
+    I, J = torch.meshgrid(torch.arange(n, device=dev), torch.arange(n, device=dev), indexing="ij")
+    I, J = I.reshape(-1), J.reshape(-1)
+    v00 = I * (n + 1) + J
+    v01, v10, v11 = v00 + 1, v00 + (n + 1), v00 + (n + 1) + 1
+    even = ((I + J) % 2 == 0)[:, None]
+    a = torch.where(even, torch.stack([v00, v01, v11], 1), torch.stack([v00, v01, v10], 1))
+    b = torch.where(even, torch.stack([v00, v11, v10], 1), torch.stack([v01, v11, v10], 1))
+    tf = torch.cat([a, b], 0)
+    return _replicate(tv, tf, center, half_width.to(dt))

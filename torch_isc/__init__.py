@@ -11,7 +11,5 @@ from .result import ReconstructionResult
 
 __version__ = "0.1.0"
 
-try:  # the reconstruction loop (added by the reconstruction issue)
-    from .reconstruct import reconstruct, reconstruct_batch  # noqa: F401
-except ImportError:  # pragma: no cover
-    pass
+
+from .reconstruct import PointSetError, reconstruct, reconstruct_batch

@@ -1,0 +1,123 @@
+"""RelaxMesh (Section 3.5): gradient descent on ``U = κ_D U_D + κ_E U_E``.
+
+``U_D`` (eqs. 3.7-3.8) pushes vertices away from the data and equalizes their
+distances to it; ``U_E`` (eq. 3.9) pulls neighbours together toward equilateral
+triangles. Corners of the outer boundary stay fixed and other boundary vertices slide
+along their side. Each item takes its own step, and a step is accepted only if it
+keeps every triangle of the item positively oriented, keeps triangle quality above a
+floor (no slivers), and lowers the item's ``U`` with the points re-partitioned.
+Dimension-free except for the quality measure and point location it calls.
+"""
+from __future__ import annotations
+
+from typing import Tuple
+
+import torch
+
+from ..locate import barycentric, locate_walk
+from ..mesh import MeshBatch
+
+__all__ = ["mesh_energy", "relax_mesh"]
+
+
+def mesh_energy(mesh: MeshBatch, verts: torch.Tensor, points: torch.Tensor, face: torch.Tensor,
+                kappa_data: float, kappa_edge: float, rho: torch.Tensor, n_points: torch.Tensor,
+                min_dist: torch.Tensor) -> torch.Tensor:
+    """``(B,)`` the mesh energy of every item at vertex positions ``verts (V, 2)``.
+
+    Args:
+        face: ``(P,)`` each point's triangle (-1: ignored). rho: ``(B,)`` mesh diameters.
+        n_points: ``(B,)`` points per item. min_dist: ``(B,)`` distance guard for ``1/|v−p|``.
+    """
+    B = mesh.num_items
+    dt = verts.dtype
+    ok = face >= 0
+    p, f = points[ok].to(dt), face[ok]
+    vid = mesh.faces[f]                                             # (P,3)
+    it = mesh.face_item[f]
+    dist = (verts[vid] - p[:, None, :]).norm(dim=2)
+    inv = 1.0 / torch.maximum(dist, min_dist[it][:, None])
+    phi = torch.zeros(verts.shape[0], dtype=dt, device=verts.device).index_add_(0, vid.reshape(-1), inv.reshape(-1))
+    phi = phi / n_points[mesh.vert_item].clamp_min(1)
+    e = mesh.edges
+    ei = mesh.edge_item
+    UD = torch.zeros(B, dtype=dt, device=verts.device).index_add_(0, ei, (phi[e[:, 0]] - phi[e[:, 1]]) ** 2) * rho ** 2
+    deg = mesh.degrees.to(dt)
+    mdeg = torch.zeros(B, dtype=dt, device=verts.device).index_add_(0, mesh.vert_item, deg) / \
+        mesh.verts_per_item.to(dt).clamp_min(1)
+    nu = deg / mdeg[mesh.vert_item]
+    l2 = ((verts[e[:, 0]] - verts[e[:, 1]]) ** 2).sum(1)
+    UE = torch.zeros(B, dtype=dt, device=verts.device).index_add_(0, ei, nu[e[:, 0]] * nu[e[:, 1]] * l2) / rho ** 2
+    return kappa_data * UD + kappa_edge * UE
+
+
+def relax_mesh(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor, face: torch.Tensor,
+               iterations: int, kappa_data: float, kappa_edge: float, min_quality: float,
+               max_move: float = 0.3, max_backtracks: int = 6) -> Tuple[MeshBatch, torch.Tensor, torch.Tensor]:
+    """Relax the interior of every item's mesh.
+
+    Returns the relaxed mesh, the points' new triangles ``(P,)`` and barycentrics ``(P, 3)``.
+    """
+    B = mesh.num_items
+    dev, dt = mesh.device, mesh.dtype
+    with torch.no_grad():
+        v = mesh.verts.detach().clone()
+        bbox = mesh.item_bbox()
+        rho = (bbox[:, 2:] - bbox[:, :2]).norm(dim=1)
+        n_points = torch.bincount(point_item[face >= 0], minlength=B).to(dt)
+        min_dist = 1e-4 * rho
+        corner = mesh.is_corner_vert
+        side = mesh.is_boundary_vert & ~corner
+        sdir = mesh.boundary_edge_dir
+        e = mesh.edges
+        el = (v[e[:, 0]] - v[e[:, 1]]).norm(dim=1)
+        # shortest incident edge per vertex bounds its move
+        short = torch.full((v.shape[0],), float("inf"), dtype=dt, device=dev)
+        short = short.scatter_reduce(0, torch.cat([e[:, 0], e[:, 1]]), torch.cat([el, el]), "amin")
+        q0 = mesh.quality(v)
+        floor = torch.minimum(q0, torch.full_like(q0, min_quality))
+        active = torch.ones(B, dtype=torch.bool, device=dev)
+    for _ in range(int(iterations)):
+        if not bool(active.any()):
+            break
+        vv = v.clone().requires_grad_(True)
+        with torch.enable_grad():
+            U = mesh_energy(mesh, vv, points, face, kappa_data, kappa_edge, rho, n_points, min_dist)
+            g, = torch.autograd.grad(U.sum(), vv)
+        with torch.no_grad():
+            d = -g
+            d[corner] = 0
+            d[side] = (d[side] * sdir[side]).sum(1, keepdim=True) * sdir[side]
+            d[~active[mesh.vert_item]] = 0
+            # step so that the largest move is max_move of the vertex's shortest edge
+            ratio = d.norm(dim=1) / short
+            worst = torch.zeros(B, dtype=dt, device=dev).scatter_reduce(0, mesh.vert_item, ratio, "amax")
+            step = torch.where(worst > 0, max_move / worst.clamp_min(torch.finfo(dt).tiny), torch.zeros_like(worst))
+            accepted = ~active
+            v_new, face_new = v.clone(), face.clone()
+            for _ in range(max_backtracks):
+                vt = v + step[mesh.vert_item][:, None] * d
+                q = mesh.quality(vt)
+                bad_t = (mesh.signed_areas(vt) <= 0) | (q < floor)
+                bad_item = torch.zeros(B, dtype=torch.bool, device=dev)
+                bad_item[mesh.face_item[bad_t]] = True
+                mt = mesh.with_verts(vt)
+                ft, _ = locate_walk(mt, points, point_item, face)
+                Ut = mesh_energy(mesh, vt, points, ft, kappa_data, kappa_edge, rho, n_points, min_dist)
+                ok = ~accepted & ~bad_item & (Ut < U.detach())
+                if bool(ok.any()):
+                    sel_v = ok[mesh.vert_item]
+                    v_new[sel_v] = vt[sel_v]
+                    sel_p = ok[point_item]
+                    face_new[sel_p] = ft[sel_p]
+                accepted |= ok
+                if bool(accepted.all()):
+                    break
+                step = torch.where(accepted, step, 0.5 * step)
+            active = active & accepted & (step > 0)
+            v, face = v_new, face_new
+    with torch.no_grad():
+        # quality floor for the next level: never below what relaxation was handed
+        out = mesh.with_verts(v)
+        bary = barycentric(v, mesh.faces, face, points.to(dt))
+    return out, face, bary

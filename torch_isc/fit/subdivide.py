@@ -1,0 +1,100 @@
+"""AdaptivelySubdivideMesh (Section 3.4, Fig. 7), on the whole packed batch.
+
+1. mark the vertices of marked triangles; 2. a new vertex at the midpoint of every edge
+with both ends marked; 3. a triangle with three marked vertices splits into four, one
+with two into two (through the midpoint of the edge joining them), others stay. The
+result is conforming by construction and every child keeps the parent's orientation.
+Only bookkeeping: positions of new vertices are midpoints (differentiable in the old
+ones), everything else is index arithmetic under ``no_grad``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from ..mesh import MeshBatch
+
+__all__ = ["Subdivision", "subdivide"]
+
+
+@dataclass
+class Subdivision:
+    """What a subdivision did.
+
+    Attributes:
+        mesh: the new mesh (items still contiguous).
+        children: ``(T_old, 4)`` new triangle indices of each old triangle, ascending, -1 padded.
+        old_to_new_vert: ``(V_old,)`` new index of each old vertex.
+        new_vert_edge: ``(V_new,)`` for a vertex created on an old edge, that edge; -1 for old vertices.
+    """
+    mesh: MeshBatch
+    children: torch.Tensor
+    old_to_new_vert: torch.Tensor
+    new_vert_edge: torch.Tensor
+
+    def interpolate(self, old_values: torch.Tensor, old_edges: torch.Tensor) -> torch.Tensor:
+        """Carry per-vertex values ``(V_old, ...)`` over: new vertices get the mean of their edge's ends."""
+        V = self.new_vert_edge.shape[0]
+        out = old_values.new_zeros((V,) + tuple(old_values.shape[1:]))
+        out = out.index_copy(0, self.old_to_new_vert, old_values)
+        nv = (self.new_vert_edge >= 0).nonzero().squeeze(1)
+        e = old_edges[self.new_vert_edge[nv]]
+        return out.index_copy(0, nv, 0.5 * (old_values[e[:, 0]] + old_values[e[:, 1]]))
+
+
+def subdivide(mesh: MeshBatch, marked: torch.Tensor) -> Subdivision:
+    """Subdivide the marked triangles ``marked (T,)`` bool (and what conformity requires)."""
+    dev = mesh.device
+    with torch.no_grad():
+        V, T = mesh.verts.shape[0], mesh.faces.shape[0]
+        vmark = torch.zeros(V, dtype=torch.bool, device=dev)
+        vmark[mesh.faces[marked].reshape(-1)] = True
+        e = mesh.edges
+        split = vmark[e[:, 0]] & vmark[e[:, 1]]
+        split_ids = split.nonzero().squeeze(1)                  # ascending: item order
+        n_new = split_ids.shape[0]
+        # provisional index: old vertices, then one per split edge; then stable sort by item
+        mid_of_edge = torch.full((e.shape[0],), -1, dtype=torch.long, device=dev)
+        mid_of_edge[split_ids] = V + torch.arange(n_new, device=dev)
+        item_all = torch.cat([mesh.vert_item, mesh.edge_item[split_ids]])
+        perm = torch.sort(item_all, stable=True).indices           # new order -> provisional index
+        rank = torch.empty_like(perm)
+        rank[perm] = torch.arange(perm.shape[0], device=dev)       # provisional -> new index
+
+        fm = vmark[mesh.faces]                                     # (T,3)
+        c = fm.sum(1)
+        nchild = torch.where(c == 3, 4, torch.where(c == 2, 2, 1))
+        mids = mid_of_edge[mesh.face_edges]                        # (T,3) midpoint opposite corner k
+        f = mesh.faces
+        # four-way split
+        v0, v1, v2 = f[:, 0], f[:, 1], f[:, 2]
+        m0, m1, m2 = mids[:, 0], mids[:, 1], mids[:, 2]
+        four = torch.stack([torch.stack([v0, m2, m1], 1), torch.stack([v1, m0, m2], 1),
+                            torch.stack([v2, m1, m0], 1), torch.stack([m0, m1, m2], 1)], 1)   # (T,4,3)
+        # two-way split: k = the unmarked corner, m = midpoint of the opposite edge
+        k = torch.argmin(fm.to(torch.int8), 1)
+        vk = f.gather(1, k[:, None]).squeeze(1)
+        vk1 = f.gather(1, ((k + 1) % 3)[:, None]).squeeze(1)
+        vk2 = f.gather(1, ((k + 2) % 3)[:, None]).squeeze(1)
+        mk = mids.gather(1, k[:, None]).squeeze(1)
+        two = torch.stack([torch.stack([vk, vk1, mk], 1), torch.stack([vk, mk, vk2], 1)], 1)   # (T,2,3)
+        one = f[:, None, :]
+        two_pad = torch.cat([two, one, one], 1)
+        one_pad = one.expand(-1, 4, -1)
+        cand = torch.where((c == 3)[:, None, None], four, torch.where((c == 2)[:, None, None], two_pad, one_pad))
+        slot = torch.arange(4, device=dev)[None, :] < nchild[:, None]   # (T,4)
+        new_faces = rank[cand[slot]]                                      # row-major: parent order kept
+        first = torch.cumsum(nchild, 0) - nchild
+        children = torch.where(slot, first[:, None] + torch.arange(4, device=dev)[None, :], torch.full_like(slot, -1, dtype=torch.long))
+
+        new_vert_edge = torch.full((V + n_new,), -1, dtype=torch.long, device=dev)
+        new_vert_edge[V:] = split_ids
+        new_vert_edge = new_vert_edge[perm]
+        B = mesh.num_items
+        vpi = mesh.verts_per_item + torch.bincount(mesh.edge_item[split_ids], minlength=B)
+        fpi = torch.zeros(B, dtype=torch.long, device=dev).index_add_(0, mesh.face_item, nchild)
+    mid_pos = 0.5 * (mesh.verts[e[split_ids, 0]] + mesh.verts[e[split_ids, 1]])
+    verts = torch.cat([mesh.verts, mid_pos], 0)[perm]
+    new_mesh = MeshBatch(verts, new_faces, vpi, fpi)
+    return Subdivision(new_mesh, children, rank[:V], new_vert_edge)

@@ -1,0 +1,130 @@
+"""Testing (Section 3.3) and the noise estimate that guards it.
+
+The paper's test marks a triangle when the largest squared distance of its points to the
+curve exceeds ``δ``. On noisy data that test cannot pass once triangles are small, and
+refinement then runs until sparse triangles make spurious loops. So the tolerance of an
+item is never below ``noise_factor ×`` its estimated noise, a triangle needs
+``min_points_split`` points before its error alone can split it, and a triangle whose
+line-fit error is far above the noise (two strokes of a thin feature in one triangle) is
+split even with few points.
+"""
+from __future__ import annotations
+
+from typing import Tuple
+
+import torch
+
+from ..mesh import MeshBatch
+
+__all__ = ["estimate_noise", "segment_median", "triangle_errors", "mark_triangles"]
+
+
+def _morton(q: torch.Tensor) -> torch.Tensor:
+    """Interleave the bits of two 16-bit integer coordinates ``(P, 2)`` -> ``(P,)``."""
+    def spread(x):
+        x = x & 0xFFFF
+        x = (x | (x << 8)) & 0x00FF00FF
+        x = (x | (x << 4)) & 0x0F0F0F0F
+        x = (x | (x << 2)) & 0x33333333
+        x = (x | (x << 1)) & 0x55555555
+        return x
+    return spread(q[:, 0]) | (spread(q[:, 1]) << 1)
+
+
+def segment_median(x: torch.Tensor, seg: torch.Tensor, n: int) -> torch.Tensor:
+    """Lower median of ``x`` within each segment (0 for empty segments)."""
+    if x.numel() == 0:
+        return torch.zeros(n, dtype=x.dtype, device=x.device)
+    o1 = torch.argsort(x, stable=True)
+    o2 = torch.argsort(seg[o1], stable=True)
+    order = o1[o2]
+    cnt = torch.bincount(seg, minlength=n)
+    first = torch.cumsum(cnt, 0) - cnt
+    mid = (first + (cnt - 1).clamp_min(0) // 2).clamp_max(x.numel() - 1)
+    return torch.where(cnt > 0, x[order][mid], torch.zeros(n, dtype=x.dtype, device=x.device))
+
+
+def estimate_noise(points: torch.Tensor, point_item: torch.Tensor, num_items: int, k: int = 8,
+                   window: int = 12) -> torch.Tensor:
+    """``(B,)`` noise level (a standard deviation, in the points' units) of each item.
+
+    For every point, a line is fitted to its ``k`` nearest neighbours (approximate: taken
+    among its neighbours along two shifted Morton orders, so the cost is a sort, not a
+    search); the noise variance is the median over the item of the residual variance,
+    corrected for the two degrees of freedom of the fit. Points are expected normalized
+    per item (bounding box centred, diagonal 1).
+    """
+    with torch.no_grad():
+        P = points.shape[0]
+        dev, dt = points.device, points.dtype
+        if P < 3:
+            return torch.zeros(num_items, dtype=dt, device=dev)
+        cands = []
+        for shift in (0.0, 0.3719):
+            q = ((points + 0.75 + shift * 0.5) / 2.0 * 65535).long().clamp(0, 65535)
+            key = point_item * (1 << 32) + _morton(q)
+            order = torch.argsort(key, stable=True)
+            pos = torch.empty_like(order)
+            pos[order] = torch.arange(P, device=dev)
+            offs = torch.cat([torch.arange(-window, 0, device=dev), torch.arange(1, window + 1, device=dev)])
+            j = (pos[:, None] + offs[None, :]).clamp(0, P - 1)
+            cands.append(order[j])
+        c = torch.cat(cands, 1)                                       # (P, 4W)
+        c, _ = torch.sort(c, 1)
+        dup = torch.zeros_like(c, dtype=torch.bool)
+        dup[:, 1:] = c[:, 1:] == c[:, :-1]
+        self_or_other = (c == torch.arange(P, device=dev)[:, None]) | (point_item[c] != point_item[:, None]) | dup
+        d2 = ((points[c] - points[:, None, :]) ** 2).sum(-1)
+        d2 = torch.where(self_or_other, torch.full_like(d2, float("inf")), d2)
+        kk = min(k, c.shape[1])
+        nd, ni = torch.topk(d2, kk, dim=1, largest=False)
+        nbr = c.gather(1, ni)
+        valid = torch.isfinite(nd)
+        pts = torch.cat([points[:, None, :], points[nbr]], 1)          # (P, k+1, 2)
+        w = torch.cat([torch.ones(P, 1, dtype=torch.bool, device=dev), valid], 1).to(dt)
+        m = w.sum(1)
+        mean = (pts * w[..., None]).sum(1) / m[:, None]
+        qd = (pts - mean[:, None, :]) * w[..., None]
+        C = torch.einsum("pki,pkj->pij", qd, qd) / m[:, None, None]
+        a, b, d = C[:, 0, 0], C[:, 0, 1], C[:, 1, 1]
+        lam = (0.5 * (a + d) - torch.sqrt((0.5 * (a - d)) ** 2 + b * b)).clamp_min(0)
+        lam = lam * m / (m - 2).clamp_min(1)
+        ok = m >= 4
+        var = segment_median(lam[ok], point_item[ok], num_items)
+        return var.sqrt()
+
+
+def triangle_errors(mesh: MeshBatch, residual: torch.Tensor, face: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Per triangle, the max and the mean of the points' squared distances ``residual (P,)``."""
+    T = mesh.faces.shape[0]
+    ok = face >= 0
+    f, r = face[ok], residual[ok]
+    mx = torch.zeros(T, dtype=residual.dtype, device=residual.device).scatter_reduce(0, f, r, "amax")
+    sm = torch.zeros(T, dtype=residual.dtype, device=residual.device).index_add_(0, f, r)
+    cnt = torch.bincount(f, minlength=T).to(residual.dtype)
+    return mx, sm / cnt.clamp_min(1)
+
+
+def mark_triangles(mesh: MeshBatch, residual: torch.Tensor, face: torch.Tensor, count: torch.Tensor,
+                   line_eps: torch.Tensor, tol: torch.Tensor, noise: torch.Tensor, statistic: str,
+                   noise_factor: float, min_points_split: int, min_points_fit: int,
+                   thin_factor: float) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Mark the triangles that fail the test.
+
+    Args:
+        residual: ``(P,)`` squared point-to-curve distances. count: ``(T,)`` points per triangle.
+        line_eps: ``(T,)`` line-fit errors. tol, noise: ``(B,)`` distances.
+    Returns:
+        marked ``(T,)`` bool, the effective tolerance ``(B,)`` and the largest error ``(B,)``
+        (a distance, the chosen statistic).
+    """
+    fi = mesh.face_item
+    mx, mean = triangle_errors(mesh, residual, face)
+    stat = mx if statistic == "max" else mean
+    eff = torch.maximum(tol, noise_factor * noise)
+    fails = stat > eff[fi] ** 2
+    marked = fails & (count >= min_points_split)
+    thin = torch.maximum(tol, thin_factor * noise)
+    marked |= (count >= min_points_fit) & (line_eps > thin[fi] ** 2) & fails
+    worst = torch.zeros(mesh.num_items, dtype=stat.dtype, device=stat.device).scatter_reduce(0, fi, stat, "amax")
+    return marked, eff, worst.sqrt()

@@ -1,0 +1,231 @@
+"""EstimateTopology (Section 3.2): local line fits, edge weights, Ising model, annealing.
+
+The 2×2 line fit is the only dimension-specific part; the Ising model on the mesh
+graph, the colouring and the annealer work on any simplicial mesh's edge list.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import torch
+
+from ..mesh import MeshBatch
+
+__all__ = ["TriangleMoments", "triangle_moments", "line_fits", "edge_weights", "vertex_coloring",
+           "anneal", "ising_energy", "hash_uniform"]
+
+
+@dataclass
+class TriangleMoments:
+    """Per-triangle sums over the points inside it (eq. 3.2 and the line fit).
+
+    Attributes:
+        count: ``(T,)`` number of points. M: ``(T, 3, 3)`` mean of ``X_t(p) X_t(p)ᵀ``.
+        centroid: ``(T, 2)`` mean point (triangle centroid where empty).
+        scatter: ``(T, 2, 2)`` covariance of the points.
+    """
+    count: torch.Tensor
+    M: torch.Tensor
+    centroid: torch.Tensor
+    scatter: torch.Tensor
+
+
+def triangle_moments(mesh: MeshBatch, points: torch.Tensor, face: torch.Tensor, bary: torch.Tensor) -> TriangleMoments:
+    """Scatter-add the moments of ``points (P, 2)`` located in ``face (P,)`` with ``bary (P, 3)``.
+
+    Cost O(P); afterwards Δ1 costs O(T) per evaluation. Points with ``face < 0`` are ignored.
+    """
+    T = mesh.faces.shape[0]
+    dt = mesh.dtype
+    ok = face >= 0
+    f, X = face[ok], bary[ok].to(dt)
+    p = points[ok].to(dt)
+    count = torch.zeros(T, dtype=dt, device=mesh.device).index_add_(0, f, torch.ones_like(f, dtype=dt))
+    M = torch.zeros(T, 9, dtype=dt, device=mesh.device).index_add_(0, f, (X[:, :, None] * X[:, None, :]).reshape(-1, 9))
+    # moments about the triangle centroid keep float32 accurate on small triangles
+    tc = mesh.verts.detach()[mesh.faces].mean(1)
+    q = p - tc[f]
+    s1 = torch.zeros(T, 2, dtype=dt, device=mesh.device).index_add_(0, f, q)
+    s2 = torch.zeros(T, 4, dtype=dt, device=mesh.device).index_add_(0, f, (q[:, :, None] * q[:, None, :]).reshape(-1, 4))
+    n = count.clamp_min(1)
+    mean = s1 / n[:, None]
+    cov = s2.view(T, 2, 2) / n[:, None, None] - mean[:, :, None] * mean[:, None, :]
+    return TriangleMoments(count, M.view(T, 3, 3) / n[:, None, None], tc + mean, cov)
+
+
+def line_fits(mesh: MeshBatch, mom: TriangleMoments):
+    """Closed-form least-squares line in every triangle.
+
+    Returns:
+        L ``(T, 3)``: signed distances of the triangle's vertices to its line (the
+        minimizer of ``Lᵀ M L / Lᵀ N L`` up to scale); eps ``(T,)``: mean squared distance
+        of the points to the line (the local error of fit ``ε_t``); normal ``(T, 2)``.
+    """
+    C = mom.scatter
+    a, b, d = C[:, 0, 0], C[:, 0, 1], C[:, 1, 1]
+    half_diff = 0.5 * (a - d)
+    rad = torch.sqrt(half_diff * half_diff + b * b)
+    lam = (0.5 * (a + d) - rad).clamp_min(0)
+    # eigenvector of the smallest eigenvalue; pick the better-conditioned of two formulas
+    v1 = torch.stack([b, (0.5 * (a + d) - rad) - a], 1)
+    v2 = torch.stack([(0.5 * (a + d) - rad) - d, b], 1)
+    n1, n2 = v1.norm(dim=1), v2.norm(dim=1)
+    v = torch.where((n1 >= n2)[:, None], v1, v2)
+    nv = v.norm(dim=1, keepdim=True)
+    iso = nv.squeeze(1) <= 1e-30
+    normal = torch.where(iso[:, None], torch.tensor([0.0, 1.0], dtype=C.dtype, device=C.device).expand_as(v),
+                         v / nv.clamp_min(1e-30))
+    tri = mesh.verts.detach()[mesh.faces]                    # (T,3,2)
+    L = ((tri - mom.centroid[:, None, :]) * normal[:, None, :]).sum(-1)
+    return L, lam, normal
+
+
+def edge_weights(mesh: MeshBatch, L: torch.Tensor, eps: torch.Tensor, count: torch.Tensor,
+                 min_points: int, empty_weight: float) -> torch.Tensor:
+    """Edge weights ``H_e`` of eq. 3.6 (``(E,)``).
+
+    Triangles with ``min_points`` or more points contribute ``w_t = (ε_max−ε_t)/(ε_max−ε_min)``
+    (extremes per item); empty triangles contribute ``L = (1,1,1)`` with ``empty_weight``;
+    triangles with 1..min_points−1 points give no evidence (their fit error is not meaningful).
+    """
+    dt = L.dtype
+    B = mesh.num_items
+    fit = count >= min_points
+    empty = count == 0
+    fi = mesh.face_item
+    big = torch.finfo(dt).max
+    emax = torch.full((B,), -big, dtype=dt, device=L.device).scatter_reduce(0, fi[fit], eps[fit], "amax")
+    emin = torch.full((B,), big, dtype=dt, device=L.device).scatter_reduce(0, fi[fit], eps[fit], "amin")
+    span = (emax - emin)[fi]
+    w = torch.where(span > 0, (emax[fi] - eps) / span.clamp_min(torch.finfo(dt).tiny), torch.ones_like(eps))
+    w = torch.where(fit, w, torch.zeros_like(w))
+    w = torch.where(empty, torch.full_like(w, float(empty_weight)), w)
+    sig = torch.where(empty[:, None], torch.ones_like(L), torch.where(L >= 0, 1.0, -1.0).to(dt))
+    # edge k of a face joins corners k+1 and k+2
+    prod = sig[:, [1, 2, 0]] * sig[:, [2, 0, 1]]
+    H = torch.zeros(mesh.edges.shape[0], dtype=dt, device=L.device)
+    H.index_add_(0, mesh.face_edges.reshape(-1), (-prod * w[:, None]).reshape(-1))
+    return H
+
+
+# ------------------------------------------------------------------- Ising model
+def _mix32(x: torch.Tensor) -> torch.Tensor:
+    """A 32-bit integer hash (lowbias32-like) in int64 arithmetic."""
+    m = 0xFFFFFFFF
+    x = x & m
+    x = ((x >> 16) ^ x) * 0x7FEB352D & m
+    x = ((x >> 15) ^ x) * 0x846CA68B & m
+    x = (x >> 16) ^ x
+    return x
+
+
+def hash_uniform(*keys: torch.Tensor, dtype=torch.float32) -> torch.Tensor:
+    """Uniform numbers in (0, 1) from integer keys: a counter-based generator, so an item's
+    random stream depends only on its own keys (seed, local index, step), not on its batch."""
+    h = torch.zeros_like(keys[0], dtype=torch.long)
+    for k in keys:
+        h = _mix32(h * 0x9E3779B1 + k.long() + 0x632BE5AB)
+    return ((h.to(torch.float64) + 0.5) / 4294967296.0).to(dtype)
+
+
+def vertex_coloring(mesh: MeshBatch, active: Optional[torch.Tensor] = None, max_colors: int = 64) -> torch.Tensor:
+    """Greedy colouring (Jones–Plassmann with hashed priorities): adjacent vertices get
+    different colours; ``-1`` for inactive vertices. Depends only on each item's own mesh."""
+    with torch.no_grad():
+        V = mesh.verts.shape[0]
+        dev = mesh.device
+        local = torch.arange(V, device=dev) - mesh.verts_first_idx[mesh.vert_item]
+        prio = _mix32(local * 2654435761 + 12345) * V + local        # unique within an item
+        color = torch.full((V,), -1, dtype=torch.long, device=dev)
+        todo = torch.ones(V, dtype=torch.bool, device=dev) if active is None else active.clone()
+        e = mesh.edges
+        src = torch.cat([e[:, 0], e[:, 1]])
+        dst = torch.cat([e[:, 1], e[:, 0]])
+        while bool(todo.any()):
+            pr = torch.where(todo, prio, torch.full_like(prio, -1))
+            nmax = torch.full((V,), -1, dtype=torch.long, device=dev).scatter_reduce(0, dst, pr[src], "amax")
+            pick = todo & (prio > nmax)
+            used = torch.zeros(V, max_colors + 1, dtype=torch.bool, device=dev)
+            cs = color[src]
+            has = cs >= 0
+            used[dst[has], cs[has]] = True
+            free = torch.argmax((~used).to(torch.int8), 1)
+            color[pick] = free[pick]
+            todo &= ~pick
+        return color
+
+
+def _padded_neighbors(mesh: MeshBatch, H: torch.Tensor):
+    first, nbrs = mesh.vert_neighbors
+    V = mesh.verts.shape[0]
+    deg = first[1:] - first[:-1]
+    D = int(deg.max()) if V else 0
+    slot = torch.arange(nbrs.shape[0], device=H.device) - torch.repeat_interleave(first[:-1], deg)
+    owner = torch.repeat_interleave(torch.arange(V, device=H.device), deg)
+    nb = torch.full((V, max(D, 1)), 0, dtype=torch.long, device=H.device)
+    nb[owner, slot] = nbrs
+    # weight of the edge (owner, nbr): edges are sorted (lo, hi) pairs
+    lo, hi = torch.minimum(owner, nbrs), torch.maximum(owner, nbrs)
+    key = lo * V + hi
+    ekey = mesh.edges[:, 0] * V + mesh.edges[:, 1]
+    eid = torch.searchsorted(ekey, key)
+    w = torch.zeros(V, max(D, 1), dtype=H.dtype, device=H.device)
+    w[owner, slot] = H[eid]
+    return nb, w
+
+
+def ising_energy(mesh: MeshBatch, H: torch.Tensor, signs: torch.Tensor) -> torch.Tensor:
+    """``Σ_e H_e F_i F_j`` per item; ``signs (V,)`` or ``(V, R)`` -> ``(B,)`` or ``(B, R)``."""
+    e = mesh.edges
+    s = signs if signs.dim() == 2 else signs[:, None]
+    t = H[:, None] * s[e[:, 0]] * s[e[:, 1]]
+    out = torch.zeros(mesh.num_items, s.shape[1], dtype=H.dtype, device=H.device).index_add_(0, mesh.edge_item, t)
+    return out if signs.dim() == 2 else out[:, 0]
+
+
+def anneal(mesh: MeshBatch, H: torch.Tensor, init: torch.Tensor, fixed: torch.Tensor, sweeps: int,
+           t_start: float, t_end: float, replicas: int = 4, seed: int = 0, greedy_sweeps: int = 4) -> torch.Tensor:
+    """Minimize the Ising energy ``Σ_e H_e F_i F_j`` over ``F ∈ {−1, 1}`` by simulated annealing.
+
+    Vertices of one colour are never adjacent, so each colour class is updated in parallel
+    (Metropolis) for the whole batch and all ``replicas`` at once. Temperatures fall
+    geometrically from ``t_start`` to ``t_end``; a few zero-temperature sweeps finish, and the
+    replica of lowest energy is kept per item (ties to the lowest replica).
+
+    Args:
+        init: ``(V,)`` ±1 start. fixed: ``(V,)`` bool, vertices held at their ``init`` value.
+    Returns:
+        ``(V,)`` ±1 signs (dtype of ``H``).
+    """
+    with torch.no_grad():
+        dev, dt = H.device, H.dtype
+        V = mesh.verts.shape[0]
+        R = max(int(replicas), 1)
+        color = vertex_coloring(mesh, ~fixed)
+        ncol = int(color.max()) + 1 if V and (color >= 0).any() else 0
+        groups = [(color == c).nonzero().squeeze(1) for c in range(ncol)]
+        nb, w = _padded_neighbors(mesh, H)
+        s = init.to(dt)[:, None].repeat(1, R)
+        local = torch.arange(V, device=dev) - mesh.verts_first_idx[mesh.vert_item]
+        rep = torch.arange(R, device=dev)
+        total = int(sweeps) + int(greedy_sweeps)
+        ratio = (t_end / t_start) ** (1.0 / max(int(sweeps) - 1, 1))
+        for k in range(total):
+            T = t_start * ratio ** k if k < sweeps else 0.0
+            for c, g in enumerate(groups):
+                if g.numel() == 0:
+                    continue
+                h = (w[g][:, :, None] * s[nb[g]]).sum(1)          # (n, R) local field
+                dE = -2.0 * s[g] * h                              # energy change of a flip
+                if T > 0:
+                    u = hash_uniform(torch.full_like(g, seed)[:, None].expand(-1, R), local[g][:, None].expand(-1, R),
+                                     rep[None, :].expand(g.shape[0], -1), torch.full_like(g, k * 64 + c)[:, None].expand(-1, R),
+                                     dtype=dt)
+                    acc = (dE < 0) | (u < torch.exp(-dE.clamp_min(0) / T))
+                else:
+                    acc = dE < 0
+                s[g] = torch.where(acc, -s[g], s[g])
+        E = ising_energy(mesh, H, s)                              # (B, R)
+        best = torch.argmin(E, 1)                                 # first minimum
+        return s.gather(1, best[mesh.vert_item][:, None]).squeeze(1)

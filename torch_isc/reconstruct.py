@@ -1,0 +1,245 @@
+"""The reconstruction loop of Fig. 3, on a packed batch of point sets.
+
+::
+
+    InitializeMesh
+    for level in 0..max_level:
+        EstimateTopology; EstimateGeometry
+        if no triangle fails the test: done
+        AdaptivelySubdivideMesh; RelaxMesh
+
+Every stage runs on all unfinished items at once; an item that finishes leaves the
+working set, so the others do not pay for it, and nothing an item computes depends on
+the other items of its batch (per-item annealing streams, per-item L-BFGS and relaxation
+steps). Coordinates are normalized per item (bounding box centred, diagonal 1) and all
+outputs are mapped back, so results do not depend on translation or scale.
+"""
+from __future__ import annotations
+
+import math
+import time
+from typing import Any, Callable, Dict, List, Optional, Sequence, Union
+
+import numpy as np
+import torch
+
+from .config import ReconstructConfig
+from .curve import ImplicitCurve
+from .fit.geometry import fit_geometry, point_residuals, vertex_data_distance
+from .fit.relax import relax_mesh
+from .fit.subdivide import subdivide
+from .fit.tolerance import estimate_noise, mark_triangles
+from .fit.topology import anneal, edge_weights, line_fits, triangle_moments
+from .locate import locate_children, locate_grid
+from .mesh import MeshBatch, hexagon_mesh, square_mesh
+from .result import ReconstructionResult
+
+__all__ = ["reconstruct", "reconstruct_batch", "PointSetError"]
+
+PointsLike = Union[torch.Tensor, np.ndarray, Sequence[Sequence[float]]]
+
+
+class PointSetError(ValueError):
+    """A point set that cannot be reconstructed (too few points, NaN, wrong shape...)."""
+
+
+def _check_points(x: PointsLike, label: str) -> torch.Tensor:
+    if not isinstance(x, torch.Tensor):
+        try:
+            x = torch.as_tensor(np.asarray(x, dtype=np.float64))
+        except (TypeError, ValueError) as e:
+            raise PointSetError(f"{label}: not an array of numbers ({e})") from None
+    if x.dim() != 2 or x.shape[1] != 2:
+        raise PointSetError(f"{label}: expected points of shape (N, 2), got {tuple(x.shape)}")
+    if not (x.dtype.is_floating_point or x.dtype in (torch.int16, torch.int32, torch.int64, torch.uint8, torch.int8)):
+        raise PointSetError(f"{label}: expected real coordinates, got dtype {x.dtype}")
+    if x.shape[0] == 0:
+        raise PointSetError(f"{label}: no points")
+    bad = ~torch.isfinite(x.double()).all(1)
+    if bad.any():
+        raise PointSetError(f"{label}: {int(bad.sum())} point(s) have NaN or Inf coordinates")
+    n_distinct = torch.unique(x.double(), dim=0).shape[0]
+    if n_distinct < 3:
+        raise PointSetError(f"{label}: needs at least 3 distinct points, got {n_distinct}")
+    return x
+
+
+def _initial_mesh(cfg: ReconstructConfig, B: int, device, dtype) -> MeshBatch:
+    center = torch.zeros(B, 2, device=device, dtype=dtype)
+    # normalized data lie in a disc of radius 1/2; cover it with the margin
+    cover = 0.5 + cfg.margin
+    if cfg.initial_mesh == "hexagon":
+        radius = torch.full((B,), cover * 2.0 / math.sqrt(3.0), device=device, dtype=dtype)
+        return hexagon_mesh(center, radius, cfg.initial_resolution)
+    half = torch.full((B,), cover, device=device, dtype=dtype)
+    return square_mesh(center, half, cfg.initial_resolution)
+
+
+def reconstruct(points: PointsLike, config: Optional[ReconstructConfig] = None, name: Optional[str] = None,
+                sign_oracle: Optional[Callable[[torch.Tensor], torch.Tensor]] = None) -> ReconstructionResult:
+    """Reconstruct the curves of one point set.
+
+    Args:
+        points: ``(N, 2)`` unorganized points (tensor, array or nested lists).
+        config: :class:`ReconstructConfig` (defaults when None).
+        name: a label carried into the result.
+        sign_oracle: optional inside/outside function: maps ``(M, 2)`` points (caller's
+            coordinates) to ``(M,)`` booleans, True inside. When given, vertex signs come
+            from it instead of topology estimation.
+
+    Example:
+        >>> t = torch.linspace(0, 2 * math.pi, 101)[:-1]
+        >>> res = reconstruct(torch.stack([t.cos(), t.sin()], 1))
+        >>> res.num_closed, res.num_open
+        (1, 0)
+    """
+    oracles = None if sign_oracle is None else [sign_oracle]
+    return reconstruct_batch([points], config, None if name is None else [name], oracles)[0]
+
+
+def reconstruct_batch(point_sets: Sequence[PointsLike], config: Optional[ReconstructConfig] = None,
+                      names: Optional[Sequence[Optional[str]]] = None,
+                      sign_oracles: Optional[Sequence[Optional[Callable]]] = None) -> List[ReconstructionResult]:
+    """Reconstruct many point sets in one batched solve; one result per set, in order.
+
+    An item's result does not depend on the other items of the batch.
+    """
+    cfg = config if config is not None else ReconstructConfig()
+    if len(point_sets) == 0:
+        return []
+    names = list(names) if names is not None else [None] * len(point_sets)
+    labels = [n if n is not None else f"point set {i}" for i, n in enumerate(names)]
+    raw = [_check_points(p, lab) for p, lab in zip(point_sets, labels)]
+    device = raw[0].device
+    for p, lab in zip(raw, labels):
+        if p.device != device:
+            raise PointSetError(f"{lab}: on {p.device}, but the batch is on {device}")
+    dtype = torch.float64 if cfg.dtype == "float64" else torch.float32
+    B = len(raw)
+
+    with torch.no_grad():
+        # normalize in float64, then cast: large offsets (1e7) must not cost precision
+        lo = torch.stack([p.double().min(0).values for p in raw])
+        hi = torch.stack([p.double().max(0).values for p in raw])
+        center64 = 0.5 * (lo + hi)
+        scale64 = (hi - lo).norm(dim=1)
+        counts = torch.tensor([p.shape[0] for p in raw], device=device)
+        point_item = torch.repeat_interleave(torch.arange(B, device=device), counts)
+        pts64 = torch.cat([p.double() for p in raw])
+        pts = ((pts64 - center64[point_item]) / scale64[point_item, None]).to(dtype)
+        scale = scale64.to(dtype)
+        tol = torch.full((B,), cfg.tolerance, dtype=dtype, device=device)
+        if cfg.tolerance_mode == "absolute":
+            tol = (cfg.tolerance / scale64).to(dtype)
+        noise = estimate_noise(pts, point_item, B)
+
+    results: List[Optional[ReconstructionResult]] = [None] * B
+    stats: List[List[Dict[str, Any]]] = [[] for _ in range(B)]
+    orig = torch.arange(B, device=device)              # working item -> original item
+
+    mesh = _initial_mesh(cfg, B, device, dtype)
+    face, bary = locate_grid(mesh, pts, point_item)
+    signs = torch.ones(mesh.verts.shape[0], dtype=dtype, device=device)
+
+    for level in range(cfg.max_level + 1):
+        t0 = time.perf_counter()
+        nb = mesh.num_items
+        with torch.no_grad():
+            mom = triangle_moments(mesh, pts, face, bary)
+            fixed = mesh.is_boundary_vert
+            if sign_oracles is not None:
+                signs = _oracle_signs(mesh, sign_oracles, orig, center64, scale64, dtype)
+            else:
+                L, eps, _ = line_fits(mesh, mom)
+                H = edge_weights(mesh, L, eps, mom.count, cfg.min_points_fit, cfg.empty_weight)
+                init = torch.where(fixed, torch.ones_like(signs), signs)
+                t_start = cfg.anneal_t_start if level == 0 else min(cfg.anneal_warm_t_start, cfg.anneal_t_start)
+                signs = anneal(mesh, H, init, fixed, cfg.anneal_sweeps, t_start, cfg.anneal_t_end,
+                               cfg.anneal_replicas, cfg.seed)
+            init_mag = vertex_data_distance(mesh, pts, face)
+        values, d1 = fit_geometry(mesh, mom, signs, init_mag, tol[orig], cfg.lbfgs_iterations, cfg.lbfgs_history,
+                                  cfg.magnitude_floor, cfg.smoothness)
+        with torch.no_grad():
+            values = values.detach()
+            residual = point_residuals(mesh, values, face, bary)
+            if sign_oracles is None:
+                eps_t = eps
+            else:
+                eps_t = line_fits(mesh, mom)[1]
+            marked, eff_tol, worst = mark_triangles(
+                mesh, residual, face, mom.count, eps_t, tol[orig], noise[orig], cfg.test_statistic,
+                cfg.noise_factor, cfg.min_points_split, cfg.min_points_fit, cfg.thin_feature_factor)
+            n_marked = torch.zeros(nb, dtype=torch.long, device=device).index_add_(0, mesh.face_item, marked.long())
+            # a subdivision at most quadruples the marked triangles and their neighbours
+            grow = torch.zeros(nb, dtype=torch.long, device=device).index_add_(0, mesh.face_item, marked.long() * 9)
+            over = (mesh.faces_per_item + grow) > cfg.max_triangles
+            done = (n_marked == 0) | over | (level == cfg.max_level)
+            seconds = time.perf_counter() - t0
+            pts_per_item = torch.bincount(point_item, minlength=nb)
+            s_list = scale[orig]
+            for j in range(nb):                    # bookkeeping per item, not a hot path
+                b = int(orig[j])
+                sc = float(s_list[j])
+                stats[b].append({
+                    "level": level, "triangles": int(mesh.faces_per_item[j]), "points": int(pts_per_item[j]),
+                    "delta1": float(d1[j]) * sc * sc, "max_error": float(worst[j]) * sc,
+                    "tolerance": float(eff_tol[j]) * sc, "noise": float(noise[b]) * sc,
+                    "marked": int(n_marked[j]), "seconds": seconds})
+            fin = done.nonzero().squeeze(1)
+            if fin.numel():
+                sub, vk, _ = mesh.select_items(fin)
+                curve_vals = values[vk]
+                for jj, j in enumerate(fin.tolist()):
+                    b = int(orig[j])
+                    limit = None
+                    if n_marked[j] > 0:
+                        limit = "max_triangles" if bool(over[j]) else "max_level"
+                    m1 = sub[jj]
+                    v0 = int(sub.verts_first_idx[jj])
+                    vals = curve_vals[v0:v0 + m1.verts.shape[0]]
+                    out_mesh = m1.with_verts(m1.verts * scale64[b].to(dtype) + center64[b].to(dtype))
+                    curve = ImplicitCurve(out_mesh, vals * scale64[b].to(dtype), validate=False)
+                    results[b] = ReconstructionResult(curve=curve, points=raw[b], stats=stats[b], config=cfg,
+                                                      converged=bool(n_marked[j] == 0), limit=limit, name=names[b])
+            keep = (~done).nonzero().squeeze(1)
+            if keep.numel() == 0:
+                break
+            # shrink the working set to the unfinished items
+            if fin.numel():
+                n_faces_before = mesh.faces.shape[0]
+                mesh, vk, fk = mesh.select_items(keep)
+                values, signs, marked = values[vk], signs[vk], marked[fk]
+                keep_p = (~done)[point_item]
+                remap_f = torch.full((n_faces_before,), -1, dtype=torch.long, device=device)
+                remap_f[fk] = torch.arange(fk.shape[0], device=device)
+                new_item = torch.full((nb,), -1, dtype=torch.long, device=device)
+                new_item[keep] = torch.arange(keep.shape[0], device=device)
+                fkp = face[keep_p]
+                pts, face = pts[keep_p], torch.where(fkp >= 0, remap_f[fkp.clamp_min(0)], fkp)
+                point_item = new_item[point_item[keep_p]]
+                orig = orig[keep]
+            old_edges = mesh.edges
+            sd = subdivide(mesh, marked)
+            mesh = sd.mesh
+            values = sd.interpolate(values, old_edges)
+            signs = torch.where(values < 0, -1.0, 1.0).to(dtype)
+            face, bary = locate_children(mesh, pts, face, sd.children)
+        if cfg.relax_iterations > 0:
+            mesh, face, bary = relax_mesh(mesh, pts, point_item, face, cfg.relax_iterations, cfg.kappa_data,
+                                          cfg.kappa_edge, cfg.min_quality)
+    return results  # type: ignore[return-value]
+
+
+def _oracle_signs(mesh: MeshBatch, oracles, orig, center64, scale64, dtype) -> torch.Tensor:
+    """Vertex signs from per-item inside/outside oracles (caller's coordinates)."""
+    out = torch.ones(mesh.verts.shape[0], dtype=dtype, device=mesh.device)
+    for j, b in enumerate(orig.tolist()):                  # one oracle call per item
+        o = oracles[b]
+        v0, nv = int(mesh.verts_first_idx[j]), int(mesh.verts_per_item[j])
+        if o is None:
+            raise PointSetError(f"item {b}: sign oracles must be given for every item or none")
+        v = mesh.verts[v0:v0 + nv].detach().double() * scale64[b] + center64[b]
+        inside = torch.as_tensor(o(v), device=mesh.device).bool().reshape(-1)
+        out[v0:v0 + nv] = torch.where(inside, -1.0, 1.0).to(dtype)
+    out[mesh.is_boundary_vert] = 1.0
+    return out

@@ -41,6 +41,7 @@ class ReconstructConfig:
     noise_factor: float = 3.0
     min_points_split: int = 6
     thin_feature_factor: float = 3.0
+    min_split_size: float = 4.0
     # topology
     min_points_fit: int = 3
     empty_weight: float = 1.0
@@ -53,9 +54,9 @@ class ReconstructConfig:
     lbfgs_iterations: int = 60
     lbfgs_history: int = 8
     magnitude_floor: float = 0.02
-    smoothness: float = 1e-3
+    smoothness: float = 1e-2
     # relaxation
-    relax_iterations: int = 8
+    relax_iterations: int = 25
     kappa_data: float = 1.0
     kappa_edge: float = 0.25
     min_quality: float = 0.15
@@ -70,6 +71,12 @@ class ReconstructConfig:
         for f in fields(self):
             v = getattr(self, f.name)
             want = f.type if isinstance(f.type, type) else {"int": int, "float": float, "str": str, "bool": bool}[f.type]
+            if want is float and isinstance(v, str):
+                try:
+                    v = float(v)
+                    object.__setattr__(self, f.name, v)
+                except ValueError:
+                    pass
             if want is float and isinstance(v, int) and not isinstance(v, bool):
                 v = float(v)
                 object.__setattr__(self, f.name, v)
@@ -85,7 +92,7 @@ class ReconstructConfig:
         for k in positive:
             if getattr(self, k) <= 0:
                 raise ConfigError(f"config key '{k}': must be > 0, got {getattr(self, k)!r}")
-        nonneg = ["margin", "noise_factor", "min_points_split", "thin_feature_factor", "empty_weight",
+        nonneg = ["margin", "noise_factor", "min_points_split", "thin_feature_factor", "min_split_size", "empty_weight",
                   "lbfgs_iterations", "magnitude_floor", "smoothness", "relax_iterations", "seed"]
         for k in nonneg:
             if getattr(self, k) < 0:
@@ -112,6 +119,8 @@ def from_dict(d: Mapping[str, Any], source: str = "config") -> ReconstructConfig
     try:
         return ReconstructConfig(**d)
     except ConfigError as e:
+        if source == "config":
+            raise
         raise ConfigError(f"{source}: {e}") from None
 
 

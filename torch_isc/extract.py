@@ -88,7 +88,7 @@ def extract_zero_set(mesh: MeshBatch, values: torch.Tensor) -> Polylines:
     Example:
         >>> from torch_isc.mesh import hexagon_mesh
         >>> m = hexagon_mesh(torch.zeros(1, 2), torch.ones(1), 1)
-        >>> vals = torch.ones(7); vals[0] = -1          # vertex 0 is the centre
+        >>> vals = torch.ones(7); vals[3] = -1          # vertex 3 is the centre
         >>> pl = extract_zero_set(m, vals)
         >>> len(pl), bool(pl.closed[0]), pl.points.shape
         (1, True, torch.Size([6, 2]))

@@ -10,8 +10,10 @@ Three routes, one for each situation of the reconstruction loop, all near-linear
   triangle across the edge whose barycentric coordinate turned negative.
 
 Every point gets exactly one triangle, also on shared edges and vertices: the one
-whose smallest barycentric coordinate is largest, ties to the lowest index. A point
-outside its item's mesh gets ``-1`` (and NaN barycentrics): it is reported, not guessed.
+whose smallest barycentric coordinate is largest, ties to the lowest index
+(:func:`locate_children` applies this rule among the parent's children only, so a point
+on the parent's outline may get a child where a global search would pick a neighbour's).
+A point outside its item's mesh gets ``-1`` (and NaN barycentrics): it is reported, not guessed.
 """
 from __future__ import annotations
 
@@ -204,6 +206,12 @@ def locate_walk(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor,
         unresolved = face < 0
         if active.numel():
             unresolved[active] = True
+        # a point that settled on (or within tolerance of) an edge or vertex may tie with
+        # other triangles: the grid applies the tie rule (largest min-barycentric, lowest index)
+        settled = (~unresolved).nonzero().squeeze(1)
+        if settled.numel():
+            mn = barycentric(v, mesh.faces, face[settled], pts[settled]).min(1).values
+            unresolved[settled[mn <= tol]] = True
         if unresolved.any():
             idx = unresolved.nonzero().squeeze(1)
             f2, _ = locate_grid(mesh, pts[idx], point_item[idx])

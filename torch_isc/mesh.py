@@ -129,6 +129,10 @@ class MeshBatch:
         return self.verts_first_idx[self.face_item]
 
     def __getitem__(self, b: int) -> "MeshBatch":
+        b = int(b)
+        if not -self.num_items <= b < self.num_items:
+            raise IndexError(f"item {b} out of range for a batch of {self.num_items}")
+        b %= self.num_items                                 # negative indices count from the end
         v0, nv = int(self.verts_first_idx[b]), int(self.verts_per_item[b])
         f0, nf = int(self.faces_first_idx[b]), int(self.faces_per_item[b])
         return MeshBatch(self.verts[v0:v0 + nv], self.faces[f0:f0 + nf] - v0,

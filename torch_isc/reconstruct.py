@@ -28,8 +28,8 @@ from .curve import ImplicitCurve
 from .fit.geometry import fit_geometry, point_residuals, vertex_data_distance
 from .fit.relax import relax_mesh
 from .fit.subdivide import subdivide
-from .fit.tolerance import estimate_noise, mark_triangles
-from .fit.topology import anneal, edge_weights, line_fits, triangle_moments
+from .fit.tolerance import estimate_noise, mark_triangles, point_curve_distance2
+from .fit.topology import anneal, edge_weights, line_fits, pooled_moments, triangle_moments
 from .locate import locate_children, locate_grid
 from .mesh import MeshBatch, hexagon_mesh, square_mesh
 from .result import ReconstructionResult
@@ -151,24 +151,31 @@ def reconstruct_batch(point_sets: Sequence[PointsLike], config: Optional[Reconst
                 signs = _oracle_signs(mesh, sign_oracles, orig, center64, scale64, dtype)
             else:
                 L, eps, _ = line_fits(mesh, mom)
-                H = edge_weights(mesh, L, eps, mom.count, cfg.min_points_fit, cfg.empty_weight)
+                # triangles too small to hold a line borrow their neighbours' points
+                pooled = pooled_moments(mesh, mom)
+                Lp, epsp, _ = line_fits(mesh, pooled)
+                few = mom.count < cfg.min_points_fit
+                H = edge_weights(mesh, torch.where(few[:, None], Lp, L), torch.where(few, epsp, eps), mom.count,
+                                 cfg.min_points_fit, cfg.empty_weight,
+                                 pooled_count=torch.where(few, pooled.count, mom.count))
                 init = torch.where(fixed, torch.ones_like(signs), signs)
-                t_start = cfg.anneal_t_start if level == 0 else min(cfg.anneal_warm_t_start, cfg.anneal_t_start)
-                signs = anneal(mesh, H, init, fixed, cfg.anneal_sweeps, t_start, cfg.anneal_t_end,
-                               cfg.anneal_replicas, cfg.seed)
+                signs = anneal(mesh, H, init, fixed, cfg.anneal_sweeps, cfg.anneal_t_start, cfg.anneal_t_end,
+                               cfg.anneal_replicas, cfg.seed,
+                               warm_t_start=None if level == 0 else cfg.anneal_warm_t_start)
             init_mag = vertex_data_distance(mesh, pts, face)
         values, d1 = fit_geometry(mesh, mom, signs, init_mag, tol[orig], cfg.lbfgs_iterations, cfg.lbfgs_history,
                                   cfg.magnitude_floor, cfg.smoothness)
         with torch.no_grad():
             values = values.detach()
-            residual = point_residuals(mesh, values, face, bary)
+            residual = point_curve_distance2(mesh, values, pts, face)
             if sign_oracles is None:
                 eps_t = eps
             else:
                 eps_t = line_fits(mesh, mom)[1]
             marked, eff_tol, worst = mark_triangles(
                 mesh, residual, face, mom.count, eps_t, tol[orig], noise[orig], cfg.test_statistic,
-                cfg.noise_factor, cfg.min_points_split, cfg.min_points_fit, cfg.thin_feature_factor)
+                cfg.noise_factor, cfg.min_points_split, cfg.min_points_fit, cfg.thin_feature_factor,
+                cfg.min_split_size)
             n_marked = torch.zeros(nb, dtype=torch.long, device=device).index_add_(0, mesh.face_item, marked.long())
             # a subdivision at most quadruples the marked triangles and their neighbours
             grow = torch.zeros(nb, dtype=torch.long, device=device).index_add_(0, mesh.face_item, marked.long() * 9)

@@ -104,7 +104,13 @@ def fit_geometry(mesh: MeshBatch, mom: TriangleMoments, signs: torch.Tensor, ini
         mean_mag = torch.zeros(B, dtype=dt, device=mesh.device).index_add_(0, vi, init_mag) / nv.clamp_min(1)
         floor = (magnitude_floor * mean_mag)[vi]
         s0 = torch.log((init_mag - floor).clamp_min(1e-3 * mean_mag[vi]).clamp_min(torch.finfo(dt).tiny))
+        # penalize gradient jumps in the band where the curve can be: edges next to data or
+        # to a sign change (elsewhere f is far from 0 and its kinks do not move the curve)
+        fneg = signs[mesh.faces] < 0
+        band_t = (mom.count > 0) | (fneg.any(1) & ~fneg.all(1))
         interior = ~mesh.is_boundary_edge
+        ef_all = mesh.edge_faces.clamp_min(0)
+        interior = interior & (band_t[ef_all[:, 0]] | band_t[ef_all[:, 1]])
         ef = mesh.edge_faces[interior]
         e = mesh.edges[interior]
         el = (mesh.verts.detach()[e[:, 0]] - mesh.verts.detach()[e[:, 1]]).norm(dim=1)

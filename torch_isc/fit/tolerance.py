@@ -108,7 +108,7 @@ def triangle_errors(mesh: MeshBatch, residual: torch.Tensor, face: torch.Tensor)
 def mark_triangles(mesh: MeshBatch, residual: torch.Tensor, face: torch.Tensor, count: torch.Tensor,
                    line_eps: torch.Tensor, tol: torch.Tensor, noise: torch.Tensor, statistic: str,
                    noise_factor: float, min_points_split: int, min_points_fit: int,
-                   thin_factor: float) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                   thin_factor: float, min_split_size: float = 0.0) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Mark the triangles that fail the test.
 
     Args:
@@ -124,7 +124,54 @@ def mark_triangles(mesh: MeshBatch, residual: torch.Tensor, face: torch.Tensor, 
     eff = torch.maximum(tol, noise_factor * noise)
     fails = stat > eff[fi] ** 2
     marked = fails & (count >= min_points_split)
+    # with few points the mean, which one outlier cannot move far, must still pass
+    marked |= (count >= min_points_fit) & (mean > eff[fi] ** 2)
     thin = torch.maximum(tol, thin_factor * noise)
-    marked |= (count >= min_points_fit) & (line_eps > thin[fi] ** 2) & fails
+    marked |= (count >= min_points_fit) & (line_eps > thin[fi] ** 2)
+    # below the resolution the tolerance allows, splitting only fits the noise
+    if min_split_size > 0:
+        p = mesh.verts.detach()[mesh.faces]
+        longest = (p[:, [1, 2, 0]] - p).norm(dim=2).max(1).values
+        marked &= longest > min_split_size * eff[fi]
     worst = torch.zeros(mesh.num_items, dtype=stat.dtype, device=stat.device).scatter_reduce(0, fi, stat, "amax")
     return marked, eff, worst.sqrt()
+
+
+def triangle_segments(mesh: MeshBatch, values: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+    """The zero-set segment of every triangle: ``(T, 2, 2)`` end points and ``(T,)`` bool
+    (whether the triangle holds one)."""
+    v = mesh.verts.detach()
+    F = values.detach()[mesh.faces]                               # (T,3)
+    P = v[mesh.faces]                                             # (T,3,2)
+    # crossing on edge k (corners k+1, k+2), NaN where that edge does not change sign
+    a, b = [1, 2, 0], [2, 0, 1]
+    fa, fb = F[:, a], F[:, b]
+    cross = (fa < 0) != (fb < 0)
+    t = fa / torch.where(cross, fa - fb, torch.ones_like(fa))
+    pts = P[:, a] + t[..., None] * (P[:, b] - P[:, a])           # (T,3,2)
+    has = cross.sum(1) == 2
+    order = torch.argsort((~cross).to(torch.int8), dim=1, stable=True)[:, :2]
+    seg = pts.gather(1, order[..., None].expand(-1, -1, 2))
+    return seg, has
+
+
+def point_curve_distance2(mesh: MeshBatch, values: torch.Tensor, points: torch.Tensor,
+                          face: torch.Tensor) -> torch.Tensor:
+    """``(P,)`` squared distance of each point to the zero-set segments of its triangle and
+    of that triangle's three neighbours (inf when none of them holds a segment).
+
+    Unlike ``f²/|∇f|²`` (the distance to the *extended* zero line of the point's triangle),
+    this sees a point whose triangle has no curve at all."""
+    seg, has = triangle_segments(mesh, values)
+    ok = face >= 0
+    f = face.clamp_min(0)
+    cand = torch.cat([f[:, None], mesh.face_neighbors[f]], 1)         # (P,4)
+    valid = (cand >= 0) & has[cand.clamp_min(0)] & ok[:, None]
+    s = seg[cand.clamp_min(0)]                                       # (P,4,2,2)
+    p = points.to(seg.dtype)[:, None, :]
+    a, d = s[:, :, 0], s[:, :, 1] - s[:, :, 0]
+    tt = (((p - a) * d).sum(-1) / (d * d).sum(-1).clamp_min(torch.finfo(seg.dtype).tiny)).clamp(0, 1)
+    q = a + tt[..., None] * d
+    d2 = ((p - q) ** 2).sum(-1)
+    d2 = torch.where(valid, d2, torch.full_like(d2, float("inf")))
+    return d2.min(1).values

@@ -12,7 +12,7 @@ import torch
 
 from ..mesh import MeshBatch
 
-__all__ = ["TriangleMoments", "triangle_moments", "line_fits", "edge_weights", "vertex_coloring",
+__all__ = ["TriangleMoments", "triangle_moments", "pooled_moments", "line_fits", "edge_weights", "vertex_coloring",
            "anneal", "ising_energy", "hash_uniform"]
 
 
@@ -54,6 +54,27 @@ def triangle_moments(mesh: MeshBatch, points: torch.Tensor, face: torch.Tensor, 
     return TriangleMoments(count, M.view(T, 3, 3) / n[:, None, None], tc + mean, cov)
 
 
+def pooled_moments(mesh: MeshBatch, mom: TriangleMoments) -> TriangleMoments:
+    """Moments of the points of each triangle and its (up to) three edge-neighbours.
+
+    Combined exactly (parallel-axis rule on the per-triangle means and covariances), so
+    small triangles keep their precision. ``M`` is not pooled (it is per-triangle)."""
+    nb = mesh.face_neighbors
+    T = nb.shape[0]
+    idx = torch.cat([torch.arange(T, device=nb.device)[:, None], nb], 1)      # (T,4)
+    ok = idx >= 0
+    j = idx.clamp_min(0)
+    n = torch.where(ok, mom.count[j], torch.zeros_like(mom.count[j]))      # (T,4)
+    N = n.sum(1)
+    m = mom.centroid[j]                                                     # (T,4,2)
+    # offsets from the own centroid keep the sums small
+    d = m - mom.centroid[:, None, :]
+    mean_d = (n[..., None] * d).sum(1) / N.clamp_min(1)[:, None]
+    dd = d - mean_d[:, None, :]
+    C = (n[..., None, None] * (mom.scatter[j] + dd[..., :, None] * dd[..., None, :])).sum(1) / N.clamp_min(1)[:, None, None]
+    return TriangleMoments(N, mom.M, mom.centroid + mean_d, C)
+
+
 def line_fits(mesh: MeshBatch, mom: TriangleMoments):
     """Closed-form least-squares line in every triangle.
 
@@ -82,17 +103,21 @@ def line_fits(mesh: MeshBatch, mom: TriangleMoments):
 
 
 def edge_weights(mesh: MeshBatch, L: torch.Tensor, eps: torch.Tensor, count: torch.Tensor,
-                 min_points: int, empty_weight: float) -> torch.Tensor:
+                 min_points: int, empty_weight: float, pooled_count: Optional[torch.Tensor] = None) -> torch.Tensor:
     """Edge weights ``H_e`` of eq. 3.6 (``(E,)``).
 
-    Triangles with ``min_points`` or more points contribute ``w_t = (ε_max−ε_t)/(ε_max−ε_min)``
-    (extremes per item); empty triangles contribute ``L = (1,1,1)`` with ``empty_weight``;
-    triangles with 1..min_points−1 points give no evidence (their fit error is not meaningful).
+    Triangles whose fit rests on ``min_points`` or more points contribute
+    ``w_t = (ε_max−ε_t)/(ε_max−ε_min)`` (extremes per item). A fit on fewer points is not
+    meaningful: such a triangle gives no evidence, unless it is empty, in which case it
+    contributes ``L = (1,1,1)`` with ``empty_weight``. With ``pooled_count`` (the points
+    behind pooled fits, see :func:`pooled_moments`), ``L, eps`` are the pooled fits and a
+    triangle counts as empty only when its neighbourhood is empty too.
     """
     dt = L.dtype
     B = mesh.num_items
-    fit = count >= min_points
-    empty = count == 0
+    support = count if pooled_count is None else pooled_count
+    fit = support >= min_points
+    empty = (count == 0) & ~fit
     fi = mesh.face_item
     big = torch.finfo(dt).max
     emax = torch.full((B,), -big, dtype=dt, device=L.device).scatter_reduce(0, fi[fit], eps[fit], "amax")
@@ -185,13 +210,18 @@ def ising_energy(mesh: MeshBatch, H: torch.Tensor, signs: torch.Tensor) -> torch
 
 
 def anneal(mesh: MeshBatch, H: torch.Tensor, init: torch.Tensor, fixed: torch.Tensor, sweeps: int,
-           t_start: float, t_end: float, replicas: int = 4, seed: int = 0, greedy_sweeps: int = 4) -> torch.Tensor:
+           t_start: float, t_end: float, replicas: int = 4, seed: int = 0, greedy_sweeps: int = 4,
+           warm_t_start: Optional[float] = None) -> torch.Tensor:
     """Minimize the Ising energy ``Σ_e H_e F_i F_j`` over ``F ∈ {−1, 1}`` by simulated annealing.
 
     Vertices of one colour are never adjacent, so each colour class is updated in parallel
     (Metropolis) for the whole batch and all ``replicas`` at once. Temperatures fall
     geometrically from ``t_start`` to ``t_end``; a few zero-temperature sweeps finish, and the
     replica of lowest energy is kept per item (ties to the lowest replica).
+
+    With ``warm_t_start``, replica 0 starts from ``init`` at that (low) temperature, keeping
+    what earlier levels found, while the other replicas start from +1 at ``t_start``: a
+    cluster of wrong signs that single flips at low temperature cannot undo is redone.
 
     Args:
         init: ``(V,)`` ±1 start. fixed: ``(V,)`` bool, vertices held at their ``init`` value.
@@ -207,22 +237,26 @@ def anneal(mesh: MeshBatch, H: torch.Tensor, init: torch.Tensor, fixed: torch.Te
         groups = [(color == c).nonzero().squeeze(1) for c in range(ncol)]
         nb, w = _padded_neighbors(mesh, H)
         s = init.to(dt)[:, None].repeat(1, R)
+        t0 = torch.full((R,), float(t_start), dtype=dt, device=dev)
+        if warm_t_start is not None:
+            s[:, 1:] = torch.where(fixed, init.to(dt), torch.ones_like(init, dtype=dt))[:, None]
+            t0[0] = min(float(warm_t_start), float(t_start))
         local = torch.arange(V, device=dev) - mesh.verts_first_idx[mesh.vert_item]
         rep = torch.arange(R, device=dev)
         total = int(sweeps) + int(greedy_sweeps)
-        ratio = (t_end / t_start) ** (1.0 / max(int(sweeps) - 1, 1))
+        ratio = (t_end / t0) ** (1.0 / max(int(sweeps) - 1, 1))
         for k in range(total):
-            T = t_start * ratio ** k if k < sweeps else 0.0
+            T = t0 * ratio ** k if k < sweeps else torch.zeros_like(t0)
             for c, g in enumerate(groups):
                 if g.numel() == 0:
                     continue
                 h = (w[g][:, :, None] * s[nb[g]]).sum(1)          # (n, R) local field
                 dE = -2.0 * s[g] * h                              # energy change of a flip
-                if T > 0:
+                if k < sweeps:
                     u = hash_uniform(torch.full_like(g, seed)[:, None].expand(-1, R), local[g][:, None].expand(-1, R),
                                      rep[None, :].expand(g.shape[0], -1), torch.full_like(g, k * 64 + c)[:, None].expand(-1, R),
                                      dtype=dt)
-                    acc = (dE < 0) | (u < torch.exp(-dE.clamp_min(0) / T))
+                    acc = (dE < 0) | (u < torch.exp(-dE.clamp_min(0) / T[None, :]))
                 else:
                     acc = dE < 0
                 s[g] = torch.where(acc, -s[g], s[g])

@@ -29,7 +29,7 @@ from .fit.geometry import fit_geometry, point_residuals, vertex_data_distance
 from .fit.relax import relax_mesh
 from .fit.subdivide import subdivide
 from .fit.tolerance import estimate_noise, mark_triangles, point_curve_distance2
-from .fit.topology import anneal, edge_weights, line_fits, pooled_moments, triangle_moments
+from .fit.topology import anneal, crossing_reach, edge_weights, line_fits, pooled_moments, triangle_moments
 from .locate import locate_children, locate_grid
 from .mesh import MeshBatch, hexagon_mesh, square_mesh
 from .result import ReconstructionResult
@@ -150,14 +150,16 @@ def reconstruct_batch(point_sets: Sequence[PointsLike], config: Optional[Reconst
             if sign_oracles is not None:
                 signs = _oracle_signs(mesh, sign_oracles, orig, center64, scale64, dtype)
             else:
-                L, eps, _ = line_fits(mesh, mom)
+                L, eps, nrm = line_fits(mesh, mom)
                 # triangles too small to hold a line borrow their neighbours' points
                 pooled = pooled_moments(mesh, mom)
-                Lp, epsp, _ = line_fits(mesh, pooled)
+                Lp, epsp, nrmp = line_fits(mesh, pooled)
                 few = mom.count < cfg.min_points_fit
+                reach = torch.where(few[:, None], crossing_reach(mesh, pooled, Lp, nrmp),
+                                    crossing_reach(mesh, mom, L, nrm))
                 H = edge_weights(mesh, torch.where(few[:, None], Lp, L), torch.where(few, epsp, eps), mom.count,
                                  cfg.min_points_fit, cfg.empty_weight,
-                                 pooled_count=torch.where(few, pooled.count, mom.count))
+                                 pooled_count=torch.where(few, pooled.count, mom.count), reach=reach)
                 init = torch.where(fixed, torch.ones_like(signs), signs)
                 signs = anneal(mesh, H, init, fixed, cfg.anneal_sweeps, cfg.anneal_t_start, cfg.anneal_t_end,
                                cfg.anneal_replicas, cfg.seed,

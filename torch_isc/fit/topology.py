@@ -12,7 +12,7 @@ import torch
 
 from ..mesh import MeshBatch
 
-__all__ = ["TriangleMoments", "triangle_moments", "pooled_moments", "line_fits", "edge_weights", "vertex_coloring",
+__all__ = ["TriangleMoments", "triangle_moments", "pooled_moments", "line_fits", "crossing_reach", "edge_weights", "vertex_coloring",
            "anneal", "ising_energy", "hash_uniform"]
 
 
@@ -102,8 +102,34 @@ def line_fits(mesh: MeshBatch, mom: TriangleMoments):
     return L, lam, normal
 
 
+def crossing_reach(mesh: MeshBatch, mom: TriangleMoments, L: torch.Tensor, normal: torch.Tensor,
+                   slack: float = 1.0) -> torch.Tensor:
+    """``(T, 3)`` bool: where the fitted line crosses edge ``k`` (corners k+1, k+2), is the
+    crossing within the extent of the triangle's points along the line?
+
+    Points spread along a segment of half-length ``h`` have variance ``h²/3`` along it, so
+    the extent is ``h = √(3 λ_max)`` (plus ``slack ×`` the residual spread ``√ε``)."""
+    C = mom.scatter
+    tr = C[:, 0, 0] + C[:, 1, 1]
+    det = C[:, 0, 0] * C[:, 1, 1] - C[:, 0, 1] * C[:, 1, 0]
+    disc = (0.25 * tr * tr - det).clamp_min(0).sqrt()
+    lam_max, lam_min = 0.5 * tr + disc, (0.5 * tr - disc).clamp_min(0)
+    h = torch.sqrt(3.0 * lam_max)
+    # the curve runs on about half a sample spacing (h / (n-1)) past the last point
+    half = h * (1.0 + 1.0 / (mom.count - 1).clamp_min(1)) + slack * torch.sqrt(lam_min)
+    tang = torch.stack([-normal[:, 1], normal[:, 0]], 1)
+    tri = mesh.verts.detach()[mesh.faces]
+    a, b = [1, 2, 0], [2, 0, 1]
+    la, lb = L[:, a], L[:, b]
+    t = la / torch.where(la != lb, la - lb, torch.ones_like(la))
+    x = tri[:, a] + t[..., None] * (tri[:, b] - tri[:, a])              # (T,3,2)
+    u = ((x - mom.centroid[:, None, :]) * tang[:, None, :]).sum(-1)
+    return u.abs() <= half[:, None]
+
+
 def edge_weights(mesh: MeshBatch, L: torch.Tensor, eps: torch.Tensor, count: torch.Tensor,
-                 min_points: int, empty_weight: float, pooled_count: Optional[torch.Tensor] = None) -> torch.Tensor:
+                 min_points: int, empty_weight: float, pooled_count: Optional[torch.Tensor] = None,
+                 reach: Optional[torch.Tensor] = None) -> torch.Tensor:
     """Edge weights ``H_e`` of eq. 3.6 (``(E,)``).
 
     Triangles whose fit rests on ``min_points`` or more points contribute
@@ -111,7 +137,9 @@ def edge_weights(mesh: MeshBatch, L: torch.Tensor, eps: torch.Tensor, count: tor
     meaningful: such a triangle gives no evidence, unless it is empty, in which case it
     contributes ``L = (1,1,1)`` with ``empty_weight``. With ``pooled_count`` (the points
     behind pooled fits, see :func:`pooled_moments`), ``L, eps`` are the pooled fits and a
-    triangle counts as empty only when its neighbourhood is empty too.
+    triangle counts as empty only when its neighbourhood is empty too. ``reach`` ``(T, 3)``
+    (see :func:`crossing_reach`) drops the crossing evidence of edge ``k`` where the line
+    crosses it outside the extent of its points.
     """
     dt = L.dtype
     B = mesh.num_items
@@ -129,6 +157,9 @@ def edge_weights(mesh: MeshBatch, L: torch.Tensor, eps: torch.Tensor, count: tor
     sig = torch.where(empty[:, None], torch.ones_like(L), torch.where(L >= 0, 1.0, -1.0).to(dt))
     # edge k of a face joins corners k+1 and k+2
     prod = sig[:, [1, 2, 0]] * sig[:, [2, 0, 1]]
+    if reach is not None:
+        # a line testifies to a crossing only where its points are, not where it is extrapolated
+        prod = torch.where((prod < 0) & ~reach, torch.zeros_like(prod), prod)
     H = torch.zeros(mesh.edges.shape[0], dtype=dt, device=L.device)
     H.index_add_(0, mesh.face_edges.reshape(-1), (-prod * w[:, None]).reshape(-1))
     return H

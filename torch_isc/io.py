@@ -377,7 +377,7 @@ def result_json_dict(result, timings: bool = False) -> Dict[str, Any]:
     d = result.to_json_dict()
     if not timings and isinstance(d.get("stats"), dict) and isinstance(d["stats"].get("levels"), list):
         d["stats"] = dict(d["stats"])
-        d["stats"]["levels"] = [{k: v for k, v in lv.items() if k != "seconds"} if isinstance(lv, dict) else lv
+        d["stats"]["levels"] = [{k: v for k, v in lv.items() if k not in ("seconds", "stage_seconds")} if isinstance(lv, dict) else lv
                                 for lv in d["stats"]["levels"]]
     return d
 

@@ -138,11 +138,13 @@ def reconstruct_batch(point_sets: Sequence[PointsLike], config: Optional[Reconst
     orig = torch.arange(B, device=device)              # working item -> original item
 
     mesh = _initial_mesh(cfg, B, device, dtype)
+    clock = _StageClock(device)
     face, bary = locate_grid(mesh, pts, point_item)
+    clock.tick("locate")
     signs = torch.ones(mesh.verts.shape[0], dtype=dtype, device=device)
 
     for level in range(cfg.max_level + 1):
-        t0 = time.perf_counter()
+        level_stats: List[Dict[str, Any]] = []
         nb = mesh.num_items
         with torch.no_grad():
             mom = triangle_moments(mesh, pts, face, bary)
@@ -165,8 +167,10 @@ def reconstruct_batch(point_sets: Sequence[PointsLike], config: Optional[Reconst
                                cfg.anneal_replicas, cfg.seed,
                                warm_t_start=None if level == 0 else cfg.anneal_warm_t_start)
             init_mag = vertex_data_distance(mesh, pts, face)
+            clock.tick("topology")
         values, d1 = fit_geometry(mesh, mom, signs, init_mag, tol[orig], cfg.lbfgs_iterations, cfg.lbfgs_history,
                                   cfg.magnitude_floor, cfg.smoothness)
+        clock.tick("geometry")
         with torch.no_grad():
             values = values.detach()
             residual = point_curve_distance2(mesh, values, pts, face)
@@ -183,17 +187,18 @@ def reconstruct_batch(point_sets: Sequence[PointsLike], config: Optional[Reconst
             grow = torch.zeros(nb, dtype=torch.long, device=device).index_add_(0, mesh.face_item, marked.long() * 9)
             over = (mesh.faces_per_item + grow) > cfg.max_triangles
             done = (n_marked == 0) | over | (level == cfg.max_level)
-            seconds = time.perf_counter() - t0
+            clock.tick("test")
             pts_per_item = torch.bincount(point_item, minlength=nb)
             s_list = scale[orig]
             for j in range(nb):                    # bookkeeping per item, not a hot path
                 b = int(orig[j])
                 sc = float(s_list[j])
-                stats[b].append({
+                level_stats.append({
                     "level": level, "triangles": int(mesh.faces_per_item[j]), "points": int(pts_per_item[j]),
                     "delta1": float(d1[j]) * sc * sc, "max_error": float(worst[j]) * sc,
                     "tolerance": float(eff_tol[j]) * sc, "noise": float(noise[b]) * sc,
-                    "marked": int(n_marked[j]), "seconds": seconds})
+                    "marked": int(n_marked[j])})
+                stats[b].append(level_stats[-1])
             fin = done.nonzero().squeeze(1)
             if fin.numel():
                 sub, vk, _ = mesh.select_items(fin)
@@ -212,6 +217,7 @@ def reconstruct_batch(point_sets: Sequence[PointsLike], config: Optional[Reconst
                                                       converged=bool(n_marked[j] == 0), limit=limit, name=names[b])
             keep = (~done).nonzero().squeeze(1)
             if keep.numel() == 0:
+                clock.close_level(level_stats)
                 break
             # shrink the working set to the unfinished items
             if fin.numel():
@@ -232,11 +238,45 @@ def reconstruct_batch(point_sets: Sequence[PointsLike], config: Optional[Reconst
             mesh = sd.mesh
             values = sd.interpolate(values, old_edges)
             signs = torch.where(values < 0, -1.0, 1.0).to(dtype)
+            clock.tick("subdivide")
             face, bary = locate_children(mesh, pts, face, sd.children)
+            clock.tick("locate")
         if cfg.relax_iterations > 0:
             mesh, face, bary = relax_mesh(mesh, pts, point_item, face, cfg.relax_iterations, cfg.kappa_data,
                                           cfg.kappa_edge, cfg.min_quality)
+            clock.tick("relax")
+        clock.close_level(level_stats)
     return results  # type: ignore[return-value]
+
+
+class _StageClock:
+    """Wall time per stage of a level (shared by the items solved in it); on CUDA it
+    synchronizes so the times are real."""
+    STAGES = ("topology", "geometry", "test", "subdivide", "locate", "relax")
+
+    def __init__(self, device):
+        self.cuda = torch.device(device).type == "cuda"
+        self.t = self._now()
+        self.acc = {k: 0.0 for k in self.STAGES}
+
+    def _now(self) -> float:
+        if self.cuda:
+            torch.cuda.synchronize()
+        return time.perf_counter()
+
+    def tick(self, stage: str) -> None:
+        now = self._now()
+        self.acc[stage] += now - self.t
+        self.t = now
+
+    def close_level(self, level_stats: List[Dict[str, Any]]) -> None:
+        """Write this level's stage times (the initial location counts to level 0) into its stats."""
+        st = {k: round(v, 6) for k, v in self.acc.items()}
+        total = round(sum(self.acc.values()), 6)
+        for d in level_stats:
+            d["seconds"] = total
+            d["stage_seconds"] = dict(st)
+        self.acc = {k: 0.0 for k in self.STAGES}
 
 
 def _oracle_signs(mesh: MeshBatch, oracles, orig, center64, scale64, dtype) -> torch.Tensor:

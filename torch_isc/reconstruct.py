@@ -211,10 +211,17 @@ def reconstruct_batch(point_sets: Sequence[PointsLike], config: Optional[Reconst
                     m1 = sub[jj]
                     v0 = int(sub.verts_first_idx[jj])
                     vals = curve_vals[v0:v0 + m1.verts.shape[0]]
-                    out_mesh = m1.with_verts(m1.verts * scale64[b].to(dtype) + center64[b].to(dtype))
-                    curve = ImplicitCurve(out_mesh, vals * scale64[b].to(dtype), validate=False)
+                    # back to the caller's frame in float64, then to the caller's precision (at
+                    # least the working one): an offset of 1e7 must not be rounded away
+                    odt = torch.promote_types(raw[b].dtype if raw[b].dtype.is_floating_point else dtype, dtype)
+                    out_mesh = m1.with_verts((m1.verts.double() * scale64[b] + center64[b]).to(odt))
+                    curve = ImplicitCurve(out_mesh, (vals.double() * scale64[b]).to(odt), validate=False)
+                    converged = bool(n_marked[j] == 0)
+                    if not bool(((curve_vals[v0:v0 + m1.verts.shape[0]] < 0)).any()):
+                        # no inside vertex, so no curve: the data did not define one
+                        converged, limit = False, "no_curve"
                     results[b] = ReconstructionResult(curve=curve, points=raw[b], stats=stats[b], config=cfg,
-                                                      converged=bool(n_marked[j] == 0), limit=limit, name=names[b])
+                                                      converged=converged, limit=limit, name=names[b])
             keep = (~done).nonzero().squeeze(1)
             if keep.numel() == 0:
                 clock.close_level(level_stats)

@@ -23,7 +23,10 @@ class ReconstructionResult:
             tolerance, noise, marked, seconds`` (distances in the caller's units).
         config: the :class:`ReconstructConfig` used.
         converged: every triangle met the tolerance at the last level.
-        limit: ``None``, or ``"max_level"`` / ``"max_triangles"`` when a cap stopped the loop.
+        limit: ``None``; ``"max_level"`` / ``"max_triangles"`` when a cap stopped the loop;
+            ``"no_curve"`` when the data defined no curve (e.g. three points), with
+            ``converged`` False.
+        The curve's dtype is the input's floating dtype promoted with the working dtype.
         name: an optional label (file stem) carried to the outputs.
     """
     curve: ImplicitCurve

@@ -18,7 +18,6 @@ unless the script itself crashed.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 import time
@@ -118,19 +117,8 @@ def reconstruct(items: List[Dict[str, Any]], config, one_by_one: bool, device: s
 
 
 def _json_text(obj: Any) -> str:
-    try:
-        from torch_isc.io import json_dumps
-        return json_dumps(obj)
-    except ImportError:
-        def clean(o):
-            if isinstance(o, float) and not math.isfinite(o):
-                return None
-            if isinstance(o, dict):
-                return {k: clean(v) for k, v in o.items()}
-            if isinstance(o, (list, tuple)):
-                return [clean(v) for v in o]
-            return o
-        return json.dumps(clean(obj), indent=1) + "\n"
+    from torch_isc.io import json_dumps
+    return json_dumps(obj)
 
 
 def write_outputs(out: Path, items: List[Dict[str, Any]]) -> None:

@@ -182,7 +182,9 @@ def hash_uniform(*keys: torch.Tensor, dtype=torch.float32) -> torch.Tensor:
     h = torch.zeros_like(keys[0], dtype=torch.long)
     for k in keys:
         h = _mix32(h * 0x9E3779B1 + k.long() + 0x632BE5AB)
-    return ((h.to(torch.float64) + 0.5) / 4294967296.0).to(dtype)
+    u = ((h.to(torch.float64) + 0.5) / 4294967296.0).to(dtype)
+    # the cast can round the top values up to 1.0; keep the interval open
+    return u.clamp_max(1.0 - torch.finfo(dtype).eps / 2)
 
 
 def vertex_coloring(mesh: MeshBatch, active: Optional[torch.Tensor] = None, max_colors: int = 64) -> torch.Tensor:

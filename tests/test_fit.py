@@ -1,0 +1,1241 @@
+"""Tests of the stages of the reconstruction loop (torch_isc.fit), each stage alone.
+
+Expected values are computed by hand or by an independent route (float64 numpy / Python
+loops over triangles and points, brute force over all sign patterns, closed forms); none is
+read back from the library's own tables.
+"""
+from __future__ import annotations
+
+import math
+from collections import defaultdict
+
+import numpy as np
+import pytest
+import torch
+
+from torch_isc import locate_children, locate_grid
+from torch_isc.curve import ImplicitCurve
+from torch_isc.fit.geometry import delta1_per_triangle, fit_geometry, point_residuals, vertex_data_distance
+from torch_isc.fit.optim import batched_lbfgs
+from torch_isc.fit.relax import mesh_energy, relax_mesh
+from torch_isc.fit.subdivide import subdivide
+from torch_isc.fit.tolerance import (estimate_noise, mark_triangles, point_curve_distance2, segment_median,
+                                     triangle_errors)
+from torch_isc.fit.topology import (anneal, edge_weights, hash_uniform, ising_energy, line_fits, pooled_moments,
+                                    triangle_moments, vertex_coloring)
+from torch_isc.locate import barycentric
+from torch_isc.mesh import MeshBatch, hexagon_mesh, square_mesh
+
+from conftest import ref_bary64
+
+SQ3 = math.sqrt(3.0)
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+def one_triangle(device, dtype):
+    v = torch.tensor([[0.0, 0.0], [1.0, 0.0], [0.3, 0.9]], device=device, dtype=dtype)
+    f = torch.tensor([[0, 1, 2]], device=device)
+    return MeshBatch(v, f, torch.tensor([3]), torch.tensor([1]))
+
+
+def hexagons(B, r, device, dtype, radius=1.0):
+    c = torch.zeros(B, 2, device=device, dtype=dtype)
+    c[:, 0] = torch.arange(B, dtype=dtype, device=device) * 3.0 * radius
+    return hexagon_mesh(c, torch.full((B,), radius, device=device, dtype=dtype), r)
+
+
+def locate_single(mesh, pts):
+    item = torch.zeros(pts.shape[0], dtype=torch.long, device=pts.device)
+    face, bary = locate_grid(mesh, pts, item)
+    return item, face, bary
+
+
+def naive_local_faces(mesh, b):
+    v0 = int(mesh.verts_first_idx[b])
+    f0, nf = int(mesh.faces_first_idx[b]), int(mesh.faces_per_item[b])
+    return (mesh.faces[f0:f0 + nf] - v0).cpu().tolist()
+
+
+def edge_index(mesh):
+    return {(int(a), int(b)): k for k, (a, b) in enumerate(mesh.edges.cpu().tolist())}
+
+
+def disc_points(n, radius, gen, dtype=torch.float64, center=(0.0, 0.0)):
+    r = radius * torch.rand(n, generator=gen, dtype=torch.float64).sqrt()
+    t = 2 * math.pi * torch.rand(n, generator=gen, dtype=torch.float64)
+    return torch.stack([center[0] + r * t.cos(), center[1] + r * t.sin()], 1).to(dtype)
+
+
+# ============================================================================= line fits
+
+
+def test_line_fit_collinear_points(device, dtype):
+    mesh = one_triangle(device, dtype)
+    c = np.array([1.3 / 3, 0.3])                       # triangle centroid
+    th = 0.3
+    u = np.array([math.cos(th), math.sin(th)])
+    n = np.array([-math.sin(th), math.cos(th)])
+    s = np.linspace(-0.2, 0.2, 17)
+    p = c[None, :] + s[:, None] * u[None, :]
+    pts = torch.tensor(p, device=device, dtype=dtype)
+    _, face, bary = locate_single(mesh, pts)
+    assert (face == 0).all()
+    mom = triangle_moments(mesh, pts, face, bary)
+    L, eps, normal = line_fits(mesh, mom)
+    assert float(mom.count[0]) == 17
+    # eps: mean squared distance to the best line = 0 up to rounding
+    assert 0 <= float(eps[0]) <= (1e-6 if dtype == torch.float32 else 1e-14)
+    V = np.array([[0.0, 0.0], [1.0, 0.0], [0.3, 0.9]])
+    pc = p.mean(0)
+    Lref = (V - pc) @ n                                   # signed distances of the vertices to the line
+    Lg = L[0].double().cpu().numpy()
+    sgn = np.sign(Lg @ Lref)
+    atol = 1e-5 if dtype == torch.float32 else 1e-12
+    np.testing.assert_allclose(sgn * Lg, Lref, atol=atol)
+    np.testing.assert_allclose(abs(float(normal[0].double().cpu() @ torch.tensor(n))), 1.0, atol=atol)
+    np.testing.assert_allclose(mom.centroid[0].double().cpu().numpy(), pc, atol=atol)
+    # M_t = mean of X Xᵀ (eq. 3.2), with X the barycentric coordinates by Cramer's rule
+    X = np.array([ref_bary64(V, q) for q in p])
+    Mref = (X[:, :, None] * X[:, None, :]).mean(0)
+    np.testing.assert_allclose(mom.M[0].double().cpu().numpy(), Mref, atol=atol)
+    # the line fit minimizes Lᵀ M L / Lᵀ N L, which is 0 on the exact line
+    G = mesh.bary_gradients()[0].double().cpu().numpy()
+    ratio = (Lref @ Mref @ Lref) / (Lref @ (G @ G.T) @ Lref)
+    assert ratio < 1e-12
+
+
+@pytest.mark.parametrize("d", [0.01, 0.03])
+def test_line_fit_points_off_line_give_d_squared(d, device, dtype):
+    mesh = one_triangle(device, dtype)
+    c = np.array([1.3 / 3, 0.3])
+    th = -0.7
+    u = np.array([math.cos(th), math.sin(th)])
+    n = np.array([-math.sin(th), math.cos(th)])
+    s = np.linspace(-0.15, 0.15, 12)
+    p = np.concatenate([c + s[:, None] * u + d * n, c + s[:, None] * u - d * n])
+    pts = torch.tensor(p, device=device, dtype=dtype)
+    _, face, bary = locate_single(mesh, pts)
+    assert (face == 0).all()
+    mom = triangle_moments(mesh, pts, face, bary)
+    L, eps, normal = line_fits(mesh, mom)
+    rtol = 1e-4 if dtype == torch.float32 else 1e-10
+    np.testing.assert_allclose(float(eps[0]), d * d, rtol=rtol)
+    V = np.array([[0.0, 0.0], [1.0, 0.0], [0.3, 0.9]])
+    Lref = (V - c) @ n
+    Lg = L[0].double().cpu().numpy()
+    np.testing.assert_allclose(np.sign(Lg @ Lref) * Lg, Lref, atol=1e-5 if dtype == torch.float32 else 1e-12)
+
+
+def test_line_fit_against_numpy_eigh(device):
+    """Random points in many triangles: eps = smallest eigenvalue of the population covariance."""
+    dtype = torch.float64
+    mesh = hexagons(2, 3, device, dtype)
+    g = torch.Generator().manual_seed(3)
+    pts = torch.cat([disc_points(300, 0.85, g), disc_points(200, 0.85, g, center=(3.0, 0.0))]).to(device)
+    item = torch.cat([torch.zeros(300, dtype=torch.long), torch.ones(200, dtype=torch.long)]).to(device)
+    face, bary = locate_grid(mesh, pts, item)
+    assert (face >= 0).all()
+    mom = triangle_moments(mesh, pts, face, bary)
+    L, eps, normal = line_fits(mesh, mom)
+    P = pts.cpu().numpy()
+    fc = face.cpu().numpy()
+    V = mesh.verts.cpu().numpy()
+    F = mesh.faces.cpu().numpy()
+    checked = 0
+    for t in range(F.shape[0]):
+        q = P[fc == t]
+        assert int(mom.count[t]) == len(q)
+        if len(q) < 3:
+            continue
+        C = np.cov(q.T, bias=True)
+        w, vec = np.linalg.eigh(C)
+        np.testing.assert_allclose(float(eps[t]), w[0], rtol=1e-9, atol=1e-15)
+        Lref = (V[F[t]] - q.mean(0)) @ vec[:, 0]
+        Lg = L[t].cpu().numpy()
+        np.testing.assert_allclose(np.sign(Lg @ Lref) * Lg, Lref, atol=1e-9)
+        checked += 1
+    assert checked > 30
+
+
+def test_pooled_moments_equal_union_of_points(device, dtype):
+    mesh = hexagons(2, 3, device, dtype)
+    g = torch.Generator().manual_seed(5)
+    # a cluster so that some triangles are empty, some have one point
+    pts = torch.cat([disc_points(150, 0.6, g, center=(0.2, 0.1)), disc_points(7, 0.85, g),
+                     disc_points(90, 0.5, g, center=(3.0, -0.2))]).to(device=device, dtype=dtype)
+    item = torch.cat([torch.zeros(157, dtype=torch.long), torch.ones(90, dtype=torch.long)]).to(device)
+    face, bary = locate_grid(mesh, pts, item)
+    assert (face >= 0).all()
+    mom = triangle_moments(mesh, pts, face, bary)
+    pooled = pooled_moments(mesh, mom)
+    # neighbours found independently: triangles sharing two vertices
+    F = mesh.faces.cpu().tolist()
+    by_edge = defaultdict(list)
+    for t, tri in enumerate(F):
+        for a in range(3):
+            i, j = tri[a], tri[(a + 1) % 3]
+            by_edge[(min(i, j), max(i, j))].append(t)
+    nbrs = defaultdict(set)
+    for ts in by_edge.values():
+        for a in ts:
+            nbrs[a].update(x for x in ts if x != a)
+    P = pts.double().cpu().numpy()
+    fc = face.cpu().numpy()
+    atol = 1e-5 if dtype == torch.float32 else 1e-12
+    n_multi = 0
+    for t in range(len(F)):
+        group = [t] + sorted(nbrs[t])
+        assert len(group) <= 4
+        q = P[np.isin(fc, group)]
+        assert float(pooled.count[t]) == len(q)
+        if len(q) == 0:
+            continue
+        np.testing.assert_allclose(pooled.centroid[t].double().cpu().numpy(), q.mean(0), atol=atol)
+        C = np.cov(q.T, bias=True) if len(q) > 1 else np.zeros((2, 2))
+        np.testing.assert_allclose(pooled.scatter[t].double().cpu().numpy(), C, atol=atol)
+        n_multi += len(set(fc[np.isin(fc, group)].tolist())) > 1
+    assert n_multi > 20
+    # M is the per-triangle moment, not pooled
+    assert torch.equal(pooled.M, mom.M)
+
+
+# ============================================================================= edge weights
+
+
+def naive_edge_weights(mesh, L, w, empty):
+    """H_e = -Σ_{t ∋ e} σ_{t,i} σ_{t,j} w_t by a loop (eq. 3.6); empty triangles: σ = +1."""
+    idx = edge_index(mesh)
+    H = [0.0] * len(idx)
+    for t, tri in enumerate(mesh.faces.cpu().tolist()):
+        sig = [1.0, 1.0, 1.0] if empty[t] else [1.0 if float(x) >= 0 else -1.0 for x in L[t]]
+        for a in range(3):
+            b = (a + 1) % 3
+            i, j = tri[a], tri[b]
+            H[idx[(min(i, j), max(i, j))]] += -sig[a] * sig[b] * w[t]
+    return torch.tensor(H, dtype=torch.float64)
+
+
+def test_edge_weights_hand_values(device, dtype):
+    mesh = hexagon_mesh(torch.zeros(1, 2, device=device, dtype=dtype), torch.ones(1, device=device, dtype=dtype), 1)
+    assert mesh.faces.shape[0] == 6
+    L = torch.tensor([[1.0, -2.0, 0.5], [-1.0, -1.0, 3.0], [0.2, 0.3, -0.1],
+                      [1.0, -1.0, 1.0], [-1.0, 1.0, 1.0], [0.0, 0.0, 0.0]], device=device, dtype=dtype)
+    eps = torch.tensor([0.1, 0.3, 0.5, 0.0, 0.0, 0.0], device=device, dtype=dtype)
+    # triangles 0-2 fitted (eps 0.1, 0.3, 0.5 -> w = 1, 0.5, 0); 3 and 4 hold 2 and 1 points: no
+    # evidence; 5 is empty: L = (1,1,1) with the empty weight
+    count = torch.tensor([10.0, 4.0, 3.0, 2.0, 1.0, 0.0], device=device, dtype=dtype)
+    H = edge_weights(mesh, L, eps, count, min_points=3, empty_weight=0.7)
+    w = [1.0, 0.5, 0.0, 0.0, 0.0, 0.7]
+    ref = naive_edge_weights(mesh, L.cpu().tolist(), w, [False] * 5 + [True])
+    np.testing.assert_allclose(H.double().cpu().numpy(), ref.numpy(), atol=1e-6)
+    # an edge of triangle 3 or 4 only (boundary) carries nothing; one of triangle 5 only carries -0.7
+    idx = edge_index(mesh)
+    F = mesh.faces.cpu().tolist()
+    owners = defaultdict(list)
+    for t, tri in enumerate(F):
+        for a in range(3):
+            i, j = tri[a], tri[(a + 1) % 3]
+            owners[idx[(min(i, j), max(i, j))]].append(t)
+    for e, ts in owners.items():
+        if set(ts) <= {3, 4}:
+            assert float(H[e]) == 0.0
+        if ts == [5]:
+            assert float(H[e]) == pytest.approx(-0.7)
+    # pooled support: a triangle with no point of its own but a fitted neighbourhood is not empty
+    pooled = torch.tensor([10.0, 4.0, 3.0, 2.0, 1.0, 5.0], device=device, dtype=dtype)
+    H2 = edge_weights(mesh, L, eps, count, 3, 0.7, pooled_count=pooled)
+    # eps 0 joins the fitted set: w = (0.5 - eps)/0.5 -> 0.8, 0.4, 0, 1
+    ref2 = naive_edge_weights(mesh, L.cpu().tolist(), [0.8, 0.4, 0.0, 0.0, 0.0, 1.0], [False] * 6)
+    np.testing.assert_allclose(H2.double().cpu().numpy(), ref2.numpy(), atol=1e-6)
+
+
+def test_edge_weights_equal_weights_when_all_errors_equal(device):
+    mesh = hexagon_mesh(torch.zeros(1, 2, device=device), torch.ones(1, device=device), 1)
+    L = torch.tensor([[1.0, -1.0, 1.0]] * 6, device=device)
+    eps = torch.full((6,), 0.25, device=device)
+    count = torch.full((6,), 5.0, device=device)
+    H = edge_weights(mesh, L, eps, count, 3, 1.0)
+    ref = naive_edge_weights(mesh, L.cpu().tolist(), [1.0] * 6, [False] * 6)
+    np.testing.assert_allclose(H.cpu().numpy(), ref.numpy(), atol=1e-6)
+
+
+def test_edge_weights_on_a_data_line(device):
+    """Crossed edges attract opposite signs (H > 0); far empty edges want equal signs."""
+    dtype = torch.float64
+    mesh = hexagon_mesh(torch.zeros(1, 2, device=device, dtype=dtype), torch.ones(1, device=device, dtype=dtype), 4)
+    g = torch.Generator().manual_seed(11)
+    x = torch.linspace(-0.6, 0.6, 240, dtype=dtype)
+    y = 0.1 + 0.05 * x + 0.004 * torch.randn(240, generator=g, dtype=dtype)
+    pts = torch.stack([x, y], 1).to(device)
+    _, face, bary = locate_single(mesh, pts)
+    assert (face >= 0).all()
+    mom = triangle_moments(mesh, pts, face, bary)
+    L, eps, _ = line_fits(mesh, mom)
+    H = edge_weights(mesh, L, eps, mom.count, min_points=3, empty_weight=0.8)
+    # independent: numpy line fits, weights by hand, naive edge sums
+    P, fc = pts.cpu().numpy(), face.cpu().numpy()
+    V, F = mesh.verts.cpu().numpy(), mesh.faces.cpu().numpy()
+    Lref, epsref, fit, empty = [], [], [], []
+    for t in range(F.shape[0]):
+        q = P[fc == t]
+        empty.append(len(q) == 0)
+        fit.append(len(q) >= 3)
+        if len(q) >= 3:
+            wv, vec = np.linalg.eigh(np.cov(q.T, bias=True))
+            Lref.append(((V[F[t]] - q.mean(0)) @ vec[:, 0]).tolist())
+            epsref.append(wv[0])
+        else:
+            Lref.append([1.0, 1.0, 1.0])
+            epsref.append(0.0)
+    e_fit = [e for e, f in zip(epsref, fit) if f]
+    emax, emin = max(e_fit), min(e_fit)
+    w = [(emax - e) / (emax - emin) if f else (0.8 if em else 0.0) for e, f, em in zip(epsref, fit, empty)]
+    ref = naive_edge_weights(mesh, Lref, w, empty)
+    np.testing.assert_allclose(H.cpu().numpy(), ref.numpy(), atol=1e-7)
+    # qualitative: an edge whose two triangles hold the line and whose ends lie on opposite
+    # sides of it gets H > 0; an edge of empty triangles only gets -0.8 per triangle
+    idx = edge_index(mesh)
+    owners = defaultdict(list)
+    for t, tri in enumerate(F.tolist()):
+        for a in range(3):
+            i, j = tri[a], tri[(a + 1) % 3]
+            owners[idx[(min(i, j), max(i, j))]].append(t)
+    cnt = mom.count.cpu().numpy()
+    n_cross = n_far = 0
+    for e, ts in owners.items():
+        i, j = mesh.edges[e].tolist()
+        side_i = V[i, 1] - (0.1 + 0.05 * V[i, 0])
+        side_j = V[j, 1] - (0.1 + 0.05 * V[j, 0])
+        if side_i * side_j < 0 and len(ts) == 2 and all(cnt[t] >= 10 for t in ts):
+            assert float(H[e]) > 0
+            n_cross += 1
+        if all(cnt[t] == 0 for t in ts):
+            assert float(H[e]) == pytest.approx(-0.8 * len(ts), abs=1e-12)
+            n_far += 1
+    assert n_cross >= 5 and n_far >= 20
+
+
+def test_edge_weights_per_item_extremes(device):
+    """w uses the extremes of each item: the same item alone and in a batch gives the same H."""
+    m1 = hexagon_mesh(torch.zeros(1, 2, device=device), torch.ones(1, device=device), 1)
+    m2 = MeshBatch.cat([m1, m1])
+    L = torch.tensor([[1.0, -2.0, 0.5], [-1.0, -1.0, 3.0], [0.2, 0.3, -0.1],
+                      [1.0, -1.0, 1.0], [-1.0, 1.0, 1.0], [0.5, 0.5, -1.0]], device=device)
+    eps1 = torch.tensor([0.1, 0.3, 0.5, 0.2, 0.4, 0.05], device=device)
+    eps2 = eps1 * 100
+    count = torch.full((6,), 5.0, device=device)
+    Ha = edge_weights(m1, L, eps1, count, 3, 1.0)
+    Hb = edge_weights(m1, L, eps2, count, 3, 1.0)
+    H2 = edge_weights(m2, torch.cat([L, L]), torch.cat([eps1, eps2]), torch.cat([count, count]), 3, 1.0)
+    E = Ha.shape[0]
+    torch.testing.assert_close(H2[:E], Ha)
+    torch.testing.assert_close(H2[E:], Hb)
+
+
+# ============================================================================= Ising model
+
+
+def naive_ising(mesh, H, s):
+    E = [0.0] * mesh.num_items
+    for k, (i, j) in enumerate(mesh.edges.cpu().tolist()):
+        E[int(mesh.vert_item[i])] += float(H[k]) * float(s[i]) * float(s[j])
+    return E
+
+
+def brute_force_min(mesh_b, H_b, init_b, fixed_b):
+    free = (~fixed_b).nonzero().squeeze(1)
+    n = free.shape[0]
+    assert n <= 16
+    codes = torch.arange(2 ** n, device=H_b.device)
+    bits = (codes[None, :] >> torch.arange(n, device=H_b.device)[:, None]) & 1      # (n, R)
+    S = init_b.to(H_b.dtype)[:, None].repeat(1, 2 ** n)
+    S[free] = (2 * bits - 1).to(H_b.dtype)
+    E = ising_energy(mesh_b, H_b, S)[0]
+    return float(E.min())
+
+
+def test_ising_energy_against_loop(device):
+    mesh = MeshBatch.cat([hexagons(1, 2, device, torch.float64), square_mesh(
+        torch.zeros(1, 2, device=device, dtype=torch.float64), torch.ones(1, device=device, dtype=torch.float64), 3)])
+    g = torch.Generator().manual_seed(2)
+    H = (torch.rand(mesh.edges.shape[0], generator=g, dtype=torch.float64) * 2 - 1).to(device)
+    s = torch.where(torch.rand(mesh.verts.shape[0], generator=g) < 0.5, -1.0, 1.0).to(device=device,
+                                                                                      dtype=torch.float64)
+    E = ising_energy(mesh, H, s)
+    np.testing.assert_allclose(E.cpu().numpy(), naive_ising(mesh, H.cpu(), s.cpu()), rtol=1e-12)
+    E2 = ising_energy(mesh, H, torch.stack([s, -s, torch.ones_like(s)], 1))
+    np.testing.assert_allclose(E2[:, 0].cpu().numpy(), E.cpu().numpy(), rtol=1e-12)
+    np.testing.assert_allclose(E2[:, 1].cpu().numpy(), E.cpu().numpy(), rtol=1e-12)   # global flip
+    np.testing.assert_allclose(E2[:, 2].cpu().numpy(), naive_ising(mesh, H.cpu(), torch.ones_like(s).cpu()),
+                               rtol=1e-12)
+
+
+def _ising_cases(device):
+    dt = torch.float64
+    z = lambda B: torch.zeros(B, 2, device=device, dtype=dt)          # noqa: E731
+    o = lambda B: torch.ones(B, device=device, dtype=dt)               # noqa: E731
+    return [
+        ("square3_free", square_mesh(z(3), o(3), 3), "none"),          # 16 free vertices
+        ("hex2_boundary", hexagon_mesh(z(3), o(3), 2), "boundary"),    # 7 free vertices
+        ("square4_boundary", square_mesh(z(3), o(3), 4), "boundary"),  # 9 free vertices
+        ("hex1_free", hexagon_mesh(z(2), o(2), 1), "none"),             # 7 free vertices
+    ]
+
+
+@pytest.mark.parametrize("case", range(4))
+@pytest.mark.parametrize("hseed", [0, 1, 2, 3])
+def test_anneal_finds_exact_minimum(case, hseed, device):
+    name, mesh, fix = _ising_cases(device)[case]
+    g = torch.Generator().manual_seed(100 * case + hseed)
+    H = (torch.rand(mesh.edges.shape[0], generator=g, dtype=torch.float64) * 2 - 1).to(device)
+    V = mesh.verts.shape[0]
+    fixed = mesh.is_boundary_vert.clone() if fix == "boundary" else torch.zeros(V, dtype=torch.bool, device=device)
+    init = torch.where(torch.rand(V, generator=g) < 0.5, -1.0, 1.0).to(device=device, dtype=torch.float64)
+    # 16 replicas: with the default 4, a replica can freeze into a near-degenerate local minimum
+    # of these frustrated (spin-glass) problems
+    s = anneal(mesh, H, init, fixed, sweeps=150, t_start=3.0, t_end=0.02, replicas=16, seed=7)
+    assert set(s.unique().cpu().tolist()) <= {-1.0, 1.0}
+    assert torch.equal(s[fixed], init[fixed])
+    E = ising_energy(mesh, H, s)
+    for b in range(mesh.num_items):
+        v0, nv = int(mesh.verts_first_idx[b]), int(mesh.verts_per_item[b])
+        e0 = int(torch.cumsum(mesh.edges_per_item, 0)[b] - mesh.edges_per_item[b])
+        ne = int(mesh.edges_per_item[b])
+        mb = mesh[b]
+        assert torch.equal(mb.edges + v0, mesh.edges[e0:e0 + ne])
+        Emin = brute_force_min(mb, H[e0:e0 + ne], init[v0:v0 + nv], fixed[v0:v0 + nv])
+        assert float(E[b]) == pytest.approx(Emin, abs=1e-9), (name, b)
+
+
+def test_anneal_fixed_determinism_and_ferromagnet(device):
+    mesh = hexagons(2, 3, device, torch.float32)
+    V = mesh.verts.shape[0]
+    g = torch.Generator().manual_seed(4)
+    H = (torch.rand(mesh.edges.shape[0], generator=g) * 2 - 1).to(device)
+    fixed = mesh.is_boundary_vert | (torch.rand(V, generator=g) < 0.2).to(device)
+    init = torch.where(torch.rand(V, generator=g) < 0.5, -1.0, 1.0).to(device)
+    a = anneal(mesh, H, init, fixed, 60, 3.0, 0.02, replicas=3, seed=5)
+    b = anneal(mesh, H, init, fixed, 60, 3.0, 0.02, replicas=3, seed=5)
+    assert torch.equal(a, b)
+    assert torch.equal(a[fixed], init[fixed])
+    # warm start keeps fixed values too
+    c = anneal(mesh, H, init, fixed, 60, 3.0, 0.02, replicas=3, seed=5, warm_t_start=0.3)
+    assert torch.equal(c[fixed], init[fixed])
+    # ferromagnet, boundary held at +1: the unique ground state is all +1 (from a random start)
+    Hf = -(0.1 + torch.rand(mesh.edges.shape[0], generator=g)).to(device)
+    init2 = torch.where(mesh.is_boundary_vert, 1.0, init)
+    s = anneal(mesh, Hf, init2, mesh.is_boundary_vert, 60, 3.0, 0.02, replicas=2, seed=1)
+    assert torch.equal(s, torch.ones_like(s))
+
+
+def test_anneal_batch_independent(device):
+    """An item's stream depends on its own keys: alone or in a batch, the same signs."""
+    one = hexagons(1, 3, device, torch.float64)
+    batch = MeshBatch.cat([hexagons(1, 2, device, torch.float64), one, hexagons(1, 4, device, torch.float64)])
+    g = torch.Generator().manual_seed(9)
+    H = (torch.rand(batch.edges.shape[0], generator=g, dtype=torch.float64) * 2 - 1).to(device)
+    e0, ne = int(batch.edges_per_item[0]), int(batch.edges_per_item[1])
+    v0, nv = int(batch.verts_per_item[0]), int(batch.verts_per_item[1])
+    init = torch.ones(batch.verts.shape[0], dtype=torch.float64, device=device)
+    fixed = batch.is_boundary_vert
+    s_b = anneal(batch, H, init, fixed, 40, 3.0, 0.02, replicas=3, seed=2)
+    s_1 = anneal(one, H[e0:e0 + ne], init[v0:v0 + nv], fixed[v0:v0 + nv], 40, 3.0, 0.02, replicas=3, seed=2)
+    assert torch.equal(s_b[v0:v0 + nv], s_1)
+
+
+@pytest.mark.parametrize("active_frac", [1.0, 0.6])
+def test_vertex_coloring_proper(active_frac, device):
+    mesh = MeshBatch.cat([hexagons(2, 4, device, torch.float32),
+                          square_mesh(torch.zeros(1, 2, device=device), torch.ones(1, device=device), 5)])
+    V = mesh.verts.shape[0]
+    g = torch.Generator().manual_seed(1)
+    active = (torch.rand(V, generator=g) < active_frac).to(device)
+    col = vertex_coloring(mesh, None if active_frac == 1.0 else active)
+    if active_frac == 1.0:
+        active = torch.ones(V, dtype=torch.bool, device=device)
+    assert (col[active] >= 0).all()
+    assert (col[~active] == -1).all()
+    for i, j in mesh.edges.cpu().tolist():
+        if bool(active[i]) and bool(active[j]):
+            assert int(col[i]) != int(col[j])
+    # greedy: a vertex's colour is at most its degree
+    assert (col[active] <= mesh.degrees[active]).all()
+
+
+def test_hash_uniform():
+    n = 100_000
+    k = torch.arange(n)
+    u = hash_uniform(torch.full((n,), 3), k, torch.full((n,), 17), dtype=torch.float64)
+    assert float(u.min()) > 0 and float(u.max()) < 1
+    assert abs(float(u.mean()) - 0.5) < 0.005
+    assert abs(float(u.var()) - 1 / 12) < 0.003
+    hist = torch.histc(u, bins=10, min=0, max=1)
+    assert float((hist - n / 10).abs().max()) < 0.05 * n / 10
+    # deterministic, and elementwise (a value depends only on its own keys)
+    u2 = hash_uniform(torch.full((n,), 3), k, torch.full((n,), 17), dtype=torch.float64)
+    assert torch.equal(u, u2)
+    sub = hash_uniform(torch.full((10,), 3), k[500:510], torch.full((10,), 17), dtype=torch.float64)
+    assert torch.equal(sub, u[500:510])
+    # a different key gives a different stream (not merely shifted)
+    v = hash_uniform(torch.full((n,), 4), k, torch.full((n,), 17), dtype=torch.float64)
+    assert float((u == v).double().mean()) < 1e-3
+    assert abs(float(torch.corrcoef(torch.stack([u, v]))[0, 1])) < 0.02
+    assert abs(float(torch.corrcoef(torch.stack([u[:-1], u[1:]]))[0, 1])) < 0.02
+    f32 = hash_uniform(torch.full((n,), 3), k, torch.full((n,), 17))
+    assert f32.dtype == torch.float32 and float(f32.min()) > 0 and float(f32.max()) < 1
+
+
+def _preimage_of_hash(h):
+    """A key k with hash_uniform(k) built on the 32-bit hash value h: the lowbias32-like mix is a
+    bijection (xorshifts and odd multipliers mod 2^32), inverted here step by step."""
+    m = 0xFFFFFFFF
+
+    def unxorshift(y, s):
+        x = y
+        for _ in range(32 // s + 1):
+            x = y ^ (x >> s)
+        return x & m
+
+    x = unxorshift(h, 16)
+    x = x * pow(0x846CA68B, -1, 2 ** 32) & m
+    x = unxorshift(x, 15)
+    x = x * pow(0x7FEB352D, -1, 2 ** 32) & m
+    x = unxorshift(x, 16)
+    return (x - 0x632BE5AB) & m          # one key: h = mix(0 * C + k + 0x632BE5AB)
+
+
+def test_hash_uniform_extremes_float64():
+    lo, hi = _preimage_of_hash(0), _preimage_of_hash(0xFFFFFFFF)
+    u = hash_uniform(torch.tensor([lo, hi]), dtype=torch.float64)
+    assert float(u[0]) == 0.5 / 2 ** 32
+    assert float(u[1]) == 1 - 0.5 / 2 ** 32
+
+
+def test_hash_uniform_float32_stays_below_one():
+    hi = _preimage_of_hash(0xFFFFFFFF)
+    u = hash_uniform(torch.tensor([hi, _preimage_of_hash(0xFFFFFFFF - 5)]), dtype=torch.float32)
+    assert float(u.max()) < 1.0
+
+
+# ============================================================================= batched L-BFGS
+
+
+class Problems:
+    """A sum of independent per-segment problems packed in one vector."""
+
+    def __init__(self, specs, device):
+        self.specs = specs
+        self.sizes = [s["x0"].shape[0] for s in specs]
+        self.seg = torch.repeat_interleave(torch.arange(len(specs)), torch.tensor(self.sizes)).to(device)
+        self.x0 = torch.cat([s["x0"] for s in specs]).to(device)
+        self.device = device
+
+    def __call__(self, x):
+        out, o = [], 0
+        for s, n in zip(self.specs, self.sizes):
+            xs = x[o:o + n]
+            o += n
+            if s["kind"] == "quad":
+                out.append((s["a"].to(x) * (xs - s["c"].to(x)) ** 2).sum())
+            else:
+                a, b = s["ab"]
+                out.append(s["scale"] * ((a - xs[0]) ** 2 + b * (xs[1] - xs[0] ** 2) ** 2))
+        return torch.stack(out)
+
+
+def _lbfgs_specs():
+    d = torch.float64
+    return [
+        {"kind": "quad", "x0": torch.zeros(3, dtype=d), "a": torch.tensor([1e-2, 1.0, 1e2], dtype=d),
+         "c": torch.tensor([1.0, -2.0, 3.0], dtype=d), "xmin": torch.tensor([1.0, -2.0, 3.0], dtype=d)},
+        {"kind": "rosen", "x0": torch.tensor([-1.2, 1.0], dtype=d), "ab": (1.0, 100.0), "scale": 1.0,
+         "xmin": torch.tensor([1.0, 1.0], dtype=d)},
+        {"kind": "quad", "x0": torch.full((5,), 10.0, dtype=d), "a": torch.tensor([1e-4, 2e-4, 5e-4, 1e-3, 3e-4], dtype=d),
+         "c": torch.tensor([0.5, 0.1, -0.3, 7.0, 2.0], dtype=d), "xmin": torch.tensor([0.5, 0.1, -0.3, 7.0, 2.0], dtype=d)},
+        {"kind": "rosen", "x0": torch.tensor([0.0, 2.0], dtype=d), "ab": (2.0, 10.0), "scale": 1e3,
+         "xmin": torch.tensor([2.0, 4.0], dtype=d)},
+        {"kind": "quad", "x0": torch.tensor([3.0], dtype=d), "a": torch.tensor([1e4], dtype=d),
+         "c": torch.tensor([-1e-3], dtype=d), "xmin": torch.tensor([-1e-3], dtype=d)},
+    ]
+
+
+def test_batched_lbfgs_converges_per_segment_and_is_batch_independent(device):
+    specs = _lbfgs_specs()
+    prob = Problems(specs, device)
+    x, f, iters = batched_lbfgs(prob, prob.x0, prob.seg, len(specs), iterations=300, history=8, rel_tol=1e-14)
+    o = 0
+    for k, s in enumerate(specs):
+        n = s["x0"].shape[0]
+        np.testing.assert_allclose(x[o:o + n].cpu().numpy(), s["xmin"].numpy(), rtol=1e-5, atol=1e-5,
+                                   err_msg=f"segment {k}")
+        assert float(f[k]) < 1e-9 * max(1.0, float(prob(prob.x0)[k]))
+        # the same problem alone follows exactly the same trajectory
+        alone = Problems([s], device)
+        xa, fa, ia = batched_lbfgs(alone, alone.x0, alone.seg, 1, iterations=300, history=8, rel_tol=1e-14)
+        assert torch.equal(xa, x[o:o + n]), f"segment {k} depends on its batch"
+        assert torch.equal(fa[0], f[k]) and int(ia[0]) == int(iters[k])
+        o += n
+    # the returned objective is the objective at the returned point
+    torch.testing.assert_close(prob(x), f)
+
+
+def test_batched_lbfgs_order_of_segments_irrelevant(device):
+    specs = _lbfgs_specs()
+    a = Problems(specs, device)
+    b = Problems(specs[::-1], device)
+    xa, fa, _ = batched_lbfgs(a, a.x0, a.seg, len(specs), iterations=40)
+    xb, fb, _ = batched_lbfgs(b, b.x0, b.seg, len(specs), iterations=40)
+    assert torch.equal(fa, fb.flip(0))
+    ob = 0
+    parts_b = []
+    for s in specs[::-1]:
+        n = s["x0"].shape[0]
+        parts_b.append(xb[ob:ob + n])
+        ob += n
+    assert torch.equal(xa, torch.cat(parts_b[::-1]))
+
+
+def test_batched_lbfgs_iteration_cap_and_monotone(device):
+    specs = _lbfgs_specs()
+    prob = Problems(specs, device)
+    f0 = prob(prob.x0)
+    prev = f0
+    for it in (1, 3, 10):
+        x, f, iters = batched_lbfgs(prob, prob.x0, prob.seg, len(specs), iterations=it)
+        assert (iters <= it).all()
+        assert (f <= prev + 1e-15).all()          # a longer run never ends higher (monotone descent)
+        prev = f
+
+
+# ============================================================================= geometry
+
+
+def circle_setup(device, dtype, n=200, R=0.5, res=8):
+    mesh = hexagons(1, res, device, dtype)
+    t = torch.arange(n, dtype=torch.float64) * (2 * math.pi / n) + 0.1
+    pts = (R * torch.stack([t.cos(), t.sin()], 1)).to(device=device, dtype=dtype)
+    item, face, bary = locate_single(mesh, pts)
+    assert (face >= 0).all()
+    mom = triangle_moments(mesh, pts, face, bary)
+    signs = torch.where(mesh.verts.norm(dim=1) < R, -1.0, 1.0).to(dtype)
+    init = vertex_data_distance(mesh, pts, face)
+    return mesh, pts, face, bary, mom, signs, init
+
+
+def delta1_from_points(mesh, values, pts, face):
+    """Δ1 as the mean over points of f(p)²/|∇f|² (float64, barycentrics by Cramer's rule)."""
+    V = mesh.verts.double().cpu().numpy()
+    Fc = mesh.faces.cpu().numpy()
+    val = values.double().cpu().numpy()
+    tot = 0.0
+    P = pts.double().cpu().numpy()
+    for p, t in zip(P, face.cpu().tolist()):
+        tri = V[Fc[t]]
+        X = np.array(ref_bary64(tri, p))
+        fv = val[Fc[t]]
+        f = X @ fv
+        # gradient of the linear interpolant: solve [x y 1] a = f at the vertices
+        A = np.c_[tri, np.ones(3)]
+        a = np.linalg.solve(A, fv)
+        tot += f * f / (a[0] ** 2 + a[1] ** 2)
+    return tot / len(P)
+
+
+def test_delta1_per_triangle_equals_point_mean(device):
+    dtype = torch.float64
+    mesh, pts, face, bary, mom, signs, init = circle_setup(device, dtype, n=120, res=4)
+    g = torch.Generator().manual_seed(0)
+    values = signs * (0.05 + torch.rand(signs.shape[0], generator=g, dtype=dtype).to(device))
+    d = delta1_per_triangle(mesh, mom.M, values)
+    total = float((d * mom.count).sum() / mom.count.sum())
+    assert total == pytest.approx(delta1_from_points(mesh, values, pts, face), rel=1e-9)
+    r = point_residuals(mesh, values, face, bary)
+    assert float(r.mean()) == pytest.approx(total, rel=1e-9)
+
+
+def test_vertex_data_distance_is_upper_bound_exact_near_data(device):
+    dtype = torch.float64
+    mesh, pts, face, bary, mom, signs, init = circle_setup(device, dtype, n=60, res=4)
+    V = mesh.verts.cpu().numpy()
+    P = pts.cpu().numpy()
+    true = np.sqrt(((V[:, None, :] - P[None, :, :]) ** 2).sum(-1)).min(1)
+    d = init.cpu().numpy()
+    assert (d >= true - 1e-12).all()
+    # vertices of triangles with points: min distance to the points of incident triangles
+    Fc = mesh.faces.cpu().numpy()
+    fc = face.cpu().numpy()
+    for vtx in range(V.shape[0]):
+        inc = np.nonzero((Fc == vtx).any(1))[0]
+        q = P[np.isin(fc, inc)]
+        if len(q):
+            assert d[vtx] == pytest.approx(np.sqrt(((q - V[vtx]) ** 2).sum(1)).min(), rel=1e-12)
+        # relaxed along edges: never more than a neighbour's bound plus the edge
+    for i, j in mesh.edges.cpu().tolist():
+        el = np.linalg.norm(V[i] - V[j])
+        assert d[i] <= d[j] + el + 1e-12 and d[j] <= d[i] + el + 1e-12
+
+
+@pytest.mark.parametrize("smoothness", [0.0, 1e-2])
+def test_fit_geometry_lowers_delta1_keeps_signs_and_fits_circle(smoothness, device, dtype):
+    R = 0.5
+    mesh, pts, face, bary, mom, signs, init = circle_setup(device, dtype, R=R)
+    tol = torch.tensor([0.004], device=device, dtype=dtype)
+    d1_start = delta1_from_points(mesh, signs * init, pts, face)
+    F, d1 = fit_geometry(mesh, mom, signs, init, tol, iterations=60, history=8, magnitude_floor=0.02,
+                         smoothness=smoothness)
+    assert F.dtype == dtype and F.shape == signs.shape
+    assert torch.isfinite(F).all()
+    assert ((F * signs) > 0).all() and not (F == 0).any()
+    # magnitudes are floored at magnitude_floor x the item's mean starting magnitude
+    assert float(F.abs().min()) >= 0.02 * float(init.mean()) * (1 - 1e-5)
+    # the reported Δ1 is the mean squared approximate distance of the points
+    d1_pts = delta1_from_points(mesh, F, pts, face)
+    assert float(d1[0]) == pytest.approx(d1_pts, rel=1e-3 if dtype == torch.float32 else 1e-8)
+    assert d1_pts < 0.5 * d1_start
+    # the zero set is close to the circle (mesh edge = 1/8)
+    zs = ImplicitCurve(mesh, F).zero_set()
+    assert zs.closed.tolist() == [True]
+    r = zs.points.double().norm(dim=1)
+    assert float((r - R).abs().max()) < 0.01
+    # and closer than the linear interpolation of the starting magnitudes
+    r0 = ImplicitCurve(mesh, signs * init).zero_set().points.double().norm(dim=1)
+    assert float((r - R).abs().max()) < float((r0 - R).abs().max())
+
+
+def test_fit_geometry_batch_independent(device):
+    dtype = torch.float64
+    m1, p1, f1, b1, mom1, s1, i1 = circle_setup(device, dtype, n=150, R=0.5, res=6)
+    m2, p2, f2, b2, mom2, s2, i2 = circle_setup(device, dtype, n=90, R=0.3, res=4)
+    tol = torch.tensor([0.004], device=device, dtype=dtype)
+    F1, d1 = fit_geometry(m1, mom1, s1, i1, tol, 40, 8, 0.02, 1e-2)
+    mesh = MeshBatch.cat([m2, m1])
+    pts = torch.cat([p2, p1])
+    item = torch.cat([torch.zeros(90, dtype=torch.long), torch.ones(150, dtype=torch.long)]).to(device)
+    face, bary = locate_grid(mesh, pts, item)
+    mom = triangle_moments(mesh, pts, face, bary)
+    F, d = fit_geometry(mesh, mom, torch.cat([s2, s1]), torch.cat([i2, i1]), torch.cat([tol, tol]), 40, 8, 0.02, 1e-2)
+    nv2 = m2.verts.shape[0]
+    torch.testing.assert_close(F[nv2:], F1, rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(d[1], d1[0], rtol=1e-10, atol=1e-15)
+
+
+# ============================================================================= subdivision
+
+
+def check_conforming(old, new, tol=1e-9):
+    """Every directed edge once; an undirected edge used once lies on the old outer boundary."""
+    F = new.faces.cpu().tolist()
+    V = new.verts.double().cpu().numpy()
+    directed = set()
+    undirected = defaultdict(int)
+    for tri in F:
+        for a in range(3):
+            i, j = tri[a], tri[(a + 1) % 3]
+            assert (i, j) not in directed
+            directed.add((i, j))
+            undirected[(min(i, j), max(i, j))] += 1
+    assert max(undirected.values()) <= 2
+    ob = old.edges[old.is_boundary_edge].cpu().numpy()
+    OV = old.verts.double().cpu().numpy()
+    A, Bv = OV[ob[:, 0]], OV[ob[:, 1]]
+    for (i, j), c in undirected.items():
+        if c == 2:
+            continue
+        # a hanging vertex would leave an interior edge used once: it must lie on an old boundary edge
+        ok = False
+        for a, b in zip(A, Bv):
+            d = b - a
+            cr_i = d[0] * (V[i][1] - a[1]) - d[1] * (V[i][0] - a[0])
+            cr_j = d[0] * (V[j][1] - a[1]) - d[1] * (V[j][0] - a[0])
+            L2 = d @ d
+            ti, tj = (V[i] - a) @ d / L2, (V[j] - a) @ d / L2
+            if abs(cr_i) < tol and abs(cr_j) < tol and -tol <= ti <= 1 + tol and -tol <= tj <= 1 + tol:
+                ok = True
+                break
+        assert ok, f"edge {(i, j)} used once but not on the outer boundary"
+
+
+def item_areas(mesh):
+    a = mesh.signed_areas().double()
+    return torch.zeros(mesh.num_items, dtype=torch.float64, device=a.device).index_add_(0, mesh.face_item, a)
+
+
+@pytest.mark.parametrize("kind", ["hexagon", "square"])
+@pytest.mark.parametrize("frac", [0.1, 0.4])
+def test_subdivide_random_marks_conforming(kind, frac, device, dtype):
+    c = torch.tensor([[0.0, 0.0], [5.0, 1.0], [-3.0, 2.0]], device=device, dtype=dtype)
+    r = torch.tensor([1.0, 2.0, 0.5], device=device, dtype=dtype)
+    mesh = hexagon_mesh(c, r, 3) if kind == "hexagon" else square_mesh(c, r, 4)
+    g = torch.Generator().manual_seed(int(frac * 100))
+    for rnd in range(3):
+        marked = (torch.rand(mesh.faces.shape[0], generator=g) < frac).to(device)
+        sd = subdivide(mesh, marked)
+        new = sd.mesh
+        new.validate()
+        assert (new.signed_areas() > 0).all()
+        check_conforming(mesh, new, 1e-5 if dtype == torch.float32 else 1e-9)
+        # items stay contiguous and keep their own vertices
+        assert new.num_items == mesh.num_items
+        assert (new.vert_item[new.faces] == new.face_item[:, None]).all()
+        atol = 1e-5 if dtype == torch.float32 else 1e-12
+        torch.testing.assert_close(item_areas(new), item_areas(mesh), rtol=1e-5 if dtype == torch.float32 else 1e-12,
+                                   atol=atol)
+        # children: each old face's children partition it (area), marked faces split in 4
+        ch = sd.children
+        nchild = (ch >= 0).sum(1)
+        assert (nchild[marked] == 4).all()
+        assert set(nchild.unique().tolist()) <= {1, 2, 4}
+        assert sorted(ch[ch >= 0].tolist()) == list(range(new.faces.shape[0]))
+        a_new = new.signed_areas().double()
+        a_sum = torch.where(ch >= 0, a_new[ch.clamp_min(0)], torch.zeros_like(a_new[ch.clamp_min(0)])).sum(1)
+        torch.testing.assert_close(a_sum, mesh.signed_areas().double(), rtol=1e-5 if dtype == torch.float32 else 1e-12,
+                                   atol=atol)
+        # an old triangle with 0 or 1 marked vertex is kept as it is
+        vm = torch.zeros(mesh.verts.shape[0], dtype=torch.bool, device=device)
+        vm[mesh.faces[marked].reshape(-1)] = True
+        nm = vm[mesh.faces].sum(1)
+        kept = nm <= 1
+        assert (nchild[kept] == 1).all()
+        assert torch.equal(sd.old_to_new_vert[mesh.faces[kept]], new.faces[ch[kept, 0]])
+        assert (nchild[nm == 2] == 2).all() and (nchild[nm == 3] == 4).all()
+        # old vertices keep their positions
+        assert torch.equal(new.verts[sd.old_to_new_vert], mesh.verts)
+        # new vertices sit at midpoints of the edges with both ends marked
+        nv = sd.new_vert_edge >= 0
+        e = mesh.edges[sd.new_vert_edge[nv]]
+        assert vm[e].all()
+        assert int(nv.sum()) == int((vm[mesh.edges[:, 0]] & vm[mesh.edges[:, 1]]).sum())
+        torch.testing.assert_close(new.verts[nv], 0.5 * (mesh.verts[e[:, 0]] + mesh.verts[e[:, 1]]))
+        mesh = new
+
+
+@pytest.mark.parametrize("r", [1, 2, 3])
+def test_subdivide_all_gives_double_resolution(r, device, dtype):
+    c = torch.tensor([[0.0, 0.0], [4.0, 0.0]], device=device, dtype=dtype)
+    rad = torch.tensor([1.0, 1.5], device=device, dtype=dtype)
+    mesh = hexagon_mesh(c, rad, r)
+    sd = subdivide(mesh, torch.ones(mesh.faces.shape[0], dtype=torch.bool, device=device))
+    ref = hexagon_mesh(c, rad, 2 * r)
+    assert sd.mesh.faces.shape[0] == 4 * mesh.faces.shape[0] == 2 * 6 * (2 * r) ** 2
+    assert torch.equal(sd.mesh.verts_per_item, ref.verts_per_item)
+    assert torch.equal(sd.mesh.faces_per_item, ref.faces_per_item)
+    for b in range(2):
+        a = sd.mesh[b].verts.double().cpu().numpy()
+        bb = ref[b].verts.double().cpu().numpy()
+        a = a[np.lexsort((a[:, 1].round(6), a[:, 0].round(6)))]
+        bb = bb[np.lexsort((bb[:, 1].round(6), bb[:, 0].round(6)))]
+        np.testing.assert_allclose(a, bb, atol=1e-5)
+    q = sd.mesh.quality()
+    torch.testing.assert_close(q, torch.ones_like(q), rtol=1e-4, atol=1e-4)
+
+
+def test_subdivide_no_marks_is_identity(device):
+    mesh = hexagons(2, 2, device, torch.float64)
+    sd = subdivide(mesh, torch.zeros(mesh.faces.shape[0], dtype=torch.bool, device=device))
+    assert torch.equal(sd.mesh.verts, mesh.verts) and torch.equal(sd.mesh.faces, mesh.faces)
+    assert torch.equal(sd.children[:, 0], torch.arange(mesh.faces.shape[0], device=device))
+    assert (sd.children[:, 1:] == -1).all()
+
+
+@pytest.mark.parametrize("kind", ["hexagon", "square"])
+def test_locate_children_equals_fresh_locate(kind, device, dtype):
+    c = torch.tensor([[0.0, 0.0], [5.0, 1.0]], device=device, dtype=dtype)
+    r = torch.tensor([1.0, 2.0], device=device, dtype=dtype)
+    mesh = hexagon_mesh(c, r, 3) if kind == "hexagon" else square_mesh(c, r, 4)
+    g = torch.Generator().manual_seed(8)
+    pts = torch.cat([disc_points(400, 0.85, g), disc_points(400, 1.7, g, center=(5.0, 1.0))]).to(device=device,
+                                                                                            dtype=dtype)
+    item = torch.cat([torch.zeros(400, dtype=torch.long), torch.ones(400, dtype=torch.long)]).to(device)
+    face, _ = locate_grid(mesh, pts, item)
+    assert (face >= 0).all()
+    for rnd in range(2):
+        marked = (torch.rand(mesh.faces.shape[0], generator=g) < 0.4).to(device)
+        sd = subdivide(mesh, marked)
+        fc, bc = locate_children(sd.mesh, pts, face, sd.children)
+        fg, bg = locate_grid(sd.mesh, pts, item)
+        strict = bg.min(1).values > 1e-4
+        assert int(strict.sum()) > 700
+        assert torch.equal(fc[strict], fg[strict])
+        torch.testing.assert_close(bc[strict], bg[strict])
+        # the child is one of the parent's children
+        assert (sd.children[face] == fc[:, None]).any(1).all()
+        mesh, face = sd.mesh, fc
+
+
+def test_interpolate_linear_function_exact(device):
+    dtype = torch.float64
+    mesh = MeshBatch.cat([hexagons(1, 3, device, dtype), square_mesh(
+        torch.tensor([[4.0, 0.0]], device=device, dtype=dtype), torch.ones(1, device=device, dtype=dtype), 3)])
+    g = torch.Generator().manual_seed(3)
+    marked = (torch.rand(mesh.faces.shape[0], generator=g) < 0.5).to(device)
+    sd = subdivide(mesh, marked)
+
+    def lin(v):
+        return 0.7 * v[:, 0] - 1.3 * v[:, 1] + 0.25
+
+    vals = sd.interpolate(lin(mesh.verts), mesh.edges)
+    torch.testing.assert_close(vals, lin(sd.mesh.verts), rtol=0, atol=1e-13)
+    assert torch.equal(vals[sd.old_to_new_vert], lin(mesh.verts))
+    # vector values: interpolating the positions gives the new positions
+    pos = sd.interpolate(mesh.verts, mesh.edges)
+    torch.testing.assert_close(pos, sd.mesh.verts, rtol=0, atol=1e-15)
+    # a sign pattern: new vertices are means of their ends (0 where the ends differ)
+    s = torch.where(mesh.verts[:, 0] > 0.1, 1.0, -1.0).to(dtype)
+    si = sd.interpolate(s, mesh.edges)
+    nv = sd.new_vert_edge >= 0
+    e = mesh.edges[sd.new_vert_edge[nv]]
+    assert torch.equal(si[nv], 0.5 * (s[e[:, 0]] + s[e[:, 1]]))
+
+
+# ============================================================================= relaxation
+
+
+def naive_mesh_energy(mesh, pts, face, kd, ke, rho, min_dist):
+    V = mesh.verts.double().cpu().numpy()
+    Fc = mesh.faces.cpu().tolist()
+    P = pts.double().cpu().numpy()
+    nD = sum(1 for f in face.tolist() if f >= 0)
+    phi = np.zeros(len(V))
+    for p, f in zip(P, face.tolist()):
+        if f < 0:
+            continue
+        for i in Fc[f]:
+            phi[i] += 1.0 / max(np.linalg.norm(V[i] - p), min_dist)
+    phi /= nD
+    E = mesh.edges.cpu().tolist()
+    deg = np.zeros(len(V))
+    for i, j in E:
+        deg[i] += 1
+        deg[j] += 1
+    nu = deg / deg.mean()
+    UD = rho ** 2 * sum((phi[i] - phi[j]) ** 2 for i, j in E)
+    UE = sum(nu[i] * nu[j] * ((V[i] - V[j]) ** 2).sum() for i, j in E) / rho ** 2
+    return kd * UD + ke * UE
+
+
+def test_mesh_energy_hand_values(device):
+    dtype = torch.float64
+    mesh = square_mesh(torch.zeros(1, 2, device=device, dtype=dtype), torch.ones(1, device=device, dtype=dtype), 2)
+    pts = torch.tensor([[0.3, 0.2], [-0.5, 0.6], [0.0, 0.0], [0.9, -0.9]], device=device, dtype=dtype)
+    _, face, _ = locate_single(mesh, pts)
+    face = face.clone()
+    face[3] = -1                                       # an ignored point
+    rho = torch.tensor([2 * math.sqrt(2)], device=device, dtype=dtype)
+    n_pts = torch.tensor([3.0], device=device, dtype=dtype)
+    md = torch.tensor([0.05], device=device, dtype=dtype)
+    U = mesh_energy(mesh, mesh.verts, pts, face, 1.0, 0.25, rho, n_pts, md)
+    ref = naive_mesh_energy(mesh, pts, face, 1.0, 0.25, 2 * math.sqrt(2), 0.05)
+    assert float(U[0]) == pytest.approx(ref, rel=1e-12)
+    # the distance guard: a point on a vertex counts 1/min_dist
+    U2 = mesh_energy(mesh, mesh.verts, pts, face, 1.0, 0.0, rho, n_pts, md * 0.1)
+    ref2 = naive_mesh_energy(mesh, pts, face, 1.0, 0.0, 2 * math.sqrt(2), 0.005)
+    assert float(U2[0]) == pytest.approx(ref2, rel=1e-12)
+
+
+def relax_setup(device, dtype, n_items=2):
+    meshes, pts_l, item_l = [], [], []
+    g = torch.Generator().manual_seed(21)
+    for b in range(n_items):
+        c = torch.tensor([[3.0 * b, 0.0]], device=device, dtype=dtype)
+        m = hexagon_mesh(c, torch.ones(1, device=device, dtype=dtype), 4) if b % 2 == 0 else \
+            square_mesh(c, torch.ones(1, device=device, dtype=dtype), 5)
+        meshes.append(m)
+        R = 0.5 + 0.1 * b
+        t = torch.rand(150, generator=g, dtype=torch.float64) * 2 * math.pi
+        p = torch.stack([R * t.cos() + 3.0 * b, R * t.sin()], 1)
+        pts_l.append(p)
+        item_l.append(torch.full((150,), b, dtype=torch.long))
+    mesh = MeshBatch.cat(meshes)
+    pts = torch.cat(pts_l).to(device=device, dtype=dtype)
+    item = torch.cat(item_l).to(device)
+    face, _ = locate_grid(mesh, pts, item)
+    marked = torch.zeros(mesh.faces.shape[0], dtype=torch.bool, device=device)
+    marked[face] = True
+    sd = subdivide(mesh, marked)
+    face, _ = locate_children(sd.mesh, pts, face, sd.children)
+    return sd.mesh, pts, item, face
+
+
+def test_relax_mesh_invariants(device, dtype):
+    mesh, pts, item, face = relax_setup(device, dtype)
+    min_q = 0.3
+    q0 = mesh.quality()
+    bbox = mesh.item_bbox()
+    rho = (bbox[:, 2:] - bbox[:, :2]).norm(dim=1)
+    npts = torch.bincount(item, minlength=mesh.num_items).to(dtype)
+    md = 1e-4 * rho
+    U0 = mesh_energy(mesh, mesh.verts, pts, face, 1.0, 0.25, rho, npts, md)
+    out, f2, b2 = relax_mesh(mesh, pts, item, face, iterations=15, kappa_data=1.0, kappa_edge=0.25, min_quality=min_q)
+    v0, v1 = mesh.verts, out.verts
+    assert torch.equal(out.faces, mesh.faces)
+    assert float((v1 - v0).abs().max()) > 1e-3                 # it did move something
+    assert (out.signed_areas() > 0).all()
+    floor = torch.minimum(q0, torch.full_like(q0, min_q))
+    assert (out.quality() >= floor - 1e-6).all()
+    corner = mesh.is_corner_vert
+    assert int(corner.sum()) == 6 + 4
+    assert torch.equal(v1[corner], v0[corner])
+    # other boundary vertices stay on their side: no move across the boundary direction
+    side = mesh.is_boundary_vert & ~corner
+    d = mesh.boundary_edge_dir[side]
+    mv = (v1 - v0)[side]
+    off = (mv[:, 0] * d[:, 1] - mv[:, 1] * d[:, 0]).abs()
+    assert float(off.max()) < (1e-5 if dtype == torch.float32 else 1e-12)
+    # energy per item does not increase (with the points re-partitioned)
+    U1 = mesh_energy(out, out.verts, pts, f2, 1.0, 0.25, rho, npts, md)
+    assert (U1 <= U0 * (1 + 1e-6)).all()
+    assert (U1 < U0).any()
+    # the returned partition is the true one
+    fg, bg = locate_grid(out, pts, item)
+    strict = bg.min(1).values > 1e-5
+    assert torch.equal(f2[strict], fg[strict])
+    torch.testing.assert_close(b2, barycentric(out.verts, out.faces, f2, pts))
+    assert (b2.min(1).values >= -1e-5).all()
+
+
+@pytest.mark.parametrize("max_move", [0.3, 0.9])
+def test_relax_mesh_energy_monotone_per_iteration(max_move, device):
+    """A run of k+1 iterations continues the run of k: the energy never goes up, even with
+    long tentative steps (which must be backtracked)."""
+    dtype = torch.float64
+    mesh, pts, item, face = relax_setup(device, dtype)
+    bbox = mesh.item_bbox()
+    rho = (bbox[:, 2:] - bbox[:, :2]).norm(dim=1)
+    npts = torch.bincount(item, minlength=mesh.num_items).to(dtype)
+    prev = mesh_energy(mesh, mesh.verts, pts, face, 1.0, 0.25, rho, npts, 1e-4 * rho)
+    for it in range(1, 7):
+        out, f2, _ = relax_mesh(mesh, pts, item, face, it, 1.0, 0.25, 0.15, max_move=max_move)
+        U = mesh_energy(out, out.verts, pts, f2, 1.0, 0.25, rho, npts, 1e-4 * rho)
+        assert (U <= prev).all(), (it, U, prev)
+        prev = U
+
+
+def test_relax_mesh_quality_floor_with_slivers(device):
+    """Triangles already below the floor may not get worse; nothing gets inverted."""
+    dtype = torch.float64
+    mesh = square_mesh(torch.zeros(1, 2, device=device, dtype=dtype), torch.ones(1, device=device, dtype=dtype), 4)
+    v = mesh.verts.clone()
+    inner = ~mesh.is_boundary_vert
+    g = torch.Generator().manual_seed(2)
+    v[inner] += (torch.rand(int(inner.sum()), 2, generator=g, dtype=dtype).to(device) - 0.5) * 0.3
+    mesh = mesh.with_verts(v)
+    assert (mesh.signed_areas() > 0).all()
+    t = torch.rand(200, generator=g, dtype=dtype) * 2 * math.pi
+    pts = (0.6 * torch.stack([t.cos(), t.sin()], 1)).to(device)
+    item, face, _ = locate_single(mesh, pts)
+    q0 = mesh.quality()
+    out, f2, _ = relax_mesh(mesh, pts, item, face, iterations=20, kappa_data=1.0, kappa_edge=0.25, min_quality=0.9)
+    assert (out.signed_areas() > 0).all()
+    assert (out.quality() >= torch.minimum(q0, torch.full_like(q0, 0.9)) - 1e-12).all()
+
+
+def test_relax_mesh_batch_independent(device):
+    dtype = torch.float64
+    mesh, pts, item, face = relax_setup(device, dtype, n_items=2)
+    out, f2, _ = relax_mesh(mesh, pts, item, face, 10, 1.0, 0.25, 0.15)
+    m1 = mesh[1]
+    sel = item == 1
+    f1 = face[sel] - int(mesh.faces_first_idx[1])
+    o1, g1, _ = relax_mesh(m1, pts[sel], torch.zeros(int(sel.sum()), dtype=torch.long, device=device), f1,
+                           10, 1.0, 0.25, 0.15)
+    v0 = int(mesh.verts_first_idx[1])
+    torch.testing.assert_close(out.verts[v0:], o1.verts, rtol=1e-12, atol=1e-12)
+
+
+# ============================================================================= tolerance / testing
+
+
+def noisy_line(n, sigma, seed, even=False):
+    g = torch.Generator().manual_seed(seed)
+    x = torch.linspace(-0.5, 0.5, n, dtype=torch.float64) if even else torch.rand(n, generator=g, dtype=torch.float64) - 0.5
+    y = 0.2 * x + sigma * torch.randn(n, generator=g, dtype=torch.float64)
+    return torch.stack([x, y], 1)
+
+
+@pytest.mark.parametrize("sigma,n,even", [(0.002, 200, False), (0.005, 200, False), (0.01, 100, True)])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_estimate_noise_line(sigma, n, even, seed, device):
+    """Where the 8 nearest neighbours span a stretch of line several σ long."""
+    pts = noisy_line(n, sigma, seed, even).to(device)
+    est = estimate_noise(pts, torch.zeros(n, dtype=torch.long, device=device), 1)
+    assert est.shape == (1,)
+    assert abs(float(est[0]) - sigma) < 0.25 * sigma
+
+
+@pytest.mark.xfail(strict=True, reason="estimate_noise is biased low when the noise is large against the span of "
+                   "the k=8 nearest neighbours (1500 points on a unit line, sigma=0.01 gives ~0.3 sigma): the "
+                   "neighbourhoods are isotropic blobs, so their line-fit residual measures the spacing, not the noise")
+def test_estimate_noise_dense_noisy_line(device):
+    n, sigma = 1500, 0.01
+    pts = noisy_line(n, sigma, 1).to(device)
+    est = estimate_noise(pts, torch.zeros(n, dtype=torch.long, device=device), 1)
+    assert abs(float(est[0]) - sigma) < 0.25 * sigma
+
+
+def test_estimate_noise_circle_and_batch(device):
+    g = torch.Generator().manual_seed(1)
+    t = torch.rand(500, generator=g, dtype=torch.float64) * 2 * math.pi
+    r = 0.5 / math.sqrt(2)
+    circ = torch.stack([r * t.cos(), r * t.sin()], 1)
+    noisy = noisy_line(200, 0.004, 3)
+    pts = torch.cat([noisy, circ]).to(device)
+    item = torch.cat([torch.zeros(200, dtype=torch.long), torch.ones(500, dtype=torch.long)]).to(device)
+    est = estimate_noise(pts, item, 2)
+    assert float(est[1]) < 1e-3
+    assert abs(float(est[0]) - 0.004) < 0.25 * 0.004
+    # each item alone gives the same estimate
+    alone = estimate_noise(circ.to(device), torch.zeros(500, dtype=torch.long, device=device), 1)
+    assert float(alone[0]) < 1e-3
+    alone0 = estimate_noise(noisy.to(device), torch.zeros(200, dtype=torch.long, device=device), 1)
+    assert float(alone0[0]) == pytest.approx(float(est[0]), rel=1e-9)
+    # fewer than 3 points: 0
+    assert float(estimate_noise(circ[:2].to(device), torch.zeros(2, dtype=torch.long, device=device), 1)[0]) == 0.0
+
+
+def test_segment_median_against_loop(device):
+    g = torch.Generator().manual_seed(0)
+    n, B = 500, 9
+    x = torch.randn(n, generator=g, dtype=torch.float64).to(device)
+    x[::7] = x[3]                                      # ties
+    seg = torch.randint(0, B, (n,), generator=g).to(device)
+    seg[seg == 4] = 5                                  # an empty segment
+    med = segment_median(x, seg, B)
+    for b in range(B):
+        xs = x[seg == b]
+        want = torch.median(xs) if xs.numel() else torch.zeros((), dtype=x.dtype, device=device)
+        if xs.numel():
+            srt = sorted(xs.cpu().tolist())
+            assert float(want) == srt[(len(srt) - 1) // 2]     # lower median
+        assert float(med[b]) == float(want), b
+    for m in (1, 2, 3, 4):                             # tiny segments
+        xs = torch.arange(m, 0, -1, dtype=torch.float64, device=device)
+        assert float(segment_median(xs, torch.zeros(m, dtype=torch.long, device=device), 1)[0]) == float(torch.median(xs))
+    assert torch.equal(segment_median(torch.zeros(0, device=device), torch.zeros(0, dtype=torch.long, device=device), 3),
+                       torch.zeros(3, device=device))
+
+
+def hex1_line(device, dtype):
+    """Hexagon (radius 1, 6 triangles) with f(x, y) = y - 0.1: the zero set is y = 0.1."""
+    mesh = hexagon_mesh(torch.zeros(1, 2, device=device, dtype=dtype), torch.ones(1, device=device, dtype=dtype), 1)
+    values = mesh.verts[:, 1] - 0.1
+    assert not (values == 0).any()
+    return mesh, values
+
+
+def which_face(mesh, p, dtype, device):
+    _, f, _ = locate_single(mesh, torch.tensor([p], device=device, dtype=dtype))
+    return int(f[0])
+
+
+def test_point_curve_distance_hand_values(device, dtype):
+    mesh, values = hex1_line(device, dtype)
+    # upper-right triangle (0,0),(1,0),(0.5,0.866): the segment y=0.1 for x in [0.0577, 0.9423]
+    pts = torch.tensor([[0.5, 0.11], [0.4, 0.15], [0.5, 0.3],
+                        [-0.6, 0.15],                # upper-left triangle: 0.05 from its own segment
+                        [0.6, -0.1],                 # lower-right: no curve, neighbour above has it: 0.2
+                        [0.0, -0.5],                 # lower-middle: no curve in it or its neighbours
+                        [0.02, 0.5]],                # upper-middle: the short segment x in [-0.0577, 0.0577]
+                       device=device, dtype=dtype)
+    _, face, _ = locate_single(mesh, pts)
+    d2 = point_curve_distance2(mesh, values, pts, face)
+    # last point: above the short segment of its own triangle (|x| < 0.1/√3), 0.4 above it
+    want = [0.01 ** 2, 0.05 ** 2, 0.2 ** 2, 0.05 ** 2, 0.2 ** 2, float("inf"), 0.4 ** 2]
+    tol = 1e-5 if dtype == torch.float32 else 1e-12
+    for k, w in enumerate(want):
+        if math.isinf(w):
+            assert math.isinf(float(d2[k]))
+        else:
+            assert float(d2[k]) == pytest.approx(w, abs=tol), k
+    # a point left of the segment end: distance to the end point, not to the extended line
+    q = torch.tensor([[-0.95, 0.02]], device=device, dtype=dtype)
+    _, fq, _ = locate_single(mesh, q)
+    dq = point_curve_distance2(mesh, values, q, fq)
+    end = (-1 + 0.1 / SQ3, 0.1)
+    assert float(dq[0]) == pytest.approx((end[0] + 0.95) ** 2 + 0.08 ** 2, abs=tol)
+    # point_residuals uses the extended line of the own triangle: f²/|∇f|² = (y-0.1)²
+    _, bary = locate_grid(mesh, pts, torch.zeros(pts.shape[0], dtype=torch.long, device=device))
+    r = point_residuals(mesh, values, face, bary)
+    torch.testing.assert_close(r, (pts[:, 1] - 0.1) ** 2, rtol=1e-4, atol=tol)
+
+
+def _mark(mesh, pts, values, device, dtype, tol=0.004, noise=0.0, line_eps=None, statistic="max",
+          noise_factor=3.0, min_points_split=6, min_points_fit=3, thin_factor=3.0, min_split_size=0.0):
+    item, face, _ = locate_single(mesh, pts)
+    res = point_curve_distance2(mesh, values, pts, face)
+    count = torch.bincount(face, minlength=mesh.faces.shape[0]).to(dtype)
+    if line_eps is None:
+        line_eps = torch.zeros(mesh.faces.shape[0], device=device, dtype=dtype)
+    return mark_triangles(mesh, res, face, count, line_eps, torch.tensor([tol], device=device, dtype=dtype),
+                          torch.tensor([noise], device=device, dtype=dtype), statistic, noise_factor,
+                          min_points_split, min_points_fit, thin_factor, min_split_size), face
+
+
+def cluster(x0, y, n, device, dtype, dx=0.04):
+    xs = x0 + dx * torch.arange(n, dtype=torch.float64)
+    return torch.stack([xs, torch.full((n,), y, dtype=torch.float64)], 1).to(device=device, dtype=dtype)
+
+
+def test_mark_triangles_hand_cases(device, dtype):
+    mesh, values = hex1_line(device, dtype)
+    ur = which_face(mesh, (0.5, 0.2), dtype, device)       # upper right
+    ul = which_face(mesh, (-0.5, 0.2), dtype, device)      # upper left
+    near = cluster(0.3, 0.1 + 0.001, 6, device, dtype)     # 0.001 from the curve
+    far = cluster(-0.7, 0.1 + 0.05, 6, device, dtype)      # 0.05 from the curve
+    (marked, eff, worst), face = _mark(mesh, torch.cat([near, far]), values, device, dtype)
+    assert (face[:6] == ur).all() and (face[6:] == ul).all()
+    assert marked.tolist() == [t == ul for t in range(6)]
+    assert float(eff[0]) == pytest.approx(0.004)
+    assert float(worst[0]) == pytest.approx(0.05, rel=1e-4)
+    # the noise raises the tolerance: 3 x 0.02 = 0.06 > 0.05
+    (m2, eff2, _), _ = _mark(mesh, torch.cat([near, far]), values, device, dtype, noise=0.02)
+    assert not m2.any()
+    assert float(eff2[0]) == pytest.approx(0.06)
+
+
+def test_mark_triangles_point_guards(device, dtype):
+    mesh, values = hex1_line(device, dtype)
+    ul = which_face(mesh, (-0.5, 0.2), dtype, device)
+    # one point 0.008 off, the others on the curve: max fails (6.4e-5 > 1.6e-5), mean passes
+    def pts(n):
+        p = cluster(-0.7, 0.1, n, device, dtype)
+        p[0, 1] += 0.008
+        return p
+    (m5, _, _), _ = _mark(mesh, pts(5), values, device, dtype)          # 5 < min_points_split
+    assert not m5.any()
+    (m6, _, _), _ = _mark(mesh, pts(6), values, device, dtype)          # 6 points: the max test applies
+    assert m6.tolist() == [t == ul for t in range(6)]
+    # rms statistic: mean 6.4e-5/6 < 1.6e-5 passes
+    (mr, _, worst), _ = _mark(mesh, pts(6), values, device, dtype, statistic="rms")
+    assert not mr.any()
+    assert float(worst[0]) == pytest.approx(math.sqrt(0.008 ** 2 / 6), rel=1e-3)
+    # few points but all far: the mean fails, marked from min_points_fit on
+    far3 = cluster(-0.7, 0.15, 3, device, dtype)
+    (mf, _, _), _ = _mark(mesh, far3, values, device, dtype)
+    assert mf.tolist() == [t == ul for t in range(6)]
+    (mf2, _, _), _ = _mark(mesh, far3[:2], values, device, dtype)     # 2 points: no evidence
+    assert not mf2.any()
+    # a large line-fit error (two strokes in one triangle) splits with few points
+    eps = torch.zeros(6, device=device, dtype=dtype)
+    eps[ul] = 0.02 ** 2
+    near3 = cluster(-0.7, 0.1, 3, device, dtype)
+    (mt, _, _), _ = _mark(mesh, near3, values, device, dtype, line_eps=eps)
+    assert mt.tolist() == [t == ul for t in range(6)]
+    (mt2, _, _), _ = _mark(mesh, near3, values, device, dtype, line_eps=eps, noise=0.01)   # 3 x 0.01 > 0.02
+    assert not mt2.any()
+    # too small to split at this tolerance: the longest edge (1) below min_split_size x tol
+    far = cluster(-0.7, 0.15, 6, device, dtype)
+    (ms, _, _), _ = _mark(mesh, far, values, device, dtype, min_split_size=200.0)     # 200 x 0.004 = 0.8 < 1
+    assert ms.any()
+    (ms2, _, _), _ = _mark(mesh, far, values, device, dtype, min_split_size=300.0)    # 1.2 > 1
+    assert not ms2.any()
+
+
+def test_triangle_errors_hand_values(device):
+    mesh, _ = hex1_line(device, torch.float64)
+    face = torch.tensor([0, 0, 0, 2, -1, 2], device=device)
+    r = torch.tensor([1.0, 4.0, 7.0, 2.0, 100.0, 0.5], device=device, dtype=torch.float64)
+    mx, mean = triangle_errors(mesh, r, face)
+    assert mx.tolist() == [7.0, 0.0, 2.0, 0.0, 0.0, 0.0]
+    assert mean.tolist() == [4.0, 0.0, 1.25, 0.0, 0.0, 0.0]

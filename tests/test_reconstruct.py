@@ -1,0 +1,377 @@
+"""End-to-end tests of torch_isc.reconstruct: topology, accuracy, orientation, invariances,
+batch independence, determinism, input errors and the result schema.
+
+Ground truth is analytic (circles sampled densely); distances come from
+torch_isc.metrics.hausdorff, orientation from a shoelace formula and winding numbers
+written in conftest.
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+import torch_isc
+from torch_isc import PointSetError, ReconstructConfig, reconstruct, reconstruct_batch
+from torch_isc.io import read_points
+from torch_isc.metrics import bbox_diagonal, hausdorff
+
+from conftest import find_intersections, polygon_signed_area, winding_number
+
+NESTED = Path(torch_isc.__file__).parent / "data" / "nested.xy"
+DOCUMENTED_STAT_KEYS = {"level", "triangles", "points", "delta1", "max_error", "tolerance", "noise", "marked",
+                        "seconds"}
+
+
+# ----------------------------------------------------------------------------- data
+
+
+def circle(n, r, c=(0.0, 0.0), phase=0.0):
+    t = torch.arange(n, dtype=torch.float64) * (2 * math.pi / n) + phase
+    return torch.stack([c[0] + r * t.cos(), c[1] + r * t.sin()], 1)
+
+
+def truth_circle(r, c=(0.0, 0.0)):
+    return (circle(4000, r, c), True)
+
+
+CASES = {
+    "circle": (lambda: circle(200, 1.0), [truth_circle(1.0)]),
+    "two": (lambda: torch.cat([circle(150, 1.0, (-1.5, 0.0)), circle(150, 1.0, (1.5, 0.0), 0.3)]),
+            [truth_circle(1.0, (-1.5, 0.0)), truth_circle(1.0, (1.5, 0.0))]),
+    "annulus": (lambda: torch.cat([circle(160, 1.0), circle(100, 0.5, phase=0.1)]),
+                [truth_circle(1.0), truth_circle(0.5)]),
+}
+
+_CACHE = {}
+
+
+def solved(name, device=torch.device("cpu")):
+    """Each case reconstructed once per device (default config)."""
+    key = (name, str(device))
+    if key not in _CACHE:
+        pts = CASES[name][0]().to(device)
+        _CACHE[key] = (pts, reconstruct(pts, name=name))
+    return _CACHE[key]
+
+
+def polys_equal(a, b):
+    return len(a) == len(b) and all(x["closed"] == y["closed"] and torch.equal(x["points"], y["points"])
+                                    for x, y in zip(a, b))
+
+
+def check_result_basics(res, pts):
+    curve = res.curve
+    curve.mesh.validate()
+    assert not (curve.values == 0).any()
+    # the mesh covers every input point (caller's coordinates)
+    face, _ = curve.locate(pts.to(curve.mesh.dtype))
+    assert (face >= 0).all()
+    assert res.converged and res.limit is None
+    levels = [s["level"] for s in res.stats]
+    assert levels == list(range(len(levels)))
+    assert res.stats[-1]["marked"] == 0
+    for s in res.stats:
+        assert DOCUMENTED_STAT_KEYS <= set(s)
+        assert s["points"] == pts.shape[0]
+    # no two polylines cross, no polyline crosses itself
+    assert find_intersections([(p["points"], p["closed"]) for p in res.polylines]) == []
+
+
+# ----------------------------------------------------------------------------- topology and accuracy
+
+
+def test_circle(device):
+    pts, res = solved("circle", device)
+    assert (res.num_closed, res.num_open) == (1, 0)
+    check_result_basics(res, pts.cpu())
+    truth = CASES["circle"][1]
+    h = hausdorff(res.polylines, truth)
+    assert h < 0.02 * 2.0
+    loop = res.polylines[0]["points"]
+    # f < 0 inside: the loop runs counter-clockwise and winds once around the centre
+    assert polygon_signed_area(loop) > 0
+    assert polygon_signed_area(loop) == pytest.approx(math.pi, rel=0.02)
+    assert winding_number(loop, (0.0, 0.0)) == 1
+    centre = torch.tensor([[0.0, 0.0], [1.3, 0.0]], dtype=res.curve.mesh.dtype, device=res.curve.mesh.device)
+    f = res.curve(centre)
+    assert float(f[0]) < 0 < float(f[1])
+
+
+def test_two_disjoint_circles():
+    pts, res = solved("two")
+    assert (res.num_closed, res.num_open) == (2, 0)
+    check_result_basics(res, pts)
+    assert hausdorff(res.polylines, CASES["two"][1]) < 0.02 * 2.0
+    boxes = sorted((p["points"].double().amin(0) + p["points"].double().amax(0)).tolist() for p in res.polylines)
+    assert [0.5 * b[0] for b in boxes] == pytest.approx([-1.5, 1.5], abs=0.02)
+    assert [0.5 * b[1] for b in boxes] == pytest.approx([0.0, 0.0], abs=0.02)
+    for p in res.polylines:
+        assert polygon_signed_area(p["points"]) == pytest.approx(math.pi, rel=0.02)
+
+
+def test_annulus_inner_loop_is_a_hole():
+    pts, res = solved("annulus")
+    assert (res.num_closed, res.num_open) == (2, 0)
+    check_result_basics(res, pts)
+    assert hausdorff(res.polylines, CASES["annulus"][1]) < 0.02 * 2.0
+    areas = sorted(polygon_signed_area(p["points"]) for p in res.polylines)
+    # inner loop clockwise (a hole), outer loop counter-clockwise
+    assert areas[0] == pytest.approx(-math.pi * 0.25, rel=0.03)
+    assert areas[1] == pytest.approx(math.pi, rel=0.02)
+    f = res.curve(torch.tensor([[0.0, 0.0], [0.75, 0.0], [0.0, -0.75], [1.3, 0.0]], dtype=res.curve.mesh.dtype))
+    assert float(f[0]) > 0 and float(f[1]) < 0 and float(f[2]) < 0 and float(f[3]) > 0
+
+
+def test_nested_example():
+    pts = torch.as_tensor(read_points(NESTED))
+    assert pts.shape == (600, 2)
+    res = reconstruct(pts)
+    assert (res.num_closed, res.num_open) == (4, 0)
+    check_result_basics(res, pts)
+    # nested: outer (ccw), two holes (cw), one island inside a hole (ccw)
+    signs = sorted(polygon_signed_area(p["points"]) > 0 for p in res.polylines)
+    assert signs == [False, False, True, True]
+    # every point is close to the curve (relative to the diagonal)
+    diag = bbox_diagonal(pts)
+    from torch_isc.metrics import point_distances
+    d = point_distances(pts, res.polylines)
+    assert float(d.max()) < 0.02 * diag
+
+
+# ----------------------------------------------------------------------------- batches
+
+
+def test_batch_independence(device):
+    names = ["annulus", "circle", "two"]
+    pts = [solved(n, device)[0] for n in names]
+    batch = reconstruct_batch(pts, names=names)
+    assert [r.name for r in batch] == names
+    for n, p, rb in zip(names, pts, batch):
+        _, ra = solved(n, device)
+        assert (rb.num_closed, rb.num_open) == (ra.num_closed, ra.num_open)
+        assert hausdorff(rb.polylines, ra.polylines) < 1e-3 * bbox_diagonal(p.cpu())
+        assert polys_equal(rb.polylines, ra.polylines), f"{n}: result depends on its batch"
+        assert [s["triangles"] for s in rb.stats] == [s["triangles"] for s in ra.stats]
+        assert torch.equal(rb.points, p)
+
+
+def test_empty_batch():
+    assert reconstruct_batch([]) == []
+
+
+# ----------------------------------------------------------------------------- invariances
+
+
+@pytest.mark.parametrize("scale,offset,dtype", [(1000.0, (5e3, -2e3), torch.float64),
+                                                (1000.0, (5e3, -2e3), torch.float32),
+                                                (1e-3, (0.0, 0.0), torch.float64),
+                                                (1.0, (1e4, -1e4), torch.float64)])
+def test_translation_scale_invariance(scale, offset, dtype):
+    pts, ref = solved("annulus")
+    off = torch.tensor(offset, dtype=torch.float64)
+    q = (pts * scale + off).to(dtype)
+    res = reconstruct(q)
+    assert (res.num_closed, res.num_open) == (ref.num_closed, ref.num_open)
+    back = [{"closed": p["closed"], "points": (p["points"].double() - off) / scale} for p in res.polylines]
+    assert hausdorff(back, ref.polylines) < 1e-3 * bbox_diagonal(pts)
+    # stats are in the caller's units
+    for a, b in zip(res.stats, ref.stats):
+        assert a["tolerance"] == pytest.approx(b["tolerance"] * scale, rel=1e-3)
+        assert a["triangles"] == b["triangles"]
+
+
+def test_large_offset_keeps_precision():
+    """float64 input far from the origin, float32 solve: the outputs keep the input's precision."""
+    pts, ref = solved("annulus")
+    off = torch.tensor([1e7, -1e7], dtype=torch.float64)
+    res = reconstruct(pts + off)
+    assert (res.num_closed, res.num_open) == (ref.num_closed, ref.num_open)
+    back = [{"closed": p["closed"], "points": p["points"].double() - off} for p in res.polylines]
+    assert hausdorff(back, ref.polylines) < 1e-3 * bbox_diagonal(pts)
+
+
+def test_large_offset_float64_config():
+    pts, ref = solved("annulus")
+    off = torch.tensor([1e7, -1e7], dtype=torch.float64)
+    res = reconstruct(pts + off, ReconstructConfig(dtype="float64"))
+    assert (res.num_closed, res.num_open) == (ref.num_closed, ref.num_open)
+    back = [{"closed": p["closed"], "points": p["points"].double() - off} for p in res.polylines]
+    assert hausdorff(back, CASES["annulus"][1]) < 0.02 * 2.0
+
+
+@pytest.mark.parametrize("name", ["two", "annulus"])
+def test_float64_same_topology(name):
+    pts, ref = solved(name)
+    res = reconstruct(pts, ReconstructConfig(dtype="float64"))
+    assert res.curve.mesh.dtype == torch.float64
+    assert (res.num_closed, res.num_open) == (ref.num_closed, ref.num_open)
+    # the refinement may take another path; both are accurate
+    assert hausdorff(res.polylines, CASES[name][1]) < 0.02 * 2.0
+    assert hausdorff(res.polylines, ref.polylines) < 0.01 * bbox_diagonal(pts)
+
+
+def test_absolute_tolerance_matches_relative():
+    pts, ref = solved("annulus")
+    diag = bbox_diagonal(pts)
+    res = reconstruct(pts * 7.0, ReconstructConfig(tolerance_mode="absolute", tolerance=0.004 * diag * 7.0))
+    assert (res.num_closed, res.num_open) == (ref.num_closed, ref.num_open)
+    back = [{"closed": p["closed"], "points": p["points"].double() / 7.0} for p in res.polylines]
+    assert hausdorff(back, ref.polylines) < 1e-3 * diag
+
+
+def test_input_types_agree():
+    pts, ref = solved("circle")
+    for inp in (pts.numpy(), pts.tolist()):
+        res = reconstruct(inp)
+        assert polys_equal(res.polylines, ref.polylines)
+
+
+def test_determinism_and_seed():
+    pts, ref = solved("annulus")
+    again = reconstruct(pts)
+    assert polys_equal(again.polylines, ref.polylines)
+    other = reconstruct(pts, ReconstructConfig(seed=12345))
+    assert (other.num_closed, other.num_open) == (2, 0)
+
+
+# ----------------------------------------------------------------------------- sign oracle
+
+
+def test_sign_oracle_disc():
+    pts = circle(150, 2.0, (1.0, -3.0), 0.2)
+    calls = []
+
+    def oracle(v):
+        calls.append(v.shape[0])
+        assert v.shape[1] == 2
+        return ((v - torch.tensor([1.0, -3.0], dtype=v.dtype)) ** 2).sum(1) < 4.0
+
+    res = reconstruct(pts, sign_oracle=oracle)
+    assert calls
+    assert (res.num_closed, res.num_open) == (1, 0)
+    assert hausdorff(res.polylines, [truth_circle(2.0, (1.0, -3.0))]) < 0.02 * 4.0
+    assert polygon_signed_area(res.polylines[0]["points"]) > 0
+
+
+def test_sign_oracle_boundary_is_outside():
+    """An oracle that calls everything outside a disc 'inside': the outer boundary is still held
+    outside, so the zero set is the disc (a hole, clockwise) plus a loop inside the mesh boundary."""
+    pts = circle(120, 1.0)
+    res = reconstruct(pts, sign_oracle=lambda v: (v ** 2).sum(1) > 1.0)
+    assert (res.num_closed, res.num_open) == (2, 0)
+    areas = sorted(polygon_signed_area(p["points"]) for p in res.polylines)
+    assert areas[0] == pytest.approx(-math.pi, rel=0.05)
+    assert areas[1] > 4.0
+    f = res.curve(torch.tensor([[0.0, 0.0], [1.2, 0.0]], dtype=res.curve.mesh.dtype))
+    assert float(f[0]) > 0 > float(f[1])
+
+
+def test_sign_oracle_must_cover_every_item():
+    pts = circle(60, 1.0)
+    with pytest.raises(PointSetError):
+        reconstruct_batch([pts, pts], sign_oracles=[lambda v: (v ** 2).sum(1) < 1, None])
+
+
+# ----------------------------------------------------------------------------- errors and schema
+
+
+@pytest.mark.parametrize("bad,fragment", [
+    ([[0.0, 0.0], [1.0, 1.0], [0.0, 0.0]], "3 distinct"),
+    ([[0.0, 0.0], [1.0, 1.0]], "3 distinct"),
+    ([[0.0, 0.0]] * 10, "3 distinct"),
+    ([[0.0, 0.0], [1.0, float("nan")], [2.0, 2.0], [3.0, 1.0]], "NaN"),
+    ([[0.0, 0.0], [1.0, float("inf")], [2.0, 2.0], [3.0, 1.0]], "Inf"),
+    (np.zeros((5, 3)), "shape"),
+    (np.zeros(6), "shape"),
+    (np.zeros((4, 2, 1)), "shape"),
+    (np.zeros((0, 2)), "no points"),
+    ([["a", "b"], ["c", "d"], ["e", "f"]], "number"),
+    (torch.zeros(4, 2, dtype=torch.complex64), "real"),
+])
+def test_point_set_errors(bad, fragment):
+    with pytest.raises(PointSetError) as ei:
+        reconstruct(bad)
+    msg = str(ei.value)
+    assert "\n" not in msg and msg.strip() == msg and msg
+    assert fragment in msg
+    assert isinstance(ei.value, ValueError)
+
+
+def test_point_set_error_names_the_item():
+    good = circle(50, 1.0)
+    with pytest.raises(PointSetError, match=r"^point set 1: ") as ei:
+        reconstruct_batch([good, good[:2]])
+    assert "\n" not in str(ei.value)
+    with pytest.raises(PointSetError, match=r"^spiral: "):
+        reconstruct(good[:1], name="spiral")
+
+
+@pytest.mark.parametrize("pts", [[[0, 0], [1, 0], [2, 0]], [[0.0, 0.0], [0.0, 1.0], [0.0, 2.0], [0.0, 3.0]],
+                                 [[0, 0], [5, 0], [0, 5]]])
+def test_degenerate_but_valid_inputs_do_not_fail(pts):
+    res = reconstruct(pts)
+    d = res.to_json_dict()
+    json.dumps(d)
+    assert d["num_components"] == res.num_components == len(d["polylines"])
+    res.curve.mesh.validate()
+
+
+def test_json_schema():
+    pts, res = solved("annulus")
+    d = res.to_json_dict(with_stats=False)
+    assert set(d) == {"polylines", "num_components", "bbox"}
+    json.dumps(d)
+    assert d["num_components"] == 2 == len(d["polylines"])
+    for p, q in zip(d["polylines"], res.polylines):
+        assert set(p) == {"closed", "points"}
+        assert p["closed"] is True
+        assert isinstance(p["points"], list) and all(len(xy) == 2 and all(isinstance(c, float) for c in xy)
+                                                     for xy in p["points"])
+        np.testing.assert_allclose(np.array(p["points"]), q["points"].double().numpy())
+    allp = np.concatenate([np.array(p["points"]) for p in d["polylines"]])
+    np.testing.assert_allclose(d["bbox"], [*allp.min(0), *allp.max(0)])
+    assert d["bbox"] == pytest.approx([-1.0, -1.0, 1.0, 1.0], abs=0.02)
+    full = res.to_json_dict()
+    assert set(full) == {"polylines", "num_components", "bbox", "stats"}
+    json.dumps(full)
+    assert full["stats"]["converged"] is True and full["stats"]["limit"] is None
+    assert full["stats"]["num_closed"] == 2 and full["stats"]["num_open"] == 0
+    for s in full["stats"]["levels"]:
+        assert DOCUMENTED_STAT_KEYS <= set(s)
+        assert s["tolerance"] >= 0.004 * bbox_diagonal(pts) * (1 - 1e-6)
+        assert s["max_error"] >= 0 and s["delta1"] >= 0 and s["noise"] >= 0 and s["seconds"] >= 0
+
+
+# ----------------------------------------------------------------------------- noise and limits
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_noisy_circle(seed):
+    """Gaussian noise of 1% of the diameter: still one closed loop, within 3% of the diameter."""
+    g = torch.Generator().manual_seed(seed)
+    pts = circle(300, 1.0) + 0.02 * torch.randn(300, 2, generator=g, dtype=torch.float64)
+    res = reconstruct(pts)
+    assert (res.num_closed, res.num_open) == (1, 0)
+    assert hausdorff(res.polylines, [truth_circle(1.0)]) < 0.03 * 2.0
+    # the noise estimate (caller's units) is of the right size
+    assert 0.5 * 0.02 < res.stats[-1]["noise"] < 1.5 * 0.02
+    assert polygon_signed_area(res.polylines[0]["points"]) > 0
+
+
+def test_level_and_triangle_limits():
+    pts, full = solved("two")
+    assert len(full.stats) >= 3
+    res = reconstruct(pts, ReconstructConfig(max_level=1))
+    assert len(res.stats) == 2 and res.stats[-1]["marked"] > 0
+    assert res.converged is False and res.limit == "max_level"
+    assert [s["triangles"] for s in res.stats] == [s["triangles"] for s in full.stats[:2]]
+    n0 = full.stats[0]["triangles"]
+    res2 = reconstruct(pts, ReconstructConfig(max_triangles=n0 + 1))
+    assert len(res2.stats) == 1
+    assert res2.converged is False and res2.limit == "max_triangles"
+    assert res2.curve.mesh.faces.shape[0] <= n0 + 1

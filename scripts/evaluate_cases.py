@@ -334,19 +334,8 @@ def print_comparison(summaries: Dict[str, Dict[str, Any]], levels: List[str]) ->
 # ----------------------------------------------------------------------------- outputs
 
 def _json_text(obj: Any) -> str:
-    try:
-        from torch_isc.io import json_dumps
-        return json_dumps(obj)
-    except ImportError:
-        def clean(o):
-            if isinstance(o, float) and not math.isfinite(o):
-                return None
-            if isinstance(o, dict):
-                return {k: clean(v) for k, v in o.items()}
-            if isinstance(o, (list, tuple)):
-                return [clean(v) for v in o]
-            return o
-        return json.dumps(clean(obj), indent=1) + "\n"
+    from torch_isc.io import json_dumps
+    return json_dumps(obj)
 
 
 def write_outputs(out: Path, cases, rows) -> None:

@@ -8,8 +8,13 @@ from .extract import Polylines, extract_zero_set
 from .locate import barycentric, locate_children, locate_grid, locate_walk
 from .mesh import InvalidMeshError, MeshBatch, hexagon_mesh, square_mesh
 from .result import ReconstructionResult
+from .reconstruct import PointSetError, reconstruct, reconstruct_batch
 
 __version__ = "0.1.0"
 
-
-from .reconstruct import PointSetError, reconstruct, reconstruct_batch
+__all__ = [
+    "reconstruct", "reconstruct_batch", "ReconstructionResult", "ReconstructConfig", "load_config",
+    "ImplicitCurve", "MeshBatch", "Polylines", "hexagon_mesh", "square_mesh", "extract_zero_set",
+    "barycentric", "locate_grid", "locate_children", "locate_walk",
+    "ConfigError", "InvalidMeshError", "InvalidValuesError", "PointSetError",
+]

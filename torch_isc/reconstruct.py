@@ -25,7 +25,7 @@ import torch
 
 from .config import ReconstructConfig
 from .curve import ImplicitCurve
-from .fit.geometry import fit_geometry, point_residuals, vertex_data_distance
+from .fit.geometry import fit_geometry, vertex_data_distance
 from .fit.relax import relax_mesh
 from .fit.subdivide import subdivide
 from .fit.tolerance import estimate_noise, mark_triangles, point_curve_distance2

@@ -7,7 +7,6 @@ once per partition, so an evaluation costs O(triangles), independent of the poin
 """
 from __future__ import annotations
 
-import math
 from typing import Tuple
 
 import torch

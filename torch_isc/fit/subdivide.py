@@ -47,7 +47,7 @@ def subdivide(mesh: MeshBatch, marked: torch.Tensor) -> Subdivision:
     """Subdivide the marked triangles ``marked (T,)`` bool (and what conformity requires)."""
     dev = mesh.device
     with torch.no_grad():
-        V, T = mesh.verts.shape[0], mesh.faces.shape[0]
+        V = mesh.verts.shape[0]
         vmark = torch.zeros(V, dtype=torch.bool, device=dev)
         vmark[mesh.faces[marked].reshape(-1)] = True
         e = mesh.edges

@@ -179,9 +179,17 @@ def _mix32(x: torch.Tensor) -> torch.Tensor:
 def hash_uniform(*keys: torch.Tensor, dtype=torch.float32) -> torch.Tensor:
     """Uniform numbers in (0, 1) from integer keys: a counter-based generator, so an item's
     random stream depends only on its own keys (seed, local index, step), not on its batch."""
-    h = torch.zeros_like(keys[0], dtype=torch.long)
+    return _hash_to_unit(_hash_keys(torch.zeros_like(keys[0], dtype=torch.long), *keys), dtype)
+
+
+def _hash_keys(h: torch.Tensor, *keys: torch.Tensor) -> torch.Tensor:
+    """Fold integer keys into the running hash ``h`` (so constant keys can be folded once)."""
     for k in keys:
         h = _mix32(h * 0x9E3779B1 + k.long() + 0x632BE5AB)
+    return h
+
+
+def _hash_to_unit(h: torch.Tensor, dtype) -> torch.Tensor:
     u = ((h.to(torch.float64) + 0.5) / 4294967296.0).to(dtype)
     # the cast can round the top values up to 1.0; keep the interval open
     return u.clamp_max(1.0 - torch.finfo(dtype).eps / 2)
@@ -278,17 +286,23 @@ def anneal(mesh: MeshBatch, H: torch.Tensor, init: torch.Tensor, fixed: torch.Te
         rep = torch.arange(R, device=dev)
         total = int(sweeps) + int(greedy_sweeps)
         ratio = (t_end / t0) ** (1.0 / max(int(sweeps) - 1, 1))
+        # per colour class, gathered once: neighbour weights, neighbour ids, and the hash of
+        # the keys that do not change between sweeps (seed, local vertex, replica)
+        prep = []
+        for g in groups:
+            if g.numel() == 0:
+                continue
+            n = g.shape[0]
+            h0 = _hash_keys(torch.zeros(n, R, dtype=torch.long, device=dev), torch.full((n, R), int(seed), device=dev),
+                            local[g][:, None].expand(-1, R), rep[None, :].expand(n, -1))
+            prep.append((g, w[g][:, :, None], nb[g], h0))
         for k in range(total):
             T = t0 * ratio ** k if k < sweeps else torch.zeros_like(t0)
-            for c, g in enumerate(groups):
-                if g.numel() == 0:
-                    continue
-                h = (w[g][:, :, None] * s[nb[g]]).sum(1)          # (n, R) local field
+            for c, (g, wg, nbg, h0) in enumerate(prep):
+                h = (wg * s[nbg]).sum(1)                          # (n, R) local field
                 dE = -2.0 * s[g] * h                              # energy change of a flip
                 if k < sweeps:
-                    u = hash_uniform(torch.full_like(g, seed)[:, None].expand(-1, R), local[g][:, None].expand(-1, R),
-                                     rep[None, :].expand(g.shape[0], -1), torch.full_like(g, k * 64 + c)[:, None].expand(-1, R),
-                                     dtype=dt)
+                    u = _hash_to_unit(_hash_keys(h0, torch.full_like(h0, k * 64 + c)), dt)
                     acc = (dE < 0) | (u < torch.exp(-dE.clamp_min(0) / T[None, :]))
                 else:
                     acc = dE < 0

@@ -40,6 +40,8 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 import torch_isc  # noqa: E402
+from _common import json_text, resolve_dir  # noqa: E402
+from torch_isc.io import read_points  # noqa: E402
 from torch_isc import metrics  # noqa: E402
 
 DEFAULT_CASES = REPO / ".." / "shared" / "cases"
@@ -50,26 +52,6 @@ HAUSDORFF_BAR = {"n0": 1.0, "n1": 3.0}  # median Hausdorff, % of the diagonal
 
 
 # ----------------------------------------------------------------------------- inputs
-
-def resolve_dir(arg: Optional[str], default: Path) -> Path:
-    """``arg`` as given when it exists from the current folder, else relative to the repo root."""
-    if arg is None:
-        return default.resolve()
-    p = Path(arg)
-    if p.is_absolute() or p.exists():
-        return p.resolve()
-    return (REPO / p).resolve()
-
-
-def read_points(path: Path) -> np.ndarray:
-    try:
-        from torch_isc.io import read_points as _read
-    except ImportError:
-        _read = None
-    if _read is not None:
-        return np.asarray(_read(path), dtype=np.float64)
-    return np.loadtxt(path, comments="#", dtype=np.float64, ndmin=2)[:, :2]
-
 
 def noise_label(name: str) -> str:
     m = re.search(r"_(n[0-9.]+)$", name)
@@ -333,11 +315,6 @@ def print_comparison(summaries: Dict[str, Dict[str, Any]], levels: List[str]) ->
 
 # ----------------------------------------------------------------------------- outputs
 
-def _json_text(obj: Any) -> str:
-    from torch_isc.io import json_dumps
-    return json_dumps(obj)
-
-
 def write_outputs(out: Path, cases, rows) -> None:
     out.mkdir(parents=True, exist_ok=True)
     try:
@@ -349,7 +326,7 @@ def write_outputs(out: Path, cases, rows) -> None:
         res = r["result"]
         try:
             d = {"case": c["name"], "score": r["score"], **res.to_json_dict()}
-            (out / f"{c['name']}.json").write_text(_json_text(d))
+            (out / f"{c['name']}.json").write_text(json_text(d))
             if write_png is not None:
                 write_png(out / f"{c['name']}.png", res)
         except Exception as e:  # an output problem must not stop the measurement

@@ -25,7 +25,6 @@ import traceback
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence
 
-import numpy as np
 import torch
 
 REPO = Path(__file__).resolve().parents[1]
@@ -33,46 +32,12 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 import torch_isc  # noqa: E402
+from _common import json_text, resolve_dir  # noqa: E402
+from torch_isc.io import read_points  # noqa: E402
 from torch_isc import metrics  # noqa: E402
 
 DEFAULT_DATA = REPO / ".." / "shared" / "data"
 SUFFIXES = {".txt", ".p2d", ".xy"}
-
-
-def resolve_dir(arg: Optional[str], default: Path) -> Path:
-    """``arg`` as given when it exists from the current folder, else relative to the repo root."""
-    if arg is None:
-        return default.resolve()
-    p = Path(arg)
-    if p.is_absolute() or p.exists():
-        return p.resolve()
-    return (REPO / p).resolve()
-
-
-def read_points(path: Path) -> np.ndarray:
-    """``torch_isc.io.read_points`` when available; else ``np.loadtxt`` (``#`` comments), and
-    on failure a line-by-line parse that skips lines that are not two numbers (a header)."""
-    try:
-        from torch_isc.io import read_points as _read
-    except ImportError:
-        _read = None
-    if _read is not None:
-        return np.asarray(_read(path), dtype=np.float64)
-    try:
-        pts = np.loadtxt(path, comments="#", dtype=np.float64, ndmin=2)
-    except ValueError:
-        rows = []
-        for line in Path(path).read_text().splitlines():
-            tok = line.split("#", 1)[0].replace(",", " ").split()
-            try:
-                if len(tok) == 2:
-                    rows.append([float(tok[0]), float(tok[1])])
-            except ValueError:
-                continue
-        pts = np.asarray(rows, dtype=np.float64).reshape(-1, 2)
-    if pts.ndim != 2 or pts.shape[1] != 2 or len(pts) == 0:
-        raise ValueError(f"{path}: expected rows of 2 numbers, got shape {pts.shape}")
-    return pts
 
 
 def find_files(root: Path, filt: Optional[str]) -> List[Path]:
@@ -116,11 +81,6 @@ def reconstruct(items: List[Dict[str, Any]], config, one_by_one: bool, device: s
     return time.perf_counter() - t0, batch_ok
 
 
-def _json_text(obj: Any) -> str:
-    from torch_isc.io import json_dumps
-    return json_dumps(obj)
-
-
 def write_outputs(out: Path, items: List[Dict[str, Any]]) -> None:
     try:
         from torch_isc.io import write_png
@@ -134,7 +94,7 @@ def write_outputs(out: Path, items: List[Dict[str, Any]]) -> None:
         try:
             stem.parent.mkdir(parents=True, exist_ok=True)
             d = {"file": it["name"], "mean_distance_pct": it.get("mean_pct"), **it["result"].to_json_dict()}
-            Path(f"{stem}.json").write_text(_json_text(d))
+            Path(f"{stem}.json").write_text(json_text(d))
             if write_png is not None:
                 write_png(Path(f"{stem}.png"), it["result"])
         except Exception as e:

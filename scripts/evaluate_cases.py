@@ -114,16 +114,8 @@ def walk_edges(edges: Sequence[Tuple[int, int]], pts: np.ndarray) -> List[Dict[s
 
     out: List[Dict[str, Any]] = []
     starts = [v for v in adj if len(adj[v]) != 2]
-    for v in starts:
-        for w in adj[v]:
-            if key(v, w) in used:
-                continue
-            chain = walk(v, w)
-            closed = len(chain) > 2 and chain[-1] == chain[0]
-            if closed:
-                chain = chain[:-1]
-            out.append(dict(closed=closed, points=torch.as_tensor(pts[chain])))
-    for v in adj:  # what is left: cycles of degree-2 vertices
+    # chains from their ends first, then what is left: cycles of degree-2 vertices
+    for v in starts + list(adj):
         for w in adj[v]:
             if key(v, w) in used:
                 continue

@@ -271,6 +271,33 @@ def test_sign_oracle_boundary_is_outside():
     assert float(f[0]) > 0 > float(f[1])
 
 
+def test_batched_sign_oracle_equals_per_item_oracles():
+    """One batched oracle ``(points, item)`` gives the same result as per-item callables."""
+    a, b = circle(120, 1.0), circle(90, 3.0, (10.0, 0.0))
+    centres = torch.tensor([[0.0, 0.0], [10.0, 0.0]], dtype=torch.float64)
+    radii = torch.tensor([1.0, 3.0], dtype=torch.float64)
+    seen = []
+
+    def batched(v, item):
+        seen.append(sorted(set(item.tolist())))
+        return ((v - centres[item]) ** 2).sum(1) < radii[item] ** 2
+
+    per_item = [lambda v: ((v - centres[0].to(v.dtype)) ** 2).sum(1) < 1.0,
+                lambda v: ((v - centres[1].to(v.dtype)) ** 2).sum(1) < 9.0]
+    r1 = reconstruct_batch([a, b], sign_oracles=batched)
+    r2 = reconstruct_batch([a, b], sign_oracles=per_item)
+    assert seen[0] == [0, 1]
+    for x, y in zip(r1, r2):
+        assert torch.equal(x.curve.values, y.curve.values)
+        assert torch.equal(x.curve.mesh.verts, y.curve.mesh.verts)
+
+
+def test_batched_sign_oracle_wrong_length():
+    pts = circle(60, 1.0)
+    with pytest.raises(PointSetError, match="returned"):
+        reconstruct_batch([pts], sign_oracles=lambda v, item: torch.ones(3, dtype=torch.bool))
+
+
 def test_sign_oracle_must_cover_every_item():
     pts = circle(60, 1.0)
     with pytest.raises(PointSetError):

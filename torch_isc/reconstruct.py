@@ -99,10 +99,22 @@ def reconstruct(points: PointsLike, config: Optional[ReconstructConfig] = None, 
 
 def reconstruct_batch(point_sets: Sequence[PointsLike], config: Optional[ReconstructConfig] = None,
                       names: Optional[Sequence[Optional[str]]] = None,
-                      sign_oracles: Optional[Sequence[Optional[Callable]]] = None) -> List[ReconstructionResult]:
+                      sign_oracles: Union[None, Callable, Sequence[Optional[Callable]]] = None
+                      ) -> List[ReconstructionResult]:
     """Reconstruct many point sets in one batched solve; one result per set, in order.
 
     An item's result does not depend on the other items of the batch.
+
+    Args:
+        point_sets: B point sets, each ``(N_b, 2)``.
+        config: :class:`ReconstructConfig` (defaults when None).
+        names: optional labels, one per set (used in errors and results).
+        sign_oracles: inside/outside information replacing topology estimation (Section 3.2):
+            either one callable per set, ``oracle(points (M, 2)) -> (M,)`` booleans (True
+            inside), or a single *batched* callable ``oracle(points (M, 2), item (M,)) ->
+            (M,)`` booleans, called once per level with the mesh vertices of every unfinished
+            set (``item`` is the set's index in ``point_sets``). Points are float64 in the
+            caller's coordinates. Boundary vertices are always outside.
     """
     cfg = config if config is not None else ReconstructConfig()
     if len(point_sets) == 0:
@@ -289,6 +301,15 @@ class _StageClock:
 def _oracle_signs(mesh: MeshBatch, oracles, orig, center64, scale64, dtype) -> torch.Tensor:
     """Vertex signs from per-item inside/outside oracles (caller's coordinates)."""
     out = torch.ones(mesh.verts.shape[0], dtype=dtype, device=mesh.device)
+    if callable(oracles):                                   # batched: one call for all items
+        item = orig[mesh.vert_item]
+        v = mesh.verts.detach().double() * scale64[item, None] + center64[item]
+        inside = torch.as_tensor(oracles(v, item), device=mesh.device).bool().reshape(-1)
+        if inside.shape[0] != v.shape[0]:
+            raise PointSetError(f"sign oracle returned {inside.shape[0]} values for {v.shape[0]} points")
+        out = torch.where(inside, -1.0, 1.0).to(dtype)
+        out[mesh.is_boundary_vert] = 1.0
+        return out
     for j, b in enumerate(orig.tolist()):                  # one oracle call per item
         o = oracles[b]
         v0, nv = int(mesh.verts_first_idx[j]), int(mesh.verts_per_item[j])

@@ -296,17 +296,23 @@ def anneal(mesh: MeshBatch, H: torch.Tensor, init: torch.Tensor, fixed: torch.Te
             h0 = _hash_keys(torch.zeros(n, R, dtype=torch.long, device=dev), torch.full((n, R), int(seed), device=dev),
                             local[g][:, None].expand(-1, R), rep[None, :].expand(n, -1))
             prep.append((g, w[g][:, :, None], nb[g], h0))
+        # the random numbers of a block of sweeps are hashed in one op per colour (the
+        # block bounds the memory: about 2**22 numbers at a time)
+        block = max(1, min(int(sweeps), (1 << 22) // max(V * R, 1)))
+        temps = [t0 * ratio ** k for k in range(int(sweeps))]
+        uniforms: list = []
         for k in range(total):
-            T = t0 * ratio ** k if k < sweeps else torch.zeros_like(t0)
+            if k < sweeps and k % block == 0:
+                ks = torch.arange(k, min(k + block, int(sweeps)), device=dev) * 64
+                # Metropolis: accept when u < exp(-dE / T), i.e. dE < -T log u (a threshold >= 0)
+                tk = torch.stack(temps[k:k + ks.shape[0]])[:, None, :]
+                uniforms = [-tk * torch.log(_hash_to_unit(_hash_keys(h0[None], (ks + c)[:, None, None].expand(
+                    -1, *h0.shape)), dt)) for c, (_, _, _, h0) in enumerate(prep)]
             for c, (g, wg, nbg, h0) in enumerate(prep):
-                h = (wg * s[nbg]).sum(1)                          # (n, R) local field
-                dE = -2.0 * s[g] * h                              # energy change of a flip
-                if k < sweeps:
-                    u = _hash_to_unit(_hash_keys(h0, torch.full_like(h0, k * 64 + c)), dt)
-                    acc = (dE < 0) | (u < torch.exp(-dE.clamp_min(0) / T[None, :]))
-                else:
-                    acc = dE < 0
-                s[g] = torch.where(acc, -s[g], s[g])
+                sg = s[g]
+                dE = -2.0 * sg * (wg * s[nbg]).sum(1)            # energy change of a flip (local field)
+                acc = dE < (uniforms[c][k % block] if k < sweeps else 0.0)
+                s[g] = torch.where(acc, -sg, sg)
         E = ising_energy(mesh, H, s)                              # (B, R)
         best = torch.argmin(E, 1)                                 # first minimum
         return s.gather(1, best[mesh.vert_item][:, None]).squeeze(1)

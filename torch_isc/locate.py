@@ -17,7 +17,7 @@ A point outside its item's mesh gets ``-1`` (and NaN barycentrics): it is report
 """
 from __future__ import annotations
 
-from typing import Tuple
+from typing import Optional, Tuple
 
 import torch
 
@@ -179,12 +179,14 @@ def locate_children(mesh: MeshBatch, points: torch.Tensor, parent_face: torch.Te
 
 
 def locate_walk(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor,
-                start_face: torch.Tensor, max_steps: int = 16) -> Tuple[torch.Tensor, torch.Tensor]:
+                start_face: torch.Tensor, max_steps: int = 16,
+                return_bary: bool = True) -> Tuple[torch.Tensor, Optional[torch.Tensor]]:
     """Re-locate points after the mesh vertices moved a little.
 
     Each point starts at its old triangle and steps across the edge opposite its most
     negative barycentric coordinate; points that do not settle within ``max_steps``
-    (or that started outside) are located on the grid.
+    (or that started outside) are located on the grid. With ``return_bary=False`` the
+    barycentrics are not computed (None is returned in their place).
     """
     with torch.no_grad():
         v = mesh.verts.detach()
@@ -192,6 +194,8 @@ def locate_walk(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor,
         tol = inside_tolerance(v.dtype)
         face = start_face.clone()
         nbr = mesh.face_neighbors
+        # smallest barycentric of each point in the triangle it settled in
+        settled_min = torch.full((face.shape[0],), -1.0, dtype=v.dtype, device=v.device)
         active = (face >= 0).nonzero().squeeze(1)
         for _ in range(max_steps):
             if active.numel() == 0:
@@ -199,6 +203,8 @@ def locate_walk(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor,
             bc = barycentric(v, mesh.faces, face[active], pts[active])
             mn, arg = bc.min(1)
             moving = mn < -tol
+            stay = ~moving
+            settled_min[active[stay]] = mn[stay]
             nxt = nbr[face[active[moving]], arg[moving]]
             face[active[moving]] = nxt                          # -1 when it walked off the mesh
             active = active[moving][nxt >= 0]
@@ -207,12 +213,9 @@ def locate_walk(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor,
             unresolved[active] = True
         # a point that settled on (or within tolerance of) an edge or vertex may tie with
         # other triangles: the grid applies the tie rule (largest min-barycentric, lowest index)
-        settled = (~unresolved).nonzero().squeeze(1)
-        if settled.numel():
-            mn = barycentric(v, mesh.faces, face[settled], pts[settled]).min(1).values
-            unresolved[settled[mn <= tol]] = True
+        unresolved |= settled_min <= tol
         if unresolved.any():
             idx = unresolved.nonzero().squeeze(1)
             f2, _ = locate_grid(mesh, pts[idx], point_item[idx])
             face[idx] = f2
-        return face, barycentric(v, mesh.faces, face, pts)
+        return face, (barycentric(v, mesh.faces, face, pts) if return_bary else None)

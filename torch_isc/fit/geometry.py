@@ -120,23 +120,35 @@ def fit_geometry(mesh: MeshBatch, mom: TriangleMoments, signs: torch.Tensor, ini
     def values_of(s):
         return signs * (torch.exp(s.clamp(-60.0, 60.0)) + floor)
 
-    def objective(s):
+    T = mesh.faces.shape[0]
+    all_faces = torch.arange(T, device=mesh.device)
+
+    def objective(s, items=None):
         F = values_of(s)
-        grad = (G * F[mesh.faces][..., None]).sum(1)          # (T,2)
+        if items is None:
+            fs, es, efs = all_faces, None, ef
+        else:                                   # only the faces and edges of these items
+            fs = items[fi].nonzero().squeeze(1)
+            es = items[eitem].nonzero().squeeze(1)
+            remap = torch.full((T,), -1, dtype=torch.long, device=mesh.device)
+            remap[fs] = torch.arange(fs.shape[0], device=mesh.device)
+            efs = remap[ef[es]]
+        Ft = F[mesh.faces[fs]]
+        grad = (G[fs] * Ft[..., None]).sum(1)          # (T,2)
         g2 = (grad * grad).sum(1)
-        Ft = F[mesh.faces]
-        num = torch.einsum("ti,tij,tj->t", Ft, mom.M, Ft)
-        d1 = torch.zeros(B, dtype=dt, device=mesh.device).index_add_(0, fi, wt * num / (g2 + guard[fi]))
+        num = torch.einsum("ti,tij,tj->t", Ft, mom.M[fs], Ft)
+        d1 = torch.zeros(B, dtype=dt, device=mesh.device).index_add_(0, fi[fs], wt[fs] * num / (g2 + guard[fi[fs]]))
         obj = d1 * inv_tol2
-        if smoothness > 0 and ef.shape[0]:
-            jump = ((grad[ef[:, 0]] - grad[ef[:, 1]]) ** 2).sum(1)
-            size = 0.5 * (g2[ef[:, 0]] + g2[ef[:, 1]])
-            J = torch.zeros(B, dtype=dt, device=mesh.device).index_add_(0, eitem, el * jump)
-            S = torch.zeros(B, dtype=dt, device=mesh.device).index_add_(0, eitem, el * size)
+        if smoothness > 0 and efs.shape[0]:
+            jump = ((grad[efs[:, 0]] - grad[efs[:, 1]]) ** 2).sum(1)
+            size = 0.5 * (g2[efs[:, 0]] + g2[efs[:, 1]])
+            ei, w = (eitem, el) if es is None else (eitem[es], el[es])
+            J = torch.zeros(B, dtype=dt, device=mesh.device).index_add_(0, ei, w * jump)
+            S = torch.zeros(B, dtype=dt, device=mesh.device).index_add_(0, ei, w * size)
             obj = obj + smoothness * J / S.clamp_min(torch.finfo(dt).tiny)
         return obj
 
-    s, _, _ = batched_lbfgs(objective, s0, vi, B, iterations=iterations, history=history)
+    s, _, _ = batched_lbfgs(objective, s0, vi, B, iterations=iterations, history=history, masked=True)
     with torch.no_grad():
         F = values_of(s)
         d1 = torch.zeros(B, dtype=dt, device=mesh.device).index_add_(

@@ -102,7 +102,13 @@ def relax_mesh(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor, 
                 bad_item = torch.zeros(B, dtype=torch.bool, device=dev)
                 bad_item[mesh.face_item[bad_t]] = True
                 mt = mesh.with_verts(vt)
-                ft, _ = locate_walk(mt, points, point_item, face)
+                searching = ~accepted
+                if bool(searching.all()):
+                    ft, _ = locate_walk(mt, points, point_item, face, return_bary=False)
+                else:                   # re-locate only the points of the items still searching
+                    pidx = searching[point_item].nonzero().squeeze(1)
+                    ft = torch.full_like(face, -1)
+                    ft[pidx] = locate_walk(mt, points[pidx], point_item[pidx], face[pidx], return_bary=False)[0]
                 Ut = mesh_energy(mesh, vt, points, ft, kappa_data, kappa_edge, rho, n_points, min_dist)
                 ok = ~accepted & ~bad_item & (Ut < U.detach())
                 if bool(ok.any()):

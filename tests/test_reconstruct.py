@@ -391,14 +391,17 @@ def test_noisy_circle(seed):
 
 
 def test_level_and_triangle_limits():
-    pts, full = solved("two")
+    pts = CASES["two"][0]()
+    # a coarse initial mesh, so the run takes several levels
+    cfg = ReconstructConfig(initial_resolution=2)
+    full = reconstruct(pts, cfg)
     assert len(full.stats) >= 3
-    res = reconstruct(pts, ReconstructConfig(max_level=1))
+    res = reconstruct(pts, cfg.replace(max_level=1))
     assert len(res.stats) == 2 and res.stats[-1]["marked"] > 0
     assert res.converged is False and res.limit == "max_level"
     assert [s["triangles"] for s in res.stats] == [s["triangles"] for s in full.stats[:2]]
     n0 = full.stats[0]["triangles"]
-    res2 = reconstruct(pts, ReconstructConfig(max_triangles=n0 + 1))
+    res2 = reconstruct(pts, cfg.replace(max_triangles=n0 + 1))
     assert len(res2.stats) == 1
     assert res2.converged is False and res2.limit == "max_triangles"
     assert res2.curve.mesh.faces.shape[0] <= n0 + 1

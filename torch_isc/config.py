@@ -55,6 +55,7 @@ class ReconstructConfig:
     lbfgs_history: int = 8
     magnitude_floor: float = 0.02
     smoothness: float = 1e-2
+    crossing_weight: float = 1.0
     # relaxation
     relax_iterations: int = 25
     kappa_data: float = 1.0
@@ -93,7 +94,7 @@ class ReconstructConfig:
             if getattr(self, k) <= 0:
                 raise ConfigError(f"config key '{k}': must be > 0, got {getattr(self, k)!r}")
         nonneg = ["margin", "noise_factor", "min_points_split", "thin_feature_factor", "min_split_size", "empty_weight",
-                  "lbfgs_iterations", "magnitude_floor", "smoothness", "relax_iterations", "seed"]
+                  "lbfgs_iterations", "magnitude_floor", "smoothness", "crossing_weight", "relax_iterations", "seed"]
         for k in nonneg:
             if getattr(self, k) < 0:
                 raise ConfigError(f"config key '{k}': must be >= 0, got {getattr(self, k)!r}")

@@ -25,7 +25,7 @@ import torch
 
 from .config import ReconstructConfig
 from .curve import ImplicitCurve
-from .fit.geometry import fit_geometry, vertex_data_distance
+from .fit.geometry import fit_geometry, vertex_data_distance, vertex_data_distance_near
 from .fit.relax import relax_mesh
 from .fit.subdivide import subdivide
 from .fit.tolerance import estimate_noise, mark_triangles, point_curve_distance2
@@ -179,9 +179,12 @@ def reconstruct_batch(point_sets: Sequence[PointsLike], config: Optional[Reconst
                                cfg.anneal_replicas, cfg.seed,
                                warm_t_start=None if level == 0 else cfg.anneal_warm_t_start)
             init_mag = vertex_data_distance(mesh, pts, face)
+            near = vertex_data_distance_near(mesh, pts, face) if cfg.crossing_weight > 0 else None
             clock.tick("topology")
         values, d1 = fit_geometry(mesh, mom, signs, init_mag, tol[orig], cfg.lbfgs_iterations, cfg.lbfgs_history,
-                                  cfg.magnitude_floor, cfg.smoothness)
+                                  cfg.magnitude_floor, cfg.smoothness, data_dist=near,
+                                  slack=torch.maximum(tol, cfg.noise_factor * noise)[orig],
+                                  crossing_weight=cfg.crossing_weight)
         clock.tick("geometry")
         with torch.no_grad():
             values = values.detach()

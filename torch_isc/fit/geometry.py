@@ -7,7 +7,7 @@ once per partition, so an evaluation costs O(triangles), independent of the poin
 """
 from __future__ import annotations
 
-from typing import Tuple
+from typing import Optional, Tuple
 
 import torch
 
@@ -15,7 +15,8 @@ from ..mesh import MeshBatch
 from .optim import batched_lbfgs
 from .topology import TriangleMoments
 
-__all__ = ["delta1_per_triangle", "vertex_data_distance", "fit_geometry", "point_residuals"]
+__all__ = ["delta1_per_triangle", "vertex_data_distance", "vertex_data_distance_near", "fit_geometry",
+           "point_residuals"]
 
 
 def _grad_norm2(mesh: MeshBatch, values: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
@@ -64,6 +65,29 @@ def vertex_data_distance(mesh: MeshBatch, points: torch.Tensor, face: torch.Tens
         return torch.where(torch.isfinite(d), d, torch.ones_like(d))
 
 
+def vertex_data_distance_near(mesh: MeshBatch, points: torch.Tensor, face: torch.Tensor) -> torch.Tensor:
+    """``(V,)`` each vertex's distance to the nearest data point located in its star or in a
+    triangle edge-adjacent to its star (inf where there is none).
+
+    Unlike :func:`vertex_data_distance` it is never relaxed along mesh edges, so where it is
+    finite it is the true nearest distance unless a nearer point lies farther out than the
+    star's edge-neighbours (rare: the triangle there would separate them)."""
+    with torch.no_grad():
+        V = mesh.verts.shape[0]
+        v = mesh.verts.detach()
+        dt = v.dtype
+        ok = face >= 0
+        p, f = points[ok].to(dt), face[ok]
+        nb = mesh.face_neighbors[f]                            # (P,3)
+        tri = torch.cat([f[:, None], nb], 1)                   # (P,4)
+        has = tri >= 0
+        vid = mesh.faces[tri.clamp_min(0)].reshape(p.shape[0], 12)
+        dist = (v[vid] - p[:, None, :]).norm(dim=2)
+        dist = torch.where(has.repeat_interleave(3, 1), dist, torch.full_like(dist, float("inf")))
+        d = torch.full((V,), float("inf"), dtype=dt, device=v.device)
+        return d.scatter_reduce(0, vid.reshape(-1), dist.reshape(-1), "amin")
+
+
 def point_residuals(mesh: MeshBatch, values: torch.Tensor, face: torch.Tensor, bary: torch.Tensor) -> torch.Tensor:
     """``(P,)`` ``f(p)² / |∇f_t(p)|²``, the squared approximate distance of each point to the
     curve (inf for points with no triangle)."""
@@ -78,7 +102,9 @@ def point_residuals(mesh: MeshBatch, values: torch.Tensor, face: torch.Tensor, b
 
 def fit_geometry(mesh: MeshBatch, mom: TriangleMoments, signs: torch.Tensor, init_mag: torch.Tensor,
                  tol: torch.Tensor, iterations: int, history: int, magnitude_floor: float,
-                 smoothness: float) -> Tuple[torch.Tensor, torch.Tensor]:
+                 smoothness: float, data_dist: Optional[torch.Tensor] = None,
+                 slack: Optional[torch.Tensor] = None, crossing_weight: float = 0.0
+                 ) -> Tuple[torch.Tensor, torch.Tensor]:
     """Fit the magnitudes of every item, each with its own L-BFGS (batch-independent).
 
     The per-item objective is ``Δ1 / tol² + smoothness · J`` where ``J`` (dimensionless) is the
@@ -86,9 +112,22 @@ def fit_geometry(mesh: MeshBatch, mom: TriangleMoments, signs: torch.Tensor, ini
     within the tolerance the smoother function wins, which removes zero-set spikes in
     triangles without data.
 
+    ``Δ1`` only measures data-to-curve distances, so a zero set that runs far from every data
+    point (a spike or notch toward a vertex whose magnitude collapsed, or whose neighbour's
+    exploded) costs nothing. With ``crossing_weight > 0`` a curve-to-data term is added at the
+    zero set's crossings of mesh edges: on an edge ``(i, j)`` whose signs differ, the crossing
+    lies at ``a_i = ℓ |F_i| / (|F_i| + |F_j|)`` from ``v_i``, and by the triangle inequality its
+    distance to the data is at least ``d_i − a_i`` (``d_i``: ``v_i``'s distance to the nearest
+    data point). The term is the mean over crossings of ``max(0, d_i − a_i − slack)²`` (both
+    ends), in the units of ``Δ1``: a dead zone of ``slack`` (the tolerance the item is tested
+    at) leaves every curve within it alone, so it fires only where the curve is provably
+    farther from the data than the test allows.
+
     Args:
         mom: triangle moments of the current partition. signs: ``(V,)`` ±1.
         init_mag: ``(V,)`` positive start. tol: ``(B,)`` tolerance per item (distance).
+        data_dist: ``(V,)`` vertex distances to the data (inf: unknown, no term), see
+        :func:`vertex_data_distance_near`. slack: ``(B,)`` dead zone (distance).
     Returns:
         values ``(V,)`` and Δ1 per item ``(B,)``.
     """
@@ -116,6 +155,16 @@ def fit_geometry(mesh: MeshBatch, mom: TriangleMoments, signs: torch.Tensor, ini
         eitem = mesh.edge_item[interior]
         guard = (1e-10 * mean_mag) ** 2
         inv_tol2 = 1.0 / (tol * tol)
+        cross = crossing_weight > 0 and data_dist is not None and slack is not None
+        if cross:
+            ce = mesh.edges[signs[mesh.edges[:, 0]] != signs[mesh.edges[:, 1]]]
+            c_item = mesh.vert_item[ce[:, 0]]
+            c_len = (mesh.verts.detach()[ce[:, 0]] - mesh.verts.detach()[ce[:, 1]]).norm(dim=1)
+            # how close to each end the crossing may come before it is provably off the data
+            c_lim = (data_dist[ce] - slack[c_item][:, None]).clamp_min(0)
+            c_lim = torch.where(torch.isfinite(c_lim), c_lim, torch.zeros_like(c_lim))
+            n_cross = torch.bincount(c_item, minlength=B).to(dt)
+            c_w = crossing_weight / n_cross.clamp_min(1)[c_item]
 
     def values_of(s):
         return signs * (torch.exp(s.clamp(-60.0, 60.0)) + floor)
@@ -139,6 +188,17 @@ def fit_geometry(mesh: MeshBatch, mom: TriangleMoments, signs: torch.Tensor, ini
         num = torch.einsum("ti,tij,tj->t", Ft, mom.M[fs], Ft)
         d1 = torch.zeros(B, dtype=dt, device=mesh.device).index_add_(0, fi[fs], wt[fs] * num / (g2 + guard[fi[fs]]))
         obj = d1 * inv_tol2
+        if cross and ce.shape[0]:
+            if items is None:
+                ci, cl, clim, cw, cit = ce, c_len, c_lim, c_w, c_item
+            else:
+                cs = items[c_item].nonzero().squeeze(1)
+                ci, cl, clim, cw, cit = ce[cs], c_len[cs], c_lim[cs], c_w[cs], c_item[cs]
+            m = F[ci].abs()
+            a = cl[:, None] * m / m.sum(1, keepdim=True)
+            over = (clim - a).clamp_min(0)
+            pen = torch.zeros(B, dtype=dt, device=mesh.device).index_add_(0, cit, cw * (over * over).sum(1))
+            obj = obj + pen * inv_tol2
         if smoothness > 0 and efs.shape[0]:
             jump = ((grad[efs[:, 0]] - grad[efs[:, 1]]) ** 2).sum(1)
             size = 0.5 * (g2[efs[:, 0]] + g2[efs[:, 1]])

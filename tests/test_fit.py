@@ -15,7 +15,8 @@ import torch
 
 from torch_isc import locate_children, locate_grid
 from torch_isc.curve import ImplicitCurve
-from torch_isc.fit.geometry import delta1_per_triangle, fit_geometry, point_residuals, vertex_data_distance
+from torch_isc.fit.geometry import (delta1_per_triangle, fit_geometry, point_residuals, vertex_data_distance,
+                                   vertex_data_distance_near)
 from torch_isc.fit.optim import batched_lbfgs
 from torch_isc.fit.relax import mesh_energy, relax_mesh
 from torch_isc.fit.subdivide import subdivide
@@ -653,6 +654,44 @@ def test_delta1_per_triangle_equals_point_mean(device):
     assert total == pytest.approx(delta1_from_points(mesh, values, pts, face), rel=1e-9)
     r = point_residuals(mesh, values, face, bary)
     assert float(r.mean()) == pytest.approx(total, rel=1e-9)
+
+
+def test_vertex_data_distance_near_is_exact_where_finite(device):
+    dtype = torch.float64
+    mesh, pts, face, bary, mom, signs, init = circle_setup(device, dtype, n=60, res=4)
+    V = mesh.verts.cpu().numpy()
+    P = pts.cpu().numpy()
+    true = np.sqrt(((V[:, None, :] - P[None, :, :]) ** 2).sum(-1)).min(1)
+    d = vertex_data_distance_near(mesh, pts, face).cpu().numpy()
+    fin = np.isfinite(d)
+    assert fin.any() and (~fin).any()
+    # never below the true distance; on this mesh the nearest point is always in reach
+    assert (d[fin] >= true[fin] - 1e-12).all()
+    assert np.allclose(d[fin], true[fin], rtol=1e-12)
+
+
+def test_fit_geometry_crossing_term_keeps_signs_and_crossings_near_data(device):
+    """With the crossing term the signs are kept and no crossing ends up provably farther
+    from the data than without it (beyond twice the dead zone)."""
+    dtype = torch.float64
+    mesh, pts, face, bary, mom, signs, init = circle_setup(device, dtype, n=60, res=4)
+    tol = torch.tensor([0.01], dtype=dtype, device=device)
+    near = vertex_data_distance_near(mesh, pts, face)
+    slack = tol.clone()
+
+    def worst_crossing(F):
+        e = mesh.edges[(F[mesh.edges[:, 0]] < 0) != (F[mesh.edges[:, 1]] < 0)]
+        m = F[e].abs()
+        ln = (mesh.verts[e[:, 0]] - mesh.verts[e[:, 1]]).norm(dim=1)
+        a = ln[:, None] * m / m.sum(1, keepdim=True)
+        ex = torch.where(torch.isfinite(near[e]), near[e] - a, torch.zeros_like(a))
+        return float(ex.max())
+
+    F0, _ = fit_geometry(mesh, mom, signs, init, tol, 60, 8, 0.02, 1e-2)
+    F1, _ = fit_geometry(mesh, mom, signs, init, tol, 60, 8, 0.02, 1e-2, data_dist=near, slack=slack,
+                         crossing_weight=1.0)
+    assert torch.equal(F1 < 0, signs < 0)
+    assert worst_crossing(F1) <= max(worst_crossing(F0), 2 * float(slack)) + 1e-9
 
 
 def test_vertex_data_distance_is_upper_bound_exact_near_data(device):

@@ -310,3 +310,87 @@ def test_python_dash_m(tmp_path):
                         "--formats", "json", *FAST], capture_output=True, text=True, env=env, timeout=120)
     assert p.returncode == 0, p.stderr
     assert SUMMARY.match(p.stdout.strip()) and (tmp_path / "o" / "circle.json").exists()
+
+
+# ----------------------------------------------------------------------------- images
+def _disc_png(path, shape, c, r, value=255, hole=None):
+    """A mask with a disc (pixel convention: a pixel is inside when its centre is)."""
+    yy, xx = np.mgrid[0:shape[0], 0:shape[1]] + 0.5
+    d = np.hypot(xx - c[0], yy - c[1])
+    m = np.where((d < r) & ((d >= hole) if hole else True), value, 0).astype(np.uint8)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    assert cv2.imwrite(str(path), m)
+    return path
+
+
+def test_image_folder_streams_with_bad_files(tmp_path, capsys):
+    d = tmp_path / "in"
+    _disc_png(d / "disc.png", (48, 56), (28.3, 23.6), 15.0)
+    _disc_png(d / "ring.bmp", (60, 60), (30.0, 30.0), 22.0, hole=10.0)
+    _write_xy(d / "pts.xy", _circle())
+    (d / "fake.png").write_text("not an image")
+    ok, buf = cv2.imencode(".png", np.random.default_rng(0).integers(0, 255, (40, 40), dtype=np.uint8))
+    (d / "trunc.png").write_bytes(buf.tobytes()[:150])
+    assert cv2.imwrite(str(d / "black.png"), np.zeros((20, 20), np.uint8))
+    assert cv2.imwrite(str(d / "white.tif"), np.full((16, 24), 255, np.uint8))
+    (d / "notes.md").write_text("ignored: not a point or image file")
+    o = tmp_path / "o"
+    code, out, err = _run(capsys, "reconstruct", d, "--out", o, "--batch-size", "2", *FAST)
+    assert code == 1 and "Traceback" not in err
+    errs = _error_lines(err)
+    assert sorted(errs) == sorted([
+        f"torch-isc: error: {d / 'black.png'}: empty mask: no pixel above threshold 0.5 (all black)",
+        f"torch-isc: error: {d / 'fake.png'}: not a readable image (unknown format, truncated or corrupt)",
+        f"torch-isc: error: {d / 'trunc.png'}: not a readable image (unknown format, truncated or corrupt)"])
+    s = _summaries(out)
+    assert {k: (int(v["closed"]), int(v["open"])) for k, v in s.items()} == {
+        "disc": (1, 0), "ring": (2, 0), "pts": (1, 0), "white": (1, 0)}
+    files = set(os.listdir(o))
+    for stem in ("disc", "ring", "white"):
+        assert {f"{stem}.{f}" for f in ("json", "npz", "svg", "png", "contours.npz", "overlay.png")} <= files
+    assert "pts.overlay.png" not in files and "pts.contours.npz" not in files
+    assert "batch 1" in err and "%" in err                               # progress with a bar
+    # pixel coordinates: the disc's curve is within a pixel of the analytic circle
+    pl = json.loads((o / "disc.json").read_text())["polylines"][0]["points"]
+    rad = np.hypot(*(np.array(pl) - (28.3, 23.6)).T)
+    assert np.abs(rad - 15.0).max() < 1.0
+    ov = cv2.imread(str(o / "disc.overlay.png"))
+    assert ov.shape == (48, 56, 3) and (ov[:, :, 1] > ov[:, :, 2] + 50).any()       # green curve drawn
+    from torch_isc.images import load_contours
+    c, h = load_contours(o / "ring.contours.npz")
+    assert len(c) == 2 and sorted(h[0, :, 3].tolist()) == [-1, 0]
+    # a rerun skips everything that was written, and fails again on the bad ones only
+    code, out, err = _run(capsys, "reconstruct", d, "--out", o, "--batch-size", "2", *FAST)
+    assert code == 1 and out.count("skipped") == 4 and len(_error_lines(err)) == 3
+
+
+def test_image_modes_and_threshold(tmp_path, capsys):
+    g = np.full((50, 50), 60, np.uint8)
+    yy, xx = np.mgrid[0:50, 0:50] + 0.5
+    g[np.hypot(xx - 25.0, yy - 25.0) < 14.0] = 200
+    g[np.hypot(xx - 25.0, yy - 25.0) < 6.0] = 120            # three gray levels: 60, 120, 200
+    f = tmp_path / "gray.png"
+    assert cv2.imwrite(str(f), g)
+    o = tmp_path / "o"
+    # mask mode, default threshold 0.5: only the 200 level is foreground -> a ring
+    code, out, err = _run(capsys, "reconstruct", f, "--out", o, "--formats", "json", *FAST)
+    assert code == 0, err
+    assert int(_summaries(out)["gray"]["closed"]) == 2
+    # a lower threshold takes the 120 level in too -> a disc
+    code, out, err = _run(capsys, "reconstruct", f, "--out", o, "--formats", "json", "--threshold", "0.3",
+                          "--overwrite", *FAST)
+    assert code == 0, err
+    assert int(_summaries(out)["gray"]["closed"]) == 1
+    # edges mode: Canny edges of the two steps -> two circles
+    code, out, err = _run(capsys, "reconstruct", f, "--out", o, "--formats", "json", "--mode", "edges",
+                          "--overwrite", *FAST)
+    assert code == 0, err
+    assert (int(_summaries(out)["gray"]["closed"]), int(_summaries(out)["gray"]["open"])) == (2, 0)
+    assert (o / "gray.overlay.png").exists()
+    for bad, expect in ((["--threshold", "2"], "--threshold"), (["--canny", "0.3"], "--canny"),
+                        (["--mode", "blobs"], "invalid choice")):
+        code, out, err = _run(capsys, "reconstruct", f, "--out", o, *bad)
+        assert code == 2 and expect in err and "Traceback" not in err
+    (tmp_path / "empty").mkdir()
+    code, out, err = _run(capsys, "reconstruct", tmp_path / "empty", "--out", tmp_path / "o2")
+    assert code == 2 and "folder has no point or image file" in err and "Traceback" not in err

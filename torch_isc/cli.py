@@ -8,8 +8,18 @@ per-level stats), ``.npz`` (the implicit curve, lossless), ``.svg`` (the curve) 
 
 (the time is the reconstruction's wall time; inputs reconstructed in one batch share it evenly).
 
-Inputs go through :func:`torch_isc.reconstruct_batch` in batches of ``--batch-size``; a batch
-that raises is retried item by item so one bad point set cannot sink the others.
+Image inputs (png, jpg, tif, bmp) are read as masks (``--mode mask``, default: boundary points
+on the pixel cracks, vertex signs from the mask) or as grayscale images whose Canny edges are
+the points (``--mode edges``, topology estimated); their coordinates are pixels (x right, y
+down, pixel (0, 0) covering [0,1]x[0,1]), the settings are those of
+:func:`torch_isc.images.image_config` unless the config sets them, and they also get
+``<stem>.overlay.png`` (the curve over the image) and, by default, ``<stem>.contours.npz``
+(OpenCV contours with their hierarchy). A folder INPUT stands for its point and image files,
+sorted by name.
+
+Inputs go through :func:`torch_isc.reconstruct_batch` in batches of ``--batch-size``, read only
+when their batch fills (bounded memory, a folder of any size streams through); a batch that
+raises is retried item by item so one bad input cannot sink the others.
 
 Exit status: 0 every input done (or skipped because its outputs exist), 1 some inputs failed
 (each with one ``torch-isc: error: <file>: <problem>`` line on stderr), 2 usage or
@@ -33,6 +43,12 @@ import torch_isc
 from .config import ConfigError, load_config, parse_overrides
 from .io import EXPORTERS, PointFileError, export, read_points
 
+#: Suffixes of point files picked up from a folder INPUT (any file given by name is tried).
+POINT_SUFFIXES = (".xy", ".txt", ".csv", ".npy")
+#: Suffixes read as images (lower case), as in :data:`torch_isc.images.IMAGE_SUFFIXES`.
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
+DEFAULT_IMAGE_FORMATS = "json,npz,svg,png,contours.npz"
+
 __all__ = ["main", "build_parser", "EXAMPLE_PATH"]
 
 PROG = "torch-isc"
@@ -52,6 +68,13 @@ class _Job:
     points: Optional[torch.Tensor] = None
     failed: bool = False
     outputs: List[Path] = field(default_factory=list)
+    image: Optional[object] = None   # gray (H, W) float32 in [0, 1] for an image input, while in its batch
+    mask: Optional[torch.Tensor] = None
+    n_boundaries: Optional[int] = None
+
+    @property
+    def is_image(self) -> bool:
+        return Path(self.source).suffix.lower() in IMAGE_SUFFIXES
 
 
 # ============================================================================ parser
@@ -64,11 +87,14 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     rec = sub.add_parser(
-        "reconstruct", help="reconstruct curves from point files",
-        description="Reconstruct one curve set per input point file (text rows 'x y' or 'x,y', '#' comments, "
-                    "an optional header line; or a .npy array of shape (N, 2)).",
+        "reconstruct", help="reconstruct curves from point files or images",
+        description="Reconstruct one curve set per input: a point file (text rows 'x y' or 'x,y', '#' comments, "
+                    "an optional header line; or a .npy array of shape (N, 2)), an image (png, jpg, tif, bmp: a "
+                    "mask, or a grayscale image with --mode edges), or a folder of such files. Image coordinates "
+                    "are pixels: x right, y down, pixel (0, 0) covering [0,1]x[0,1].",
         epilog="exit status: 0 all done, 1 some inputs failed, 2 usage or configuration error")
-    rec.add_argument("inputs", nargs="*", metavar="INPUT", help="point files (.xy/.txt/.csv text, or .npy)")
+    rec.add_argument("inputs", nargs="*", metavar="INPUT",
+                     help="point files (.xy/.txt/.csv text, or .npy), images (.png/.jpg/.tif/.bmp), or folders of them")
     rec.add_argument("--config", metavar="FILE", help="YAML file of ReconstructConfig keys (see configs/default.yaml)")
     rec.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                      help="override one config key, e.g. --set max_level=6 (repeatable; applied after --config)")
@@ -76,8 +102,25 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--seed", type=int, metavar="N", help="random seed (sets config.seed)")
     rec.add_argument("--batch-size", type=int, default=64, metavar="N",
                      help="point sets reconstructed together (default: 64)")
-    rec.add_argument("--formats", default=DEFAULT_FORMATS, metavar="LIST",
-                     help=f"comma-separated output formats among {', '.join(EXPORTERS)} (default: {DEFAULT_FORMATS})")
+    rec.add_argument("--formats", default=None, metavar="LIST",
+                     help=f"comma-separated output formats among {', '.join(EXPORTERS)} (default: {DEFAULT_FORMATS}; "
+                          f"for images {DEFAULT_IMAGE_FORMATS}, and always overlay.png)")
+    img = rec.add_argument_group("images")
+    img.add_argument("--mode", choices=("mask", "edges"), default="mask",
+                     help="mask: the image is a binary mask, its foreground boundary is the curve, and the mask "
+                          "gives inside/outside (default); edges: kornia Canny edges of the grayscale image are the "
+                          "points, topology estimated")
+    img.add_argument("--threshold", type=float, default=None, metavar="T",
+                     help="mask mode: foreground is gray > T, gray in [0, 1] (default: midway between the two levels "
+                          "of a two-level image, else 0.5)")
+    img.add_argument("--spacing", type=float, default=1.0, metavar="PX",
+                     help="distance in pixels between boundary points along a contour (default: 1)")
+    img.add_argument("--no-oracle", action="store_true",
+                     help="mask mode: estimate the topology from the points instead of reading it from the mask")
+    img.add_argument("--canny", default="0.1,0.2", metavar="LOW,HIGH",
+                     help="edges mode: Canny hysteresis thresholds on the gradient of the image in [0, 1] "
+                          "(default: 0.1,0.2)")
+    img.add_argument("--sigma", type=float, default=1.0, help="edges mode: Gaussian smoothing in pixels (default: 1)")
     rec.add_argument("--device", default="cpu", help="torch device for the reconstruction (default: cpu)")
     rec.add_argument("--overwrite", action="store_true",
                      help="redo inputs whose outputs all exist (by default they are skipped)")
@@ -132,6 +175,47 @@ def _unique_stems(sources: Sequence[str]) -> List[str]:
     return out
 
 
+def _expand_inputs(sources: Sequence[str]) -> List[str]:
+    """A folder stands for its point and image files (by suffix, sorted by name, not recursive);
+    anything else is kept as given (a missing file is reported when it is read). An empty
+    folder is a usage error."""
+    out: List[str] = []
+    for src in sources:
+        p = Path(src)
+        if p.is_dir():
+            files = sorted(str(f) for f in p.iterdir()
+                           if f.is_file() and f.suffix.lower() in POINT_SUFFIXES + IMAGE_SUFFIXES)
+            if not files:
+                raise UsageError(f"{src}: folder has no point or image file "
+                                 f"({', '.join(POINT_SUFFIXES + IMAGE_SUFFIXES)})")
+            out.extend(files)
+        else:
+            out.append(str(src))
+    return out
+
+
+def _config_keys(path: Optional[str]) -> List[str]:
+    """The keys a config file sets (already validated by load_config)."""
+    if path is None:
+        return []
+    import yaml
+
+    try:
+        d = yaml.safe_load(Path(path).read_text())
+    except Exception:
+        return []
+    return list(d) if isinstance(d, dict) else []
+
+
+def _bar(done: int, total: int, t0: float, width: int = 24) -> str:
+    frac = done / total if total else 1.0
+    fill = int(round(width * frac))
+    rate = done / max(time.perf_counter() - t0, 1e-9)
+    eta = (total - done) / rate if rate > 0 and done else float("nan")
+    eta_s = "--:--" if eta != eta else f"{int(eta) // 60:02d}:{int(eta) % 60:02d}"
+    return f"|{'#' * fill}{'.' * (width - fill)}| {100 * frac:3.0f}% {rate:.1f}/s ETA {eta_s}"
+
+
 def _summary(job: _Job, result, seconds: float) -> str:
     levels = len(result.stats or [])
     state = "converged" if result.converged else f"not converged ({result.limit or 'tolerance not met'})"
@@ -149,21 +233,34 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
     # ---- everything that can be a usage error is checked before any work
     if args.batch_size < 1:
         raise UsageError(f"--batch-size must be >= 1, got {args.batch_size}")
-    formats = _parse_formats(args.formats)
+    formats = _parse_formats(args.formats if args.formats is not None else DEFAULT_FORMATS)
+    image_formats = _parse_formats(args.formats if args.formats is not None else DEFAULT_IMAGE_FORMATS)
     overrides = parse_overrides(args.overrides)
     if args.seed is not None:
         overrides["seed"] = args.seed
     config = load_config(args.config, overrides)
+    if args.threshold is not None and not (0.0 <= args.threshold < 1.0):
+        raise UsageError(f"--threshold must be in [0, 1), got {args.threshold}")
+    if not args.spacing >= 0 or args.spacing != args.spacing:
+        raise UsageError(f"--spacing must be >= 0, got {args.spacing}")
+    try:
+        low, high = (float(v) for v in args.canny.split(","))
+    except ValueError:
+        raise UsageError(f"--canny expects LOW,HIGH (two numbers), got {args.canny!r}") from None
+    if not 0 < low < high:
+        raise UsageError(f"--canny: expected 0 < LOW < HIGH, got {args.canny!r}")
+    if not args.sigma > 0:
+        raise UsageError(f"--sigma must be > 0, got {args.sigma}")
     try:
         device = torch.device(args.device)
         torch.empty(0, device=device)
     except (RuntimeError, AssertionError) as e:
         raise UsageError(f"--device {args.device}: {_one_line(e)}") from None
-    sources = [str(s) for s in args.inputs]
+    sources = _expand_inputs([str(s) for s in args.inputs])
     if args.example:
         sources.append(str(EXAMPLE_PATH))
     if not sources:
-        raise UsageError("no INPUT given (give point files, or --example)")
+        raise UsageError("no INPUT given (give point files, images, folders, or --example)")
     out_dir = Path(args.out)
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -173,29 +270,29 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
         raise UsageError(f"--out {out_dir}: not a folder")
 
     jobs = [_Job(src, stem) for src, stem in zip(sources, _unique_stems(sources))]
-    failed = 0
+    opts = _Options(args, formats, image_formats, config, low, high)
 
     # ---- skip finished inputs
     todo: List[_Job] = []
     for job in jobs:
-        if not args.overwrite and all((out_dir / f"{job.stem}.{f}").exists() for f in formats):
+        if not args.overwrite and all((out_dir / f"{job.stem}.{f}").exists() for f in opts.formats_of(job)):
             print(f"{job.stem}: skipped, outputs exist in {out_dir} (use --overwrite to redo)", flush=True)
         else:
             todo.append(job)
 
     # ---- read inputs as batches fill up (bounded memory), reconstruct, export at once
-    state = {"failed": 0, "done": 0, "batches": 0}
+    state = {"failed": 0, "done": 0, "batches": 0, "t0": time.perf_counter()}
     batch: List[_Job] = []
     for i, job in enumerate(todo):
         try:
-            job.points = torch.from_numpy(read_points(job.source)).to(device)
+            _read(job, opts, device)
             batch.append(job)
-        except PointFileError as e:
+        except _input_errors() as e:
             _err(_one_line(e))             # the message already starts with the file name
             state["failed"] += 1
             state["done"] += 1
         if len(batch) == args.batch_size or (i == len(todo) - 1 and batch):
-            _process_batch(batch, config, out_dir, formats, len(todo), state, args.debug)
+            _process_batch(batch, opts, out_dir, len(todo), state, args.debug)
             batch = []
     failed = state["failed"]
     if state["batches"] > 1 or failed:
@@ -203,19 +300,88 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
     return 1 if failed else 0
 
 
-def _process_batch(batch: List[_Job], config, out_dir: Path, formats: List[str], total: int, state: dict,
+class _Options:
+    """What the command line asks for, resolved once."""
+
+    def __init__(self, args, formats, image_formats, config, low, high):
+        from . import images
+
+        self.args = args
+        self.formats = formats
+        self.image_formats = image_formats
+        self.config = config
+        # pixel defaults for images, except where the user set a key
+        keep = set(_config_keys(args.config)) | {k for k in parse_overrides(args.overrides)}
+        self.image_config = images.image_config(config, keep=sorted(keep), mode=args.mode)
+        self.canny = (low, high)
+
+    def formats_of(self, job: _Job) -> List[str]:
+        return self.image_formats + ["overlay.png"] if job.is_image else self.formats
+
+
+def _input_errors() -> tuple:
+    from .images import ImageError
+
+    return (PointFileError, ImageError)
+
+
+def _read(job: _Job, opts: _Options, device) -> None:
+    """Read one input into its job: points, and for an image the gray image (and the mask)."""
+    if not job.is_image:
+        job.points = torch.from_numpy(read_points(job.source)).to(device)
+        return
+    from . import images
+
+    gray = images.read_image(job.source)
+    job.image = gray
+    if opts.args.mode == "mask":
+        thr = opts.args.threshold if opts.args.threshold is not None else images.auto_threshold(gray)
+        mask = torch.from_numpy(gray > thr).to(device)
+        if not bool(mask.any()):
+            raise images.ImageError(f"{job.source}: empty mask: no pixel above threshold {thr:.3g} (all black)")
+        if bool(mask.all()):
+            _note(f"note: {job.source}: the whole image is foreground (all white at threshold {thr:.3g}): "
+                  f"its curve is the image frame")
+        job.points, job.n_boundaries = images.mask_points(mask, opts.args.spacing, None, name=job.source)
+        job.points = job.points.double()
+        job.mask = mask
+    else:
+        pts = images.edge_points([torch.from_numpy(gray).to(device)], opts.canny[0], opts.canny[1],
+                                 sigma=opts.args.sigma, spacing=opts.args.spacing)[0]
+        if pts.shape[0] < 3:
+            raise images.ImageError(f"{job.source}: no edges found ({pts.shape[0]} edge pixel(s) at Canny thresholds "
+                                    f"{opts.canny[0]:g},{opts.canny[1]:g}; flat image?)")
+        job.points = pts.double()
+
+
+def _process_batch(batch: List[_Job], opts: _Options, out_dir: Path, total: int, state: dict,
                    debug: bool) -> None:
     state["batches"] += 1
     if total > 1:
-        _note(f"[{state['done']}/{total}] batch {state['batches']}: reconstructing {len(batch)} input(s)")
-    for job, (res, seconds) in zip(batch, _run_batch(batch, config, debug)):
+        _note(f"[{state['done']}/{total}] batch {state['batches']}: reconstructing {len(batch)} input(s) "
+              f"{_bar(state['done'], total, state['t0'])}")
+    masks = [j for j in batch if j.is_image and j.mask is not None and not opts.args.no_oracle]
+    others = [j for j in batch if j not in masks]
+    solved = {}
+    for group, kind in ((others, "plain"), (masks, "mask")):
+        if group:
+            solved.update(zip(map(id, group), _run_batch(group, opts, debug, kind)))
+    for job in batch:
+        res, seconds = solved[id(job)]
         state["done"] += 1
-        job.points = None                  # free the batch's points
+        image = job.image
+        job.points = job.image = job.mask = None             # free the batch's inputs
         if res is None:
             state["failed"] += 1
             continue
         try:
-            job.outputs = export(res, out_dir / job.stem, formats)
+            fmts = opts.formats_of(job)
+            job.outputs = export(res, out_dir / job.stem, [f for f in fmts if f != "overlay.png"],
+                                 y_down=job.is_image)
+            if job.is_image:
+                from .images import write_overlay
+
+                job.outputs.append(write_overlay(out_dir / f"{job.stem}.overlay.png", image, res))
         except OSError as e:
             _err(f"{job.source}: cannot write outputs in {out_dir} ({e.strerror or _one_line(e)})")
             state["failed"] += 1
@@ -227,31 +393,61 @@ def _process_batch(batch: List[_Job], config, out_dir: Path, formats: List[str],
             state["failed"] += 1
             continue
         print(_summary(job, res, seconds), flush=True)
+    if total > 1 and state["done"] == total:
+        _note(f"[{state['done']}/{total}] {_bar(state['done'], total, state['t0'])}")
 
 
-def _run_batch(batch: List[_Job], config, debug: bool) -> list:
+def _solve(jobs: List[_Job], opts: _Options, kind: str) -> list:
+    """One batched solve: point files with the user's config, images with the pixel config,
+    masks with the mask as sign oracle (and the count check of :func:`images.solve_masks`)."""
+    names = [j.stem for j in jobs]
+    points = [j.points for j in jobs]
+    if kind == "mask":
+        from .images import solve_masks
+
+        return solve_masks(points, [j.mask for j in jobs], [j.n_boundaries for j in jobs], opts.image_config,
+                           names)
+    if all(not j.is_image for j in jobs):
+        if len(jobs) == 1:
+            return [torch_isc.reconstruct(points[0], opts.config, name=names[0])]
+        return torch_isc.reconstruct_batch(points, opts.config, names=names)
+    cfgs = [opts.image_config if j.is_image else opts.config for j in jobs]
+    if any(c is not cfgs[0] for c in cfgs):         # images and point files: one solve per config
+        out = [None] * len(jobs)
+        for cfg in (opts.config, opts.image_config):
+            idx = [i for i, c in enumerate(cfgs) if c is cfg]
+            if idx:
+                for i, r in zip(idx, torch_isc.reconstruct_batch([points[i] for i in idx], cfg,
+                                                                 names=[names[i] for i in idx])):
+                    out[i] = r
+        return out
+    return torch_isc.reconstruct_batch(points, cfgs[0], names=names)
+
+
+def _run_batch(batch: List[_Job], opts: _Options, debug: bool, kind: str = "plain") -> list:
     """``(result, seconds)`` per item of one batch; ``(None, seconds)`` for an item that failed
     (its error printed). Items solved together share the batch's wall time evenly."""
-    names = [j.stem for j in batch]
-    points = [j.points for j in batch]
     if len(batch) > 1:
         t0 = time.perf_counter()
         try:
-            results = torch_isc.reconstruct_batch(points, config, names=names)
+            results = _solve(batch, opts, kind)
             if len(results) == len(batch):
                 share = (time.perf_counter() - t0) / len(batch)
                 return [(r, share) for r in results]
         except Exception:
             pass  # find the item(s) at fault by running them one by one
-    bad_input = _point_set_errors()
+    bad_input = _point_set_errors() + _input_errors()
     out = []
     for job in batch:
         t0 = time.perf_counter()
         res = None
         try:
-            res = torch_isc.reconstruct(job.points, config, name=job.stem)
+            res = _solve([job], opts, kind)[0]
         except bad_input as e:
-            _err(f"{job.source}: {_one_line(e)}")
+            msg = _one_line(e)
+            if msg.startswith(f"{job.stem}: "):     # a PointSetError names the item by its stem
+                msg = msg[len(job.stem) + 2:]
+            _err(f"{job.source}: {msg}")
         except Exception as e:
             _err(f"{job.source}: reconstruction failed ({type(e).__name__}: {_one_line(e)})")
             if debug:

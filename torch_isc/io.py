@@ -35,7 +35,7 @@ from .mesh import InvalidMeshError, MeshBatch
 __all__ = [
     "PointFileError", "CurveFileError", "read_points", "atomic_write", "save_npz", "load_npz",
     "json_dumps", "write_json", "write_npz", "write_svg", "render_png", "write_png",
-    "EXPORTERS", "export",
+    "write_contours", "EXPORTERS", "export",
 ]
 
 PathLike = Union[str, os.PathLike]
@@ -419,7 +419,7 @@ def _padded_bbox(bbox: Iterable[float], margin: float) -> Tuple[float, float, fl
     return x0 - m, y0 - m, x1 + m, y1 + m
 
 
-def write_svg(path: PathLike, result, margin: float = 0.05, width: int = 800) -> Path:
+def write_svg(path: PathLike, result, margin: float = 0.05, width: int = 800, y_down: bool = False) -> Path:
     """Write the zero set as SVG.
 
     Closed polylines together form one ``<path>`` with ``fill-rule="evenodd"`` (a hole inside an
@@ -440,9 +440,9 @@ def write_svg(path: PathLike, result, margin: float = 0.05, width: int = 800) ->
     out = [
         '<?xml version="1.0" encoding="UTF-8"?>',
         f'<svg xmlns="http://www.w3.org/2000/svg" version="1.1" width="{width}" height="{height}" '
-        f'viewBox="{x0:.9g} {-y1:.9g} {w:.9g} {h:.9g}">',
+        f'viewBox="{x0:.9g} {(y0 if y_down else -y1):.9g} {w:.9g} {h:.9g}">',
         f"<title>{_xml_escape(result.name or 'torch_isc reconstruction')}</title>",
-        '<g transform="scale(1,-1)">',
+        '<g>' if y_down else '<g transform="scale(1,-1)">',
     ]
     if closed_d:
         out.append(f'<path class="closed" d="{closed_d}" fill="#8fd18f" fill-opacity="0.5" fill-rule="evenodd" '
@@ -487,7 +487,7 @@ def _stamp(img: np.ndarray, xy: np.ndarray, radius: int, colour: Tuple[int, int,
 
 
 def render_png(path: PathLike, curve: ImplicitCurve, points: Optional[torch.Tensor] = None, size: int = 800,
-               draw_mesh: bool = True, draw_signs: bool = True) -> Path:
+               draw_mesh: bool = True, draw_signs: bool = True, y_down: bool = False) -> Path:
     """Render one curve to a ``size x size`` PNG with OpenCV (atomic write).
 
     Args:
@@ -498,7 +498,8 @@ def render_png(path: PathLike, curve: ImplicitCurve, points: Optional[torch.Tens
         draw_signs: vertex dots, blue where ``f < 0`` (inside), red where ``f > 0`` (outside).
 
     Closed curves are green, open chains orange. The item's mesh bbox is fitted into the image
-    (aspect kept, centred, a small margin) and y points up (image rows are flipped).
+    (aspect kept, centred, a small margin) and y points up (image rows are flipped), or down
+    with ``y_down`` (image pixel coordinates).
     """
     if curve.num_items != 1:
         raise ValueError(f"render_png draws one curve, got a batch of {curve.num_items}")
@@ -517,7 +518,8 @@ def render_png(path: PathLike, curve: ImplicitCurve, points: Optional[torch.Tens
 
     def to_px(xy: np.ndarray) -> np.ndarray:
         # y up: image rows grow downwards, so the data y is negated
-        return np.stack([(xy[:, 0] - cx) * scale + 0.5 * size, 0.5 * size - (xy[:, 1] - cy) * scale], 1)
+        sy = scale if y_down else -scale
+        return np.stack([(xy[:, 0] - cx) * scale + 0.5 * size, 0.5 * size + (xy[:, 1] - cy) * sy], 1)
 
     def fixed(px: np.ndarray) -> np.ndarray:
         return np.rint(px * (1 << _SHIFT)).astype(np.int32)
@@ -562,9 +564,18 @@ def _cv2():
     return cv2
 
 
-def write_png(path: PathLike, result, size: int = 800) -> Path:
+def write_png(path: PathLike, result, size: int = 800, y_down: bool = False) -> Path:
     """:func:`render_png` of ``result.curve`` with ``result.points``."""
-    return render_png(path, result.curve, result.points, size=size)
+    return render_png(path, result.curve, result.points, size=size, y_down=y_down)
+
+
+def write_contours(path: PathLike, result, mode: str = "tree") -> Path:
+    """The closed curves as OpenCV contours with their ``RETR_TREE`` hierarchy, in OpenCV's
+    pixel coordinates (:func:`torch_isc.images.write_contours`; read back with
+    :func:`torch_isc.images.load_contours`)."""
+    from .images import write_contours as _write
+
+    return _write(path, result, mode)
 
 
 # ------------------------------------------------------------------------------- registry
@@ -574,11 +585,19 @@ EXPORTERS: Dict[str, Callable[..., Path]] = {
     "npz": write_npz,
     "svg": write_svg,
     "png": write_png,
+    "contours.npz": write_contours,
 }
 
+#: Writers that draw in a plane and take ``y_down`` (image coordinates, y pointing down).
+_Y_DOWN = {"svg", "png"}
 
-def export(result, path_stem: PathLike, formats: Iterable[str] = ("json", "npz", "svg", "png")) -> List[Path]:
+
+def export(result, path_stem: PathLike, formats: Iterable[str] = ("json", "npz", "svg", "png"),
+           y_down: bool = False) -> List[Path]:
     """Write ``result`` as ``<path_stem>.<fmt>`` for every format (each write atomic).
+
+    ``y_down``: the coordinates are image pixels (y pointing down): SVG and PNG are drawn
+    without flipping y, so they look like the image.
 
     Returns:
         the written paths, in the order of ``formats``.
@@ -591,4 +610,5 @@ def export(result, path_stem: PathLike, formats: Iterable[str] = ("json", "npz",
     if unknown:
         raise ValueError(f"unknown output format '{unknown[0]}' (known: {', '.join(EXPORTERS)})")
     stem = os.fspath(path_stem)
-    return [EXPORTERS[f](Path(f"{stem}.{f}"), result) for f in formats]
+    return [EXPORTERS[f](Path(f"{stem}.{f}"), result, **({"y_down": True} if y_down and f in _Y_DOWN else {}))
+            for f in formats]

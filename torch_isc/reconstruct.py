@@ -58,10 +58,39 @@ def _check_points(x: PointsLike, label: str) -> torch.Tensor:
     bad = ~torch.isfinite(x.double()).all(1)
     if bad.any():
         raise PointSetError(f"{label}: {int(bad.sum())} point(s) have NaN or Inf coordinates")
-    n_distinct = torch.unique(x.double(), dim=0).shape[0]
+    n_distinct = torch.unique(x, dim=0).shape[0]
     if n_distinct < 3:
         raise PointSetError(f"{label}: needs at least 3 distinct points, got {n_distinct}")
     return x
+
+
+def _distinct(x: torch.Tensor) -> torch.Tensor:
+    """``x`` without exact repeats of a point, in the order of first occurrence. Repeats say
+    nothing about the curve, but they would fool the noise estimate (a point's nearest
+    neighbours would be its own copies: noise 0, tolerance floor gone) and the point-count
+    guards of the test, and noisy data would be refined into spurious loops."""
+    u, inv = torch.unique(x, dim=0, return_inverse=True)
+    if u.shape[0] == x.shape[0]:
+        return x
+    first = torch.full((u.shape[0],), x.shape[0], dtype=torch.long, device=x.device)
+    first.scatter_reduce_(0, inv, torch.arange(x.shape[0], device=x.device), "amin")
+    return x[first.sort().values]
+
+
+def _collinear(pts64: torch.Tensor, point_item: torch.Tensor, B: int, slack: torch.Tensor) -> torch.Tensor:
+    """``(B,)`` bool: every point of the item lies within ``slack`` of one line (float64,
+    normalized coordinates). Measured as the largest distance to the principal axis, so no
+    cancellation in an eigenvalue limits the precision."""
+    n = torch.bincount(point_item, minlength=B).to(pts64.dtype)
+    mean = torch.zeros(B, 2, dtype=pts64.dtype, device=pts64.device).index_add_(0, point_item, pts64) / n[:, None]
+    d = pts64 - mean[point_item]
+    cov = torch.zeros(B, 3, dtype=pts64.dtype, device=pts64.device).index_add_(
+        0, point_item, torch.stack([d[:, 0] * d[:, 0], d[:, 0] * d[:, 1], d[:, 1] * d[:, 1]], 1))
+    theta = 0.5 * torch.atan2(2 * cov[:, 1], cov[:, 0] - cov[:, 2])        # principal direction
+    normal = torch.stack([-theta.sin(), theta.cos()], 1)
+    off = (d * normal[point_item]).sum(1).abs()
+    worst = torch.zeros(B, dtype=pts64.dtype, device=pts64.device).scatter_reduce_(0, point_item, off, "amax")
+    return worst <= slack
 
 
 def _initial_mesh(cfg: ReconstructConfig, B: int, device, dtype) -> MeshBatch:
@@ -122,6 +151,7 @@ def reconstruct_batch(point_sets: Sequence[PointsLike], config: Optional[Reconst
     names = list(names) if names is not None else [None] * len(point_sets)
     labels = [n if n is not None else f"point set {i}" for i, n in enumerate(names)]
     raw = [_check_points(p, lab) for p, lab in zip(point_sets, labels)]
+    solve = [_distinct(p) for p in raw]                 # the point *set*: exact repeats merged
     device = raw[0].device
     for p, lab in zip(raw, labels):
         if p.device != device:
@@ -131,14 +161,22 @@ def reconstruct_batch(point_sets: Sequence[PointsLike], config: Optional[Reconst
 
     with torch.no_grad():
         # normalize in float64, then cast: large offsets (1e7) must not cost precision
-        lo = torch.stack([p.double().min(0).values for p in raw])
-        hi = torch.stack([p.double().max(0).values for p in raw])
+        lo = torch.stack([p.double().min(0).values for p in solve])
+        hi = torch.stack([p.double().max(0).values for p in solve])
         center64 = 0.5 * (lo + hi)
         scale64 = (hi - lo).norm(dim=1)
-        counts = torch.tensor([p.shape[0] for p in raw], device=device)
+        counts = torch.tensor([p.shape[0] for p in solve], device=device)
         point_item = torch.repeat_interleave(torch.arange(B, device=device), counts)
-        pts64 = torch.cat([p.double() for p in raw])
-        pts = ((pts64 - center64[point_item]) / scale64[point_item, None]).to(dtype)
+        pts64 = torch.cat([p.double() for p in solve])
+        norm64 = (pts64 - center64[point_item]) / scale64[point_item, None]
+        pts = norm64.to(dtype)
+        # points on one line (up to the rounding of the input) enclose no region: such an item
+        # stops at level 0 with no curve (limit "no_curve"), not with a loop the data cannot support
+        ulp = torch.tensor([torch.finfo(p.dtype).eps if p.dtype.is_floating_point else 0.0 for p in solve],
+                           dtype=torch.float64, device=device)
+        reach = torch.maximum(lo.abs(), hi.abs()).amax(1)
+        flat = _collinear(norm64, point_item, B, 1e-12 + 8 * ulp * reach / scale64)
+        del norm64
         scale = scale64.to(dtype)
         tol = torch.full((B,), cfg.tolerance, dtype=dtype, device=device)
         if cfg.tolerance_mode == "absolute":
@@ -201,7 +239,7 @@ def reconstruct_batch(point_sets: Sequence[PointsLike], config: Optional[Reconst
             # a subdivision at most quadruples the marked triangles and their neighbours
             grow = torch.zeros(nb, dtype=torch.long, device=device).index_add_(0, mesh.face_item, marked.long() * 9)
             over = (mesh.faces_per_item + grow) > cfg.max_triangles
-            done = (n_marked == 0) | over | (level == cfg.max_level)
+            done = (n_marked == 0) | over | (level == cfg.max_level) | flat[orig]
             clock.tick("test")
             pts_per_item = torch.bincount(point_item, minlength=nb)
             s_list = scale[orig]
@@ -226,14 +264,17 @@ def reconstruct_batch(point_sets: Sequence[PointsLike], config: Optional[Reconst
                     m1 = sub[jj]
                     v0 = int(sub.verts_first_idx[jj])
                     vals = curve_vals[v0:v0 + m1.verts.shape[0]]
+                    if bool(flat[b]):
+                        vals = vals.abs()                  # all outside: no curve
                     # back to the caller's frame in float64, then to the caller's precision (at
                     # least the working one): an offset of 1e7 must not be rounded away
                     odt = torch.promote_types(raw[b].dtype if raw[b].dtype.is_floating_point else dtype, dtype)
                     out_mesh = m1.with_verts((m1.verts.double() * scale64[b] + center64[b]).to(odt))
                     curve = ImplicitCurve(out_mesh, (vals.double() * scale64[b]).to(odt), validate=False)
                     converged = bool(n_marked[j] == 0)
-                    if not bool(((curve_vals[v0:v0 + m1.verts.shape[0]] < 0)).any()):
-                        # no inside vertex, so no curve: the data did not define one
+                    if not bool((vals < 0).any()):
+                        # no inside vertex, so no curve: the data did not define one (too few
+                        # points, or all of them on one line)
                         converged, limit = False, "no_curve"
                     results[b] = ReconstructionResult(curve=curve, points=raw[b], stats=stats[b], config=cfg,
                                                       converged=converged, limit=limit, name=names[b])

@@ -235,6 +235,8 @@ def reconstruct_batch(point_sets: Sequence[PointsLike], config: Optional[Reconst
                 mesh, residual, face, mom.count, eps_t, tol[orig], noise[orig], cfg.test_statistic,
                 cfg.noise_factor, cfg.min_points_split, cfg.min_points_fit, cfg.thin_feature_factor,
                 cfg.min_split_size)
+            if sign_oracles is not None:
+                marked |= _oracle_disagreements(mesh, values, sign_oracles, orig, center64, scale64, 2.0 * eff_tol)
             n_marked = torch.zeros(nb, dtype=torch.long, device=device).index_add_(0, mesh.face_item, marked.long())
             # a subdivision at most quadruples the marked triangles and their neighbours
             grow = torch.zeros(nb, dtype=torch.long, device=device).index_add_(0, mesh.face_item, marked.long() * 9)
@@ -342,25 +344,52 @@ class _StageClock:
         self.acc = {k: 0.0 for k in self.STAGES}
 
 
-def _oracle_signs(mesh: MeshBatch, oracles, orig, center64, scale64, dtype) -> torch.Tensor:
-    """Vertex signs from per-item inside/outside oracles (caller's coordinates)."""
-    out = torch.ones(mesh.verts.shape[0], dtype=dtype, device=mesh.device)
+def _oracle_inside(x: torch.Tensor, item: torch.Tensor, oracles, orig, center64, scale64) -> torch.Tensor:
+    """``(M,)`` bool, the oracles' inside/outside at points ``x (M, 2)`` (normalized coordinates)
+    of working items ``item (M,)`` (non-decreasing), asked in the caller's coordinates."""
+    b = orig[item]
+    xc = x.detach().double() * scale64[b, None] + center64[b]
     if callable(oracles):                                   # batched: one call for all items
-        item = orig[mesh.vert_item]
-        v = mesh.verts.detach().double() * scale64[item, None] + center64[item]
-        inside = torch.as_tensor(oracles(v, item), device=mesh.device).bool().reshape(-1)
-        if inside.shape[0] != v.shape[0]:
-            raise PointSetError(f"sign oracle returned {inside.shape[0]} values for {v.shape[0]} points")
-        out = torch.where(inside, -1.0, 1.0).to(dtype)
-        out[mesh.is_boundary_vert] = 1.0
-        return out
-    for j, b in enumerate(orig.tolist()):                  # one oracle call per item
-        o = oracles[b]
-        v0, nv = int(mesh.verts_first_idx[j]), int(mesh.verts_per_item[j])
+        inside = torch.as_tensor(oracles(xc, b), device=x.device).bool().reshape(-1)
+        if inside.shape[0] != xc.shape[0]:
+            raise PointSetError(f"sign oracle returned {inside.shape[0]} values for {xc.shape[0]} points")
+        return inside
+    out = torch.zeros(x.shape[0], dtype=torch.bool, device=x.device)
+    counts = torch.bincount(item, minlength=orig.shape[0])
+    starts = (torch.cumsum(counts, 0) - counts).tolist()
+    for j, (ob, s0, n) in enumerate(zip(orig.tolist(), starts, counts.tolist())):   # one call per item
+        o = oracles[ob]
         if o is None:
-            raise PointSetError(f"item {b}: sign oracles must be given for every item or none")
-        v = mesh.verts[v0:v0 + nv].detach().double() * scale64[b] + center64[b]
-        inside = torch.as_tensor(o(v), device=mesh.device).bool().reshape(-1)
-        out[v0:v0 + nv] = torch.where(inside, -1.0, 1.0).to(dtype)
+            raise PointSetError(f"item {ob}: sign oracles must be given for every item or none")
+        if n:
+            got = torch.as_tensor(o(xc[s0:s0 + n]), device=x.device).bool().reshape(-1)
+            if got.shape[0] != n:
+                raise PointSetError(f"item {ob}: sign oracle returned {got.shape[0]} values for {n} points")
+            out[s0:s0 + n] = got
+    return out
+
+
+def _oracle_signs(mesh: MeshBatch, oracles, orig, center64, scale64, dtype) -> torch.Tensor:
+    """Vertex signs from the inside/outside oracles; boundary vertices are outside."""
+    inside = _oracle_inside(mesh.verts, mesh.vert_item, oracles, orig, center64, scale64)
+    out = torch.where(inside, -1.0, 1.0).to(dtype)
     out[mesh.is_boundary_vert] = 1.0
+    return out
+
+
+def _oracle_disagreements(mesh: MeshBatch, values: torch.Tensor, oracles, orig, center64, scale64,
+                          min_len: torch.Tensor) -> torch.Tensor:
+    """``(T,)`` bool: triangles next to an interior edge longer than ``min_len`` (per item) at
+    whose midpoint the oracle and the piecewise-linear function disagree on inside/outside.
+    Vertex signs alone cannot see a thin stroke or a gap that passes between two vertices; the
+    points near it may still lie close to some piece of curve, so the distance test passes."""
+    e = mesh.edges
+    v = mesh.verts.detach()
+    inside = _oracle_inside(0.5 * (v[e[:, 0]] + v[e[:, 1]]), mesh.edge_item, oracles, orig, center64, scale64)
+    pl_inside = (values[e[:, 0]] + values[e[:, 1]]) < 0
+    long = (v[e[:, 0]] - v[e[:, 1]]).norm(dim=1) > min_len[mesh.edge_item]
+    bad = (inside != pl_inside) & long & ~mesh.is_boundary_edge
+    out = torch.zeros(mesh.faces.shape[0], dtype=torch.bool, device=v.device)
+    ef = mesh.edge_faces[bad].reshape(-1)
+    out[ef[ef >= 0]] = True
     return out

@@ -170,23 +170,25 @@ def fit_geometry(mesh: MeshBatch, mom: TriangleMoments, signs: torch.Tensor, ini
         return signs * (torch.exp(s.clamp(-60.0, 60.0)) + floor)
 
     T = mesh.faces.shape[0]
-    all_faces = torch.arange(T, device=mesh.device)
+    guard_t = guard[fi]
 
     def objective(s, items=None):
         F = values_of(s)
         if items is None:
-            fs, es, efs = all_faces, None, ef
+            es, efs = None, ef
+            faces, Gs, Ms, fis, wts, gds = mesh.faces, G, mom.M, fi, wt, guard_t
         else:                                   # only the faces and edges of these items
             fs = items[fi].nonzero().squeeze(1)
             es = items[eitem].nonzero().squeeze(1)
             remap = torch.full((T,), -1, dtype=torch.long, device=mesh.device)
             remap[fs] = torch.arange(fs.shape[0], device=mesh.device)
             efs = remap[ef[es]]
-        Ft = F[mesh.faces[fs]]
-        grad = (G[fs] * Ft[..., None]).sum(1)          # (T,2)
+            faces, Gs, Ms, fis, wts, gds = mesh.faces[fs], G[fs], mom.M[fs], fi[fs], wt[fs], guard_t[fs]
+        Ft = F[faces]
+        grad = (Gs * Ft[..., None]).sum(1)             # (T,2)
         g2 = (grad * grad).sum(1)
-        num = torch.einsum("ti,tij,tj->t", Ft, mom.M[fs], Ft)
-        d1 = torch.zeros(B, dtype=dt, device=mesh.device).index_add_(0, fi[fs], wt[fs] * num / (g2 + guard[fi[fs]]))
+        num = ((Ft[:, :, None] * Ms).sum(1) * Ft).sum(1)    # Ft' M Ft
+        d1 = torch.zeros(B, dtype=dt, device=mesh.device).index_add_(0, fis, wts * num / (g2 + gds))
         obj = d1 * inv_tol2
         if cross and ce.shape[0]:
             if items is None:

@@ -44,6 +44,33 @@ def segment_median(x: torch.Tensor, seg: torch.Tensor, n: int) -> torch.Tensor:
     return torch.where(cnt > 0, x[order][mid], torch.zeros(n, dtype=x.dtype, device=x.device))
 
 
+def _local_line_residual(points: torch.Tensor, point_item: torch.Tensor, idx: torch.Tensor, orders, offs,
+                         k: int) -> Tuple[torch.Tensor, torch.Tensor]:
+    """For the points ``idx``: the residual variance of a line fitted to each point and its ``k``
+    nearest candidates (its neighbours along the Morton ``orders``), and the fit's point count."""
+    P = points.shape[0]
+    dev, dt = points.device, points.dtype
+    c = torch.cat([order[(pos[idx][:, None] + offs[None, :]).clamp(0, P - 1)] for order, pos in orders], 1)
+    c, _ = torch.sort(c, 1)
+    dup = torch.zeros_like(c, dtype=torch.bool)
+    dup[:, 1:] = c[:, 1:] == c[:, :-1]
+    self_or_other = (c == idx[:, None]) | (point_item[c] != point_item[idx][:, None]) | dup
+    d2 = ((points[c] - points[idx][:, None, :]) ** 2).sum(-1)
+    d2 = torch.where(self_or_other, torch.full_like(d2, float("inf")), d2)
+    nd, ni = torch.topk(d2, min(k, c.shape[1]), dim=1, largest=False)
+    nbr = c.gather(1, ni)
+    valid = torch.isfinite(nd)
+    pts = torch.cat([points[idx][:, None, :], points[nbr]], 1)          # (n, k+1, 2)
+    w = torch.cat([torch.ones(idx.shape[0], 1, dtype=torch.bool, device=dev), valid], 1).to(dt)
+    m = w.sum(1)
+    mean = (pts * w[..., None]).sum(1) / m[:, None]
+    qd = (pts - mean[:, None, :]) * w[..., None]
+    C = torch.einsum("pki,pkj->pij", qd, qd) / m[:, None, None]
+    a, b, d = C[:, 0, 0], C[:, 0, 1], C[:, 1, 1]
+    lam = (0.5 * (a + d) - torch.sqrt((0.5 * (a - d)) ** 2 + b * b)).clamp_min(0)
+    return lam * m / (m - 2).clamp_min(1), m
+
+
 def estimate_noise(points: torch.Tensor, point_item: torch.Tensor, num_items: int, k: int = 8,
                    window: int = 12) -> torch.Tensor:
     """``(B,)`` noise level (a standard deviation, in the points' units) of each item.
@@ -59,36 +86,22 @@ def estimate_noise(points: torch.Tensor, point_item: torch.Tensor, num_items: in
         dev, dt = points.device, points.dtype
         if P < 3:
             return torch.zeros(num_items, dtype=dt, device=dev)
-        cands = []
+        offs = torch.cat([torch.arange(-window, 0, device=dev), torch.arange(1, window + 1, device=dev)])
+        orders = []
         for shift in (0.0, 0.3719):
             q = ((points + 0.75 + shift * 0.5) / 2.0 * 65535).long().clamp(0, 65535)
             key = point_item * (1 << 32) + _morton(q)
             order = torch.argsort(key, stable=True)
             pos = torch.empty_like(order)
             pos[order] = torch.arange(P, device=dev)
-            offs = torch.cat([torch.arange(-window, 0, device=dev), torch.arange(1, window + 1, device=dev)])
-            j = (pos[:, None] + offs[None, :]).clamp(0, P - 1)
-            cands.append(order[j])
-        c = torch.cat(cands, 1)                                       # (P, 4W)
-        c, _ = torch.sort(c, 1)
-        dup = torch.zeros_like(c, dtype=torch.bool)
-        dup[:, 1:] = c[:, 1:] == c[:, :-1]
-        self_or_other = (c == torch.arange(P, device=dev)[:, None]) | (point_item[c] != point_item[:, None]) | dup
-        d2 = ((points[c] - points[:, None, :]) ** 2).sum(-1)
-        d2 = torch.where(self_or_other, torch.full_like(d2, float("inf")), d2)
-        kk = min(k, c.shape[1])
-        nd, ni = torch.topk(d2, kk, dim=1, largest=False)
-        nbr = c.gather(1, ni)
-        valid = torch.isfinite(nd)
-        pts = torch.cat([points[:, None, :], points[nbr]], 1)          # (P, k+1, 2)
-        w = torch.cat([torch.ones(P, 1, dtype=torch.bool, device=dev), valid], 1).to(dt)
-        m = w.sum(1)
-        mean = (pts * w[..., None]).sum(1) / m[:, None]
-        qd = (pts - mean[:, None, :]) * w[..., None]
-        C = torch.einsum("pki,pkj->pij", qd, qd) / m[:, None, None]
-        a, b, d = C[:, 0, 0], C[:, 0, 1], C[:, 1, 1]
-        lam = (0.5 * (a + d) - torch.sqrt((0.5 * (a - d)) ** 2 + b * b)).clamp_min(0)
-        lam = lam * m / (m - 2).clamp_min(1)
+            orders.append((order, pos))
+        lam = torch.empty(P, dtype=dt, device=dev)
+        m = torch.empty(P, dtype=dt, device=dev)
+        # the (points x candidates) arrays go in blocks: bounded memory for millions of points
+        block = max(1, (1 << 21) // (4 * window))
+        for b0 in range(0, P, block):
+            idx = torch.arange(b0, min(P, b0 + block), device=dev)
+            lam[idx], m[idx] = _local_line_residual(points, point_item, idx, orders, offs, k)
         ok = m >= 4
         var = segment_median(lam[ok], point_item[ok], num_items)
         return var.sqrt()

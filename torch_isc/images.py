@@ -47,6 +47,7 @@ import numpy as np
 import torch
 
 from .config import ReconstructConfig
+from .io import read_file_bytes
 
 __all__ = [
     "IMAGE_SUFFIXES", "IMAGE_CONFIG", "MASK_CONFIG", "EDGE_CONFIG", "ImageError", "image_config", "read_image", "as_masks",
@@ -110,14 +111,7 @@ def read_image(path: Union[str, os.PathLike]) -> np.ndarray:
     """
     cv2 = _cv2()
     p = Path(path)
-    try:
-        raw = np.fromfile(str(p), dtype=np.uint8)
-    except FileNotFoundError:
-        raise ImageError(f"{p}: no such file") from None
-    except IsADirectoryError:
-        raise ImageError(f"{p}: is a directory, not an image") from None
-    except OSError as e:
-        raise ImageError(f"{p}: cannot read ({e.strerror or e})") from None
+    raw = np.frombuffer(read_file_bytes(p, ImageError, "an image"), dtype=np.uint8)
     if raw.size == 0:
         raise ImageError(f"{p}: empty file, not an image")
     img = None

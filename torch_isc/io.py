@@ -33,7 +33,7 @@ from .curve import ImplicitCurve, InvalidValuesError
 from .mesh import InvalidMeshError, MeshBatch
 
 __all__ = [
-    "PointFileError", "CurveFileError", "read_points", "atomic_write", "save_npz", "load_npz",
+    "PointFileError", "CurveFileError", "read_file_bytes", "read_points", "atomic_write", "save_npz", "load_npz",
     "json_dumps", "write_json", "write_npz", "write_svg", "render_png", "write_png",
     "write_contours", "EXPORTERS", "export",
 ]
@@ -70,6 +70,20 @@ def _one_line(msg: object) -> str:
     return s[0] if s else ""
 
 
+def read_file_bytes(path: PathLike, error: type, what: str) -> bytes:
+    """The bytes of ``path``, or ``error`` with one line naming the file (missing, a folder,
+    unreadable); ``what`` names the expected kind of file (e.g. ``"a point file"``)."""
+    p = Path(path)
+    try:
+        return p.read_bytes()
+    except FileNotFoundError:
+        raise error(f"{p}: no such file") from None
+    except IsADirectoryError:
+        raise error(f"{p}: is a directory, not {what}") from None
+    except OSError as e:
+        raise error(f"{p}: cannot read ({e.strerror or e})") from None
+
+
 def read_points(path: PathLike) -> np.ndarray:
     """Read a point set.
 
@@ -90,14 +104,7 @@ def read_points(path: PathLike) -> np.ndarray:
             ``.npy`` of the wrong shape or dtype or truncated, NaN/Inf coordinates (with the count).
     """
     p = Path(path)
-    try:
-        raw = p.read_bytes()
-    except FileNotFoundError:
-        raise PointFileError(f"{p}: no such file") from None
-    except IsADirectoryError:
-        raise PointFileError(f"{p}: is a directory, not a point file") from None
-    except OSError as e:
-        raise PointFileError(f"{p}: cannot read ({e.strerror or e})") from None
+    raw = read_file_bytes(p, PointFileError, "a point file")
     if raw.startswith(_NPY_MAGIC) or p.suffix.lower() == ".npy":
         pts = _read_npy(p, raw)
         rows: Optional[np.ndarray] = None

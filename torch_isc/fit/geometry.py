@@ -35,6 +35,14 @@ def delta1_per_triangle(mesh: MeshBatch, M: torch.Tensor, values: torch.Tensor, 
     return num / (g2 + guard)
 
 
+def _located(mesh: MeshBatch, points: torch.Tensor, face: torch.Tensor):
+    """``(V, verts, points, faces)``: the vertex count, the detached vertices, and the points
+    that have a triangle (in the mesh's dtype) with their triangles."""
+    v = mesh.verts.detach()
+    ok = face >= 0
+    return v.shape[0], v, points[ok].to(v.dtype), face[ok]
+
+
 def vertex_data_distance(mesh: MeshBatch, points: torch.Tensor, face: torch.Tensor, max_hops: int = 256) -> torch.Tensor:
     """``(V,)`` an upper bound of each vertex's distance to the nearest data point of its item.
 
@@ -42,11 +50,8 @@ def vertex_data_distance(mesh: MeshBatch, points: torch.Tensor, face: torch.Tens
     edges (Bellman–Ford on the edge graph) for the vertices of empty regions.
     """
     with torch.no_grad():
-        V = mesh.verts.shape[0]
-        v = mesh.verts.detach()
+        V, v, p, f = _located(mesh, points, face)
         dt = v.dtype
-        ok = face >= 0
-        p, f = points[ok].to(dt), face[ok]
         vid = mesh.faces[f]                                   # (P,3)
         dist = (v[vid] - p[:, None, :]).norm(dim=2)
         d = torch.full((V,), float("inf"), dtype=dt, device=v.device)
@@ -73,11 +78,8 @@ def vertex_data_distance_near(mesh: MeshBatch, points: torch.Tensor, face: torch
     finite it is the true nearest distance unless a nearer point lies farther out than the
     star's edge-neighbours (rare: the triangle there would separate them)."""
     with torch.no_grad():
-        V = mesh.verts.shape[0]
-        v = mesh.verts.detach()
+        V, v, p, f = _located(mesh, points, face)
         dt = v.dtype
-        ok = face >= 0
-        p, f = points[ok].to(dt), face[ok]
         nb = mesh.face_neighbors[f]                            # (P,3)
         tri = torch.cat([f[:, None], nb], 1)                   # (P,4)
         has = tri >= 0

@@ -211,9 +211,24 @@ def locate_walk(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor,
         unresolved = face < 0
         if active.numel():
             unresolved[active] = True
-        # a point that settled on (or within tolerance of) an edge or vertex may tie with
-        # other triangles: the grid applies the tie rule (largest min-barycentric, lowest index)
-        unresolved |= settled_min <= tol
+        # a point that settled on (or within tolerance of) an edge may tie with the triangle
+        # across it: apply the tie rule (largest min-barycentric, lowest index) to the two;
+        # near a vertex (two small coordinates) more triangles compete, so the grid decides
+        near = ((settled_min <= tol) & ~unresolved).nonzero().squeeze(1)
+        if near.numel():
+            bc = barycentric(v, mesh.faces, face[near], pts[near])
+            small = bc <= tol
+            one = small.sum(1) == 1
+            k = torch.argmax(small.to(torch.int8), 1)
+            other = nbr[face[near], k]
+            ok2 = one & (other >= 0)
+            if bool(ok2.any()):
+                j = near[ok2]
+                m1 = bc[ok2].min(1).values
+                m2 = barycentric(v, mesh.faces, other[ok2], pts[j]).min(1).values
+                f1, f2 = face[j], other[ok2]
+                face[j] = torch.where((m2 > m1) | ((m2 == m1) & (f2 < f1)), f2, f1)
+            unresolved[near[~one]] = True
         if unresolved.any():
             idx = unresolved.nonzero().squeeze(1)
             f2, _ = locate_grid(mesh, pts[idx], point_item[idx])

@@ -58,18 +58,17 @@ def _check_points(x: PointsLike, label: str) -> torch.Tensor:
     bad = ~torch.isfinite(x.double()).all(1)
     if bad.any():
         raise PointSetError(f"{label}: {int(bad.sum())} point(s) have NaN or Inf coordinates")
-    n_distinct = torch.unique(x, dim=0).shape[0]
-    if n_distinct < 3:
-        raise PointSetError(f"{label}: needs at least 3 distinct points, got {n_distinct}")
     return x
 
 
-def _distinct(x: torch.Tensor) -> torch.Tensor:
+def _distinct(x: torch.Tensor, label: str) -> torch.Tensor:
     """``x`` without exact repeats of a point, in the order of first occurrence. Repeats say
     nothing about the curve, but they would fool the noise estimate (a point's nearest
     neighbours would be its own copies: noise 0, tolerance floor gone) and the point-count
     guards of the test, and noisy data would be refined into spurious loops."""
     u, inv = torch.unique(x, dim=0, return_inverse=True)
+    if u.shape[0] < 3:
+        raise PointSetError(f"{label}: needs at least 3 distinct points, got {u.shape[0]}")
     if u.shape[0] == x.shape[0]:
         return x
     first = torch.full((u.shape[0],), x.shape[0], dtype=torch.long, device=x.device)
@@ -151,7 +150,7 @@ def reconstruct_batch(point_sets: Sequence[PointsLike], config: Optional[Reconst
     names = list(names) if names is not None else [None] * len(point_sets)
     labels = [n if n is not None else f"point set {i}" for i, n in enumerate(names)]
     raw = [_check_points(p, lab) for p, lab in zip(point_sets, labels)]
-    solve = [_distinct(p) for p in raw]                 # the point *set*: exact repeats merged
+    solve = [_distinct(p, lab) for p, lab in zip(raw, labels)]   # the point *set*: exact repeats merged
     device = raw[0].device
     for p, lab in zip(raw, labels):
         if p.device != device:

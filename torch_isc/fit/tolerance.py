@@ -15,6 +15,7 @@ from typing import Tuple
 import torch
 
 from ..mesh import MeshBatch
+from .topology import hash_uniform
 
 __all__ = ["estimate_noise", "segment_median", "triangle_errors", "mark_triangles"]
 
@@ -47,7 +48,8 @@ def segment_median(x: torch.Tensor, seg: torch.Tensor, n: int) -> torch.Tensor:
 def _local_line_residual(points: torch.Tensor, point_item: torch.Tensor, idx: torch.Tensor, orders, offs,
                          k: int) -> Tuple[torch.Tensor, torch.Tensor]:
     """For the points ``idx``: the residual variance of a line fitted to each point and its ``k``
-    nearest candidates (its neighbours along the Morton ``orders``), and the fit's point count."""
+    nearest candidates (its neighbours along the Morton ``orders``), the fit's point count, and
+    the larger eigenvalue of the neighbourhood's covariance."""
     P = points.shape[0]
     dev, dt = points.device, points.dtype
     c = torch.cat([order[(pos[idx][:, None] + offs[None, :]).clamp(0, P - 1)] for order, pos in orders], 1)
@@ -67,12 +69,44 @@ def _local_line_residual(points: torch.Tensor, point_item: torch.Tensor, idx: to
     qd = (pts - mean[:, None, :]) * w[..., None]
     C = torch.einsum("pki,pkj->pij", qd, qd) / m[:, None, None]
     a, b, d = C[:, 0, 0], C[:, 0, 1], C[:, 1, 1]
-    lam = (0.5 * (a + d) - torch.sqrt((0.5 * (a - d)) ** 2 + b * b)).clamp_min(0)
-    return lam * m / (m - 2).clamp_min(1), m
+    root = torch.sqrt((0.5 * (a - d)) ** 2 + b * b)
+    lam = (0.5 * (a + d) - root).clamp_min(0)
+    return lam * m / (m - 2).clamp_min(1), m, 0.5 * (a + d) + root
+
+
+def _noise_at_scale(points: torch.Tensor, point_item: torch.Tensor, num_items: int, k: int,
+                    window: int) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Per item: the median residual variance of the local line fits, the median aspect
+    ``sqrt(λmax / λmin)`` of the neighbourhoods, and the number of points used."""
+    P = points.shape[0]
+    dev, dt = points.device, points.dtype
+    offs = torch.cat([torch.arange(-window, 0, device=dev), torch.arange(1, window + 1, device=dev)])
+    orders = []
+    for shift in (0.0, 0.3719):
+        q = ((points + 0.75 + shift * 0.5) / 2.0 * 65535).long().clamp(0, 65535)
+        key = point_item * (1 << 32) + _morton(q)
+        order = torch.argsort(key, stable=True)
+        pos = torch.empty_like(order)
+        pos[order] = torch.arange(P, device=dev)
+        orders.append((order, pos))
+    lam = torch.empty(P, dtype=dt, device=dev)
+    lmax = torch.empty(P, dtype=dt, device=dev)
+    m = torch.empty(P, dtype=dt, device=dev)
+    # the (points x candidates) arrays go in blocks: bounded memory for millions of points
+    block = max(1, (1 << 21) // (4 * window))
+    for b0 in range(0, P, block):
+        idx = torch.arange(b0, min(P, b0 + block), device=dev)
+        lam[idx], m[idx], lmax[idx] = _local_line_residual(points, point_item, idx, orders, offs, k)
+    ok = m >= 4
+    var = segment_median(lam[ok], point_item[ok], num_items)
+    aspect = torch.sqrt(lmax / lam.clamp_min(torch.finfo(dt).tiny))
+    asp = segment_median(aspect[ok], point_item[ok], num_items)
+    return var, asp, torch.bincount(point_item[ok], minlength=num_items)
 
 
 def estimate_noise(points: torch.Tensor, point_item: torch.Tensor, num_items: int, k: int = 8,
-                   window: int = 12) -> torch.Tensor:
+                   window: int = 12, blob_aspect: float = 2.0, line_aspect: float = 2.5,
+                   min_points: int = 256) -> torch.Tensor:
     """``(B,)`` noise level (a standard deviation, in the points' units) of each item.
 
     For every point, a line is fitted to its ``k`` nearest neighbours (approximate: taken
@@ -80,30 +114,46 @@ def estimate_noise(points: torch.Tensor, point_item: torch.Tensor, num_items: in
     search); the noise variance is the median over the item of the residual variance,
     corrected for the two degrees of freedom of the fit. Points are expected normalized
     per item (bounding box centred, diagonal 1).
+
+    When the points are much denser than the noise is wide, ``k`` neighbours form a round
+    blob and their residual measures the spacing, not the noise. An item whose median
+    neighbourhood aspect ``sqrt(λmax/λmin)`` is below ``blob_aspect`` (a well-sampled noisy
+    line gives more) is refitted on subsets of 1/4, 1/16, ... of its points (chosen by a hash
+    of the point's index within its item, so not by its batch) until the aspect reaches
+    ``line_aspect``, as long as a subset keeps ``min_points`` points (data that never become
+    line-like, such as uniform clutter, keep the full-density estimate). Sparse data are never
+    subsampled: there a longer neighbourhood would measure the curvature (or a nearby second
+    curve) rather than the noise, so a few hundred points with noise about their spacing
+    keep a low estimate (about 0.8 of the noise at aspect 1.6).
     """
     with torch.no_grad():
         P = points.shape[0]
         dev, dt = points.device, points.dtype
         if P < 3:
             return torch.zeros(num_items, dtype=dt, device=dev)
-        offs = torch.cat([torch.arange(-window, 0, device=dev), torch.arange(1, window + 1, device=dev)])
-        orders = []
-        for shift in (0.0, 0.3719):
-            q = ((points + 0.75 + shift * 0.5) / 2.0 * 65535).long().clamp(0, 65535)
-            key = point_item * (1 << 32) + _morton(q)
-            order = torch.argsort(key, stable=True)
-            pos = torch.empty_like(order)
-            pos[order] = torch.arange(P, device=dev)
-            orders.append((order, pos))
-        lam = torch.empty(P, dtype=dt, device=dev)
-        m = torch.empty(P, dtype=dt, device=dev)
-        # the (points x candidates) arrays go in blocks: bounded memory for millions of points
-        block = max(1, (1 << 21) // (4 * window))
-        for b0 in range(0, P, block):
-            idx = torch.arange(b0, min(P, b0 + block), device=dev)
-            lam[idx], m[idx] = _local_line_residual(points, point_item, idx, orders, offs, k)
-        ok = m >= 4
-        var = segment_median(lam[ok], point_item[ok], num_items)
+        var, asp, _ = _noise_at_scale(points, point_item, num_items, k, window)
+        chosen = asp >= blob_aspect
+        if bool(chosen.all()):
+            return var.sqrt()
+        cnt = torch.bincount(point_item, minlength=num_items)
+        first = torch.cumsum(cnt, 0) - cnt
+        u = hash_uniform(torch.arange(P, device=dev) - first[point_item], dtype=torch.float64)
+        rate = 1.0
+        while not bool(chosen.all()):
+            rate /= 4.0
+            # an item still undecided, with enough points left at this rate, is refitted
+            todo = ~chosen & (cnt.to(torch.float64) * rate >= min_points)
+            if not bool(todo.any()):
+                break
+            keep = todo[point_item] & (u < rate)
+            pi = point_item[keep]
+            v2, a2, n2 = _noise_at_scale(points[keep], pi, num_items, k, window)
+            use = todo & (n2 >= min_points)
+            line = use & (a2 >= line_aspect)
+            # only a line-like scale is believed: data that are a blob at every scale (no
+            # curve, e.g. uniform clutter) keep the full-density estimate
+            var = torch.where(line, v2, var)
+            chosen = chosen | line | (todo & ~use)
         return var.sqrt()
 
 
@@ -135,7 +185,13 @@ def mark_triangles(mesh: MeshBatch, residual: torch.Tensor, face: torch.Tensor, 
     mx, mean = triangle_errors(mesh, residual, face)
     stat = mx if statistic == "max" else mean
     eff = torch.maximum(tol, noise_factor * noise)
-    fails = stat > eff[fi] ** 2
+    allow = eff[fi]
+    if statistic == "max":
+        # the largest of n Gaussian deviations grows like sqrt(2 ln n): a triangle holding many
+        # noisy points must not fail for that alone (dense scans would be refined to the floor)
+        spread = torch.sqrt(2.0 * torch.log(count.clamp_min(1).to(noise.dtype)))
+        allow = torch.maximum(allow, spread * noise[fi])
+    fails = stat > allow ** 2
     marked = fails & (count >= min_points_split)
     # with few points the mean, which one outlier cannot move far, must still pass
     marked |= (count >= min_points_fit) & (mean > eff[fi] ** 2)

@@ -1289,6 +1289,28 @@ def cluster(x0, y, n, device, dtype, dx=0.04):
     return torch.stack([xs, torch.full((n,), y, dtype=torch.float64)], 1).to(device=device, dtype=dtype)
 
 
+def test_edge_weights_noise_floor():
+    """Fits whose error is within the noise are all equally good: with ``noise2`` the weight
+    of a triangle is 1 up to that error and falls linearly to 0 at the item's worst fit."""
+    mesh = hexagon_mesh(torch.zeros(1, 2, dtype=torch.float64), torch.ones(1, dtype=torch.float64), 1)
+    T = mesh.faces.shape[0]
+    L = torch.tensor([[1.0, -1.0, 1.0]], dtype=torch.float64).repeat(T, 1)
+    eps = torch.linspace(0.0, 1.0, T, dtype=torch.float64)      # errors 0 .. 1
+    count = torch.full((T,), 10.0, dtype=torch.float64)
+    a = edge_weights(mesh, L, eps, count, 3, 1.0)
+    b = edge_weights(mesh, L, eps, count, 3, 1.0, noise2=torch.tensor([0.6], dtype=torch.float64))
+    # the same per-face weights by hand: w = (1 - eps) / (1 - emin), clamped to [0, 1]
+    def by_hand(emin):
+        w = ((1.0 - eps) / (1.0 - emin)).clamp(0, 1)
+        sig = torch.where(L >= 0, 1.0, -1.0)
+        prod = sig[:, [1, 2, 0]] * sig[:, [2, 0, 1]]
+        return torch.zeros(mesh.edges.shape[0], dtype=torch.float64).index_add_(
+            0, mesh.face_edges.reshape(-1), (-prod * w[:, None]).reshape(-1))
+    torch.testing.assert_close(a, by_hand(0.0))
+    torch.testing.assert_close(b, by_hand(0.6))
+    assert b.abs().sum() > a.abs().sum()
+
+
 def test_mark_triangles_hand_cases(device, dtype):
     mesh, values = hex1_line(device, dtype)
     ur = which_face(mesh, (0.5, 0.2), dtype, device)       # upper right

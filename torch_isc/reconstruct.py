@@ -210,7 +210,8 @@ def reconstruct_batch(point_sets: Sequence[PointsLike], config: Optional[Reconst
                                     crossing_reach(mesh, mom, L, nrm))
                 H = edge_weights(mesh, torch.where(few[:, None], Lp, L), torch.where(few, epsp, eps), mom.count,
                                  cfg.min_points_fit, cfg.empty_weight,
-                                 pooled_count=torch.where(few, pooled.count, mom.count), reach=reach)
+                                 pooled_count=torch.where(few, pooled.count, mom.count), reach=reach,
+                                 noise2=noise[orig] ** 2)
                 init = torch.where(fixed, torch.ones_like(signs), signs)
                 signs = anneal(mesh, H, init, fixed, cfg.anneal_sweeps, cfg.anneal_t_start, cfg.anneal_t_end,
                                cfg.anneal_replicas, cfg.seed,

@@ -131,7 +131,7 @@ def crossing_reach(mesh: MeshBatch, mom: TriangleMoments, L: torch.Tensor, norma
 
 def edge_weights(mesh: MeshBatch, L: torch.Tensor, eps: torch.Tensor, count: torch.Tensor,
                  min_points: int, empty_weight: float, pooled_count: Optional[torch.Tensor] = None,
-                 reach: Optional[torch.Tensor] = None) -> torch.Tensor:
+                 reach: Optional[torch.Tensor] = None, noise2: Optional[torch.Tensor] = None) -> torch.Tensor:
     """Edge weights ``H_e`` of eq. 3.6 (``(E,)``).
 
     Triangles whose fit rests on ``min_points`` or more points contribute
@@ -152,8 +152,12 @@ def edge_weights(mesh: MeshBatch, L: torch.Tensor, eps: torch.Tensor, count: tor
     big = torch.finfo(dt).max
     emax = torch.full((B,), -big, dtype=dt, device=L.device).scatter_reduce(0, fi[fit], eps[fit], "amax")
     emin = torch.full((B,), big, dtype=dt, device=L.device).scatter_reduce(0, fi[fit], eps[fit], "amin")
+    if noise2 is not None:
+        # fits within the noise are all equally good: dense noisy data would otherwise spread
+        # tiny differences of near-noise errors over the whole range [0, 1]
+        emin = torch.maximum(emin, noise2.to(dt))
     span = (emax - emin)[fi]
-    w = torch.where(span > 0, (emax[fi] - eps) / span.clamp_min(torch.finfo(dt).tiny), torch.ones_like(eps))
+    w = torch.where(span > 0, (emax[fi] - eps) / span.clamp_min(torch.finfo(dt).tiny), torch.ones_like(eps)).clamp(0, 1)
     w = torch.where(fit, w, torch.zeros_like(w))
     w = torch.where(empty, torch.full_like(w, float(empty_weight)), w)
     sig = torch.where(empty[:, None], torch.ones_like(L), torch.where(L >= 0, 1.0, -1.0).to(dt))

@@ -10,7 +10,7 @@ Dimension-free except for the quality measure and point location it calls.
 """
 from __future__ import annotations
 
-from typing import Tuple
+from typing import Optional, Tuple
 
 import torch
 

@@ -27,7 +27,7 @@ from torch_isc.result import ReconstructionResult
 REPO = Path(__file__).resolve().parents[1]
 FAST = ["--set", "max_level=3"]
 SUMMARY = re.compile(r"^(?P<stem>\S+): (?P<closed>\d+) closed, (?P<open>\d+) open, (?P<levels>\d+) levels, "
-                     r"(converged|not converged \(.+\)), \d+\.\d\d s$")
+                     r"(converged|not converged \(.+\))(, \d+ point\(s\) beyond tolerance)?, \d+\.\d\d s$")
 
 
 # ----------------------------------------------------------------------------- a stand-in reconstruction

@@ -18,13 +18,13 @@ import torch
 import torch_isc
 from torch_isc import PointSetError, ReconstructConfig, reconstruct, reconstruct_batch
 from torch_isc.io import read_points
-from torch_isc.metrics import bbox_diagonal, hausdorff
+from torch_isc.metrics import bbox_diagonal, hausdorff, point_distances
 
 from conftest import find_intersections, polygon_signed_area, winding_number
 
 NESTED = Path(torch_isc.__file__).parent / "data" / "nested.xy"
 DOCUMENTED_STAT_KEYS = {"level", "triangles", "points", "delta1", "max_error", "tolerance", "noise", "marked",
-                        "seconds"}
+                        "points_beyond_tolerance", "seconds"}
 
 
 # ----------------------------------------------------------------------------- data
@@ -405,3 +405,20 @@ def test_level_and_triangle_limits():
     assert len(res2.stats) == 1
     assert res2.converged is False and res2.limit == "max_triangles"
     assert res2.curve.mesh.faces.shape[0] <= n0 + 1
+
+
+def test_outliers_are_counted_in_the_stats():
+    """A circle with 3 far outliers: one loop, the outliers excused by the test (too few points
+    to split their triangles) but counted as points beyond the tolerance; without them, 0."""
+    pts = circle(200, 1.0)
+    out = torch.tensor([[0.1, 0.05], [-0.3, 0.2], [1.6, 1.5]], dtype=torch.float64)
+    clean = reconstruct(pts)
+    dirty = reconstruct(torch.cat([pts, out]))
+    assert clean.stats[-1]["points_beyond_tolerance"] == 0
+    assert (dirty.num_closed, dirty.num_open) == (1, 0)
+    last = dirty.stats[-1]
+    assert last["points_beyond_tolerance"] == 3
+    # the count is the independent distance to the extracted curve, thresholded by hand
+    d = point_distances(torch.cat([pts, out]), dirty.polylines)
+    assert int((d > last["tolerance"]).sum()) == 3
+

@@ -238,6 +238,10 @@ def reconstruct_batch(point_sets: Sequence[PointsLike], config: Optional[Reconst
             if sign_oracles is not None:
                 marked |= _oracle_disagreements(mesh, values, sign_oracles, orig, center64, scale64, 2.0 * eff_tol)
             n_marked = torch.zeros(nb, dtype=torch.long, device=device).index_add_(0, mesh.face_item, marked.long())
+            # points farther from the curve than the tolerance (outliers, or a feature the mesh
+            # has not resolved): reported, since the test excuses them in sparse triangles
+            beyond = torch.zeros(nb, dtype=torch.long, device=device).index_add_(
+                0, point_item, (residual > eff_tol[point_item] ** 2).long())
             # a subdivision at most quadruples the marked triangles and their neighbours
             grow = torch.zeros(nb, dtype=torch.long, device=device).index_add_(0, mesh.face_item, marked.long() * 9)
             over = (mesh.faces_per_item + grow) > cfg.max_triangles
@@ -252,7 +256,7 @@ def reconstruct_batch(point_sets: Sequence[PointsLike], config: Optional[Reconst
                     "level": level, "triangles": int(mesh.faces_per_item[j]), "points": int(pts_per_item[j]),
                     "delta1": float(d1[j]) * sc * sc, "max_error": float(worst[j]) * sc,
                     "tolerance": float(eff_tol[j]) * sc, "noise": float(noise[b]) * sc,
-                    "marked": int(n_marked[j])})
+                    "marked": int(n_marked[j]), "points_beyond_tolerance": int(beyond[j])})
                 stats[b].append(level_stats[-1])
             fin = done.nonzero().squeeze(1)
             if fin.numel():

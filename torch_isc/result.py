@@ -20,7 +20,10 @@ class ReconstructionResult:
         curve: :class:`ImplicitCurve`, a batch of one, in the caller's coordinates.
         points: ``(N, 2)`` the input points (caller's coordinates, caller's dtype/device).
         stats: one dict per level: ``level, triangles, points, delta1, max_error,
-            tolerance, noise, marked, seconds`` (distances in the caller's units).
+            tolerance, noise, marked, points_beyond_tolerance, seconds`` (distances in the
+            caller's units). ``points_beyond_tolerance`` counts the points farther from the
+            curve than the tolerance: outliers, which the test excuses in triangles holding
+            too few points to split, show there even when ``converged`` is True.
         config: the :class:`ReconstructConfig` used.
         converged: every triangle met the tolerance at the last level.
         limit: ``None``; ``"max_level"`` / ``"max_triangles"`` when a cap stopped the loop;

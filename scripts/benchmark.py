@@ -60,6 +60,7 @@ for _p in (str(REPO), str(SCRIPTS)):
         sys.path.insert(0, _p)
 
 import torch_isc  # noqa: E402
+from _common import run_main  # noqa: E402
 
 STAGES = ("topology", "geometry", "test", "subdivide", "locate", "relax")
 NOISE = 0.001          # Gaussian noise sigma, fraction of the bounding-box diagonal
@@ -544,7 +545,4 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 
 
 if __name__ == "__main__":
-    try:
-        sys.exit(main())
-    except KeyboardInterrupt:
-        sys.exit(130)
+    run_main(main)

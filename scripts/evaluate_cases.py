@@ -28,7 +28,6 @@ import math
 import re
 import sys
 import time
-import traceback
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
@@ -40,7 +39,7 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 import torch_isc  # noqa: E402
-from _common import json_text, resolve_dir  # noqa: E402
+from _common import add_run_args, json_text, resolve_dir, run_main  # noqa: E402
 from torch_isc.io import read_points  # noqa: E402
 from torch_isc import metrics  # noqa: E402
 
@@ -331,16 +330,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--cases", default=None, help="cases folder (default: ../shared/cases from the repo root)")
-    ap.add_argument("--config", default=None, help="YAML config file (keys of ReconstructConfig)")
-    ap.add_argument("--set", nargs="+", action="extend", default=[], metavar="KEY=VALUE",
-                    help="config overrides (YAML scalars), e.g. --set tolerance=0.006 seed=1")
     ap.add_argument("--out", default=None, help="write <case>.png and <case>.json here")
-    ap.add_argument("--filter", default=None, metavar="SUBSTR", help="only cases whose name contains SUBSTR")
-    ap.add_argument("--one-by-one", action="store_true", help="one reconstruct_batch call per case")
     ap.add_argument("--peers", action="store_true", help="also score NN-crust and shapely.concave_hull")
-    ap.add_argument("--device", default="cpu", help="device of the point tensors (cpu, cuda)")
-    ap.add_argument("--threads", type=int, default=None,
-                    help="torch CPU threads for the reconstruction (default: torch's choice)")
+    add_run_args(ap, "case")
     return ap
 
 
@@ -387,10 +379,4 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 
 
 if __name__ == "__main__":
-    try:
-        sys.exit(main())
-    except KeyboardInterrupt:
-        sys.exit(130)
-    except Exception:
-        traceback.print_exc()
-        sys.exit(1)
+    run_main(main)

@@ -21,7 +21,6 @@ import argparse
 import math
 import sys
 import time
-import traceback
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence
 
@@ -32,7 +31,7 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 import torch_isc  # noqa: E402
-from _common import json_text, resolve_dir  # noqa: E402
+from _common import add_run_args, json_text, resolve_dir, run_main  # noqa: E402
 from torch_isc.io import read_points  # noqa: E402
 from torch_isc import metrics  # noqa: E402
 
@@ -106,13 +105,7 @@ def build_parser() -> argparse.ArgumentParser:
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", default=None, help="data folder (default: ../shared/data from the repo root)")
     ap.add_argument("--out", default="out/data", help="output folder (default: out/data)")
-    ap.add_argument("--config", default=None, help="YAML config file (keys of ReconstructConfig)")
-    ap.add_argument("--set", nargs="+", action="extend", default=[], metavar="KEY=VALUE",
-                    help="config overrides (YAML scalars), e.g. --set tolerance=0.006 seed=1")
-    ap.add_argument("--filter", default=None, metavar="SUBSTR", help="only files whose path contains SUBSTR")
-    ap.add_argument("--one-by-one", action="store_true", help="one reconstruct_batch call per file")
-    ap.add_argument("--device", default="cpu", help="device of the point tensors (cpu, cuda)")
-    ap.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
+    add_run_args(ap, "file")
     return ap
 
 
@@ -188,10 +181,4 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 
 
 if __name__ == "__main__":
-    try:
-        sys.exit(main())
-    except KeyboardInterrupt:
-        sys.exit(130)
-    except Exception:
-        traceback.print_exc()
-        sys.exit(1)
+    run_main(main)

@@ -28,7 +28,7 @@ from .curve import ImplicitCurve
 from .fit.geometry import fit_geometry, vertex_data_distance, vertex_data_distance_near
 from .fit.relax import relax_mesh
 from .fit.subdivide import subdivide
-from .fit.tolerance import estimate_noise, mark_triangles, point_curve_distance2
+from .fit.tolerance import effective_tolerance, estimate_noise, mark_triangles, point_curve_distance2
 from .fit.topology import anneal, crossing_reach, edge_weights, line_fits, pooled_moments, triangle_moments
 from .locate import locate_children, locate_grid
 from .mesh import MeshBatch, hexagon_mesh, square_mesh
@@ -221,7 +221,7 @@ def reconstruct_batch(point_sets: Sequence[PointsLike], config: Optional[Reconst
             clock.tick("topology")
         values, d1 = fit_geometry(mesh, mom, signs, init_mag, tol[orig], cfg.lbfgs_iterations, cfg.lbfgs_history,
                                   cfg.magnitude_floor, cfg.smoothness, data_dist=near,
-                                  slack=torch.maximum(tol, cfg.noise_factor * noise)[orig],
+                                  slack=effective_tolerance(tol, noise, cfg.noise_factor)[orig],
                                   crossing_weight=cfg.crossing_weight)
         clock.tick("geometry")
         with torch.no_grad():

@@ -17,12 +17,13 @@ import torch
 from ..locate import barycentric, locate_walk
 from ..mesh import MeshBatch
 
-__all__ = ["mesh_energy", "relax_mesh"]
+__all__ = ["mesh_energy", "degree_weights", "relax_mesh"]
 
 
 def mesh_energy(mesh: MeshBatch, verts: torch.Tensor, points: torch.Tensor, face: torch.Tensor,
                 kappa_data: float, kappa_edge: float, rho: torch.Tensor, n_points: torch.Tensor,
-                min_dist: torch.Tensor, edge_sel: Optional[torch.Tensor] = None) -> torch.Tensor:
+                min_dist: torch.Tensor, edge_sel: Optional[torch.Tensor] = None,
+                nu_e: Optional[torch.Tensor] = None) -> torch.Tensor:
     """``(B,)`` the mesh energy of every item at vertex positions ``verts (V, 2)``.
 
     Args:
@@ -30,6 +31,7 @@ def mesh_energy(mesh: MeshBatch, verts: torch.Tensor, points: torch.Tensor, face
         n_points: ``(B,)`` points per item. min_dist: ``(B,)`` distance guard for ``1/|v−p|``.
         edge_sel: optional indices of the edges to sum (the edges of the items wanted; the
             other items' energies are then meaningless).
+        nu_e: optional ``(E,)`` :func:`degree_weights` of ``mesh`` (computed when None).
     """
     B = mesh.num_items
     dt = verts.dtype
@@ -41,7 +43,8 @@ def mesh_energy(mesh: MeshBatch, verts: torch.Tensor, points: torch.Tensor, face
     inv = 1.0 / torch.maximum(dist, min_dist[it][:, None])
     phi = torch.zeros(verts.shape[0], dtype=dt, device=verts.device).index_add_(0, vid.reshape(-1), inv.reshape(-1))
     phi = phi / n_points[mesh.vert_item].clamp_min(1)
-    e, ei, nu_e = mesh.edges, mesh.edge_item, _degree_weights(mesh)
+    e, ei = mesh.edges, mesh.edge_item
+    nu_e = degree_weights(mesh) if nu_e is None else nu_e
     if edge_sel is not None:
         e, ei, nu_e = e[edge_sel], ei[edge_sel], nu_e[edge_sel]
     UD = torch.zeros(B, dtype=dt, device=verts.device).index_add_(0, ei, (phi[e[:, 0]] - phi[e[:, 1]]) ** 2) * rho ** 2
@@ -50,18 +53,14 @@ def mesh_energy(mesh: MeshBatch, verts: torch.Tensor, points: torch.Tensor, face
     return kappa_data * UD + kappa_edge * UE
 
 
-def _degree_weights(mesh: MeshBatch) -> torch.Tensor:
+def degree_weights(mesh: MeshBatch) -> torch.Tensor:
     """``(E,)`` ``ν_i ν_j`` of eq. 3.9 per edge, ``ν`` a vertex's degree over its item's mean
-    degree (topology only, so cached on the mesh and shared by its moved copies)."""
-    nu_e = mesh.__dict__.get("_relax_degree_weights")
-    if nu_e is None:
-        deg = mesh.degrees.to(mesh.dtype)
-        mdeg = torch.zeros(mesh.num_items, dtype=deg.dtype, device=deg.device).index_add_(0, mesh.vert_item, deg) / \
-            mesh.verts_per_item.to(deg.dtype).clamp_min(1)
-        nu = deg / mdeg[mesh.vert_item]
-        nu_e = nu[mesh.edges[:, 0]] * nu[mesh.edges[:, 1]]
-        mesh.__dict__["_relax_degree_weights"] = nu_e
-    return nu_e
+    degree (topology only: a relaxation computes it once)."""
+    deg = mesh.degrees.to(mesh.dtype)
+    mdeg = torch.zeros(mesh.num_items, dtype=deg.dtype, device=deg.device).index_add_(0, mesh.vert_item, deg) / \
+        mesh.verts_per_item.to(deg.dtype).clamp_min(1)
+    nu = deg / mdeg[mesh.vert_item]
+    return nu[mesh.edges[:, 0]] * nu[mesh.edges[:, 1]]
 
 
 def relax_mesh(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor, face: torch.Tensor,
@@ -88,6 +87,7 @@ def relax_mesh(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor, 
         short = torch.full((v.shape[0],), float("inf"), dtype=dt, device=dev)
         short = short.scatter_reduce(0, torch.cat([e[:, 0], e[:, 1]]), torch.cat([el, el]), "amin")
         mesh.face_neighbors                       # cached here, so the trial meshes share it
+        nu_e = degree_weights(mesh)
         q0 = mesh.quality(v)
         floor = torch.minimum(q0, torch.full_like(q0, min_quality))
         active = torch.ones(B, dtype=torch.bool, device=dev)
@@ -96,7 +96,7 @@ def relax_mesh(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor, 
             break
         vv = v.clone().requires_grad_(True)
         with torch.enable_grad():
-            U = mesh_energy(mesh, vv, points, face, kappa_data, kappa_edge, rho, n_points, min_dist)
+            U = mesh_energy(mesh, vv, points, face, kappa_data, kappa_edge, rho, n_points, min_dist, nu_e=nu_e)
             g, = torch.autograd.grad(U.sum(), vv)
         with torch.no_grad():
             d = -g
@@ -119,13 +119,13 @@ def relax_mesh(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor, 
                 searching = ~accepted
                 if bool(searching.all()):
                     ft, _ = locate_walk(mt, points, point_item, face, return_bary=False)
-                    Ut = mesh_energy(mesh, vt, points, ft, kappa_data, kappa_edge, rho, n_points, min_dist)
+                    Ut = mesh_energy(mesh, vt, points, ft, kappa_data, kappa_edge, rho, n_points, min_dist, nu_e=nu_e)
                 else:                   # re-locate and measure only the points of the items still searching
                     pidx = searching[point_item].nonzero().squeeze(1)
                     ft = torch.full_like(face, -1)
                     ft[pidx] = locate_walk(mt, points[pidx], point_item[pidx], face[pidx], return_bary=False)[0]
                     Ut = mesh_energy(mesh, vt, points[pidx], ft[pidx], kappa_data, kappa_edge, rho, n_points,
-                                     min_dist, edge_sel=searching[mesh.edge_item].nonzero().squeeze(1))
+                                     min_dist, edge_sel=searching[mesh.edge_item].nonzero().squeeze(1), nu_e=nu_e)
                 ok = ~accepted & ~bad_item & (Ut < U.detach())
                 if bool(ok.any()):
                     sel_v = ok[mesh.vert_item]

@@ -17,7 +17,7 @@ import torch
 from ..mesh import MeshBatch
 from .topology import hash_uniform
 
-__all__ = ["estimate_noise", "segment_median", "triangle_errors", "mark_triangles"]
+__all__ = ["effective_tolerance", "estimate_noise", "segment_median", "triangle_errors", "mark_triangles"]
 
 
 def _morton(q: torch.Tensor) -> torch.Tensor:
@@ -168,6 +168,12 @@ def triangle_errors(mesh: MeshBatch, residual: torch.Tensor, face: torch.Tensor)
     return mx, sm / cnt.clamp_min(1)
 
 
+def effective_tolerance(tol: torch.Tensor, noise: torch.Tensor, noise_factor: float) -> torch.Tensor:
+    """``(B,)`` the distance an item is tested at: its tolerance, never below
+    ``noise_factor`` times its estimated noise."""
+    return torch.maximum(tol, noise_factor * noise)
+
+
 def mark_triangles(mesh: MeshBatch, residual: torch.Tensor, face: torch.Tensor, count: torch.Tensor,
                    line_eps: torch.Tensor, tol: torch.Tensor, noise: torch.Tensor, statistic: str,
                    noise_factor: float, min_points_split: int, min_points_fit: int,
@@ -184,7 +190,7 @@ def mark_triangles(mesh: MeshBatch, residual: torch.Tensor, face: torch.Tensor, 
     fi = mesh.face_item
     mx, mean = triangle_errors(mesh, residual, face)
     stat = mx if statistic == "max" else mean
-    eff = torch.maximum(tol, noise_factor * noise)
+    eff = effective_tolerance(tol, noise, noise_factor)
     allow = eff[fi]
     if statistic == "max":
         # the largest of n Gaussian deviations grows like sqrt(2 ln n): a triangle holding many

@@ -41,12 +41,11 @@ import torch
 import torch_isc
 
 from .config import ConfigError, load_config, parse_overrides
+from .images import IMAGE_SUFFIXES
 from .io import EXPORTERS, PointFileError, export, read_points
 
 #: Suffixes of point files picked up from a folder INPUT (any file given by name is tried).
 POINT_SUFFIXES = (".xy", ".txt", ".csv", ".npy")
-#: Suffixes read as images (lower case), as in :data:`torch_isc.images.IMAGE_SUFFIXES`.
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 DEFAULT_IMAGE_FORMATS = "json,npz,svg,png,contours.npz"
 
 __all__ = ["main", "build_parser", "EXAMPLE_PATH"]

@@ -325,8 +325,8 @@ def test_million_points_dense_noisy_ellipse():
 @pytest.mark.slow
 def test_million_points():
     """1,000,000 noisy samples of one closed curve through the API: one loop, accurate.
-    Measured on the 2-core dev box (OMP_NUM_THREADS=1): about 75 s, peak RSS growth about
-    0.7 GiB (the noise estimate works in blocks)."""
+    Measured on the 2-core dev box (OMP_NUM_THREADS=1): about 40 s, peak RSS about 1 GiB
+    (the noise estimate works in blocks)."""
     n = 1_000_000
     rng = np.random.default_rng(0)
     t = rng.uniform(0, 2 * np.pi, n)

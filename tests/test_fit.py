@@ -15,8 +15,8 @@ import torch
 
 from torch_isc import locate_children, locate_grid
 from torch_isc.curve import ImplicitCurve
-from torch_isc.fit.geometry import (delta1_per_triangle, fit_geometry, point_residuals, vertex_data_distance,
-                                   vertex_data_distance_near)
+from torch_isc.fit.geometry import (GeometryObjective, delta1_per_triangle, fit_geometry, point_residuals,
+                                   vertex_data_distance, vertex_data_distance_near)
 from torch_isc.fit.optim import batched_lbfgs
 from torch_isc.fit.relax import mesh_energy, relax_mesh
 from torch_isc.fit.subdivide import subdivide
@@ -675,6 +675,26 @@ def test_masked_objective_line_search_same_result(device):
     assert any(c is not None and not bool(c.all()) for c in calls)   # the subset path was taken
 
 
+def test_with_grad_objective_follows_the_autograd_trajectory(device):
+    """``with_grad=True`` (the objective returns its own gradient) gives the trajectory of the
+    autograd path when that gradient is the same."""
+    specs = _lbfgs_specs()
+    prob = Problems(specs, device)
+
+    def own_grad(x, items):
+        xx = x.detach().requires_grad_(True)
+        with torch.enable_grad():
+            f = prob(xx)
+            g, = torch.autograd.grad(f.sum(), xx)
+        return f.detach(), g
+
+    xa, fa, ia = batched_lbfgs(prob, prob.x0, prob.seg, len(specs), iterations=60)
+    xb, fb, ib = batched_lbfgs(own_grad, prob.x0, prob.seg, len(specs), iterations=60, masked=True, with_grad=True)
+    assert torch.equal(xa, xb) and torch.equal(fa, fb) and torch.equal(ia, ib)
+    for sp, o, n in zip(specs, torch.cumsum(torch.tensor([0] + prob.sizes), 0).tolist(), prob.sizes):
+        torch.testing.assert_close(xb[o:o + n].cpu(), sp["xmin"], rtol=1e-4, atol=1e-4)
+
+
 # ============================================================================= geometry
 
 
@@ -719,6 +739,66 @@ def test_delta1_per_triangle_equals_point_mean(device):
     assert total == pytest.approx(delta1_from_points(mesh, values, pts, face), rel=1e-9)
     r = point_residuals(mesh, values, face, bary)
     assert float(r.mean()) == pytest.approx(total, rel=1e-9)
+
+
+def two_circle_objective(device, smoothness, crossing_weight):
+    """A GeometryObjective over a batch of two circle fits of different sizes (float64)."""
+    dtype = torch.float64
+    m1, p1, _, _, _, s1, i1 = circle_setup(device, dtype, n=90, R=0.5, res=5)
+    m2, p2, _, _, _, s2, i2 = circle_setup(device, dtype, n=60, R=0.3, res=4)
+    mesh = MeshBatch.cat([m1, m2])
+    pts = torch.cat([p1, p2])
+    item = torch.cat([torch.zeros(90, dtype=torch.long), torch.ones(60, dtype=torch.long)]).to(device)
+    face, bary = locate_grid(mesh, pts, item)
+    mom = triangle_moments(mesh, pts, face, bary)
+    near = vertex_data_distance_near(mesh, pts, face)
+    tol = torch.tensor([0.01, 0.02], dtype=dtype, device=device)
+    obj = GeometryObjective(mesh, mom, torch.cat([s1, s2]), torch.cat([i1, i2]), tol, 0.02, smoothness,
+                            near, 0.5 * tol, crossing_weight)
+    return obj, mesh, pts, face, tol
+
+
+@pytest.mark.parametrize("smoothness,crossing", [(0.0, 0.0), (1e-2, 0.0), (1e-2, 1.0), (0.3, 5.0)])
+def test_geometry_objective_gradient_against_finite_differences(smoothness, crossing, device):
+    """The hand-written gradient of the fit's objective equals central differences of the
+    objective (float64), for the whole batch and for one item selected."""
+    obj, mesh, *_ = two_circle_objective(device, smoothness, crossing)
+    if crossing > 0:
+        assert obj.cross                       # the crossing term is really in play
+    g = torch.Generator().manual_seed(1)
+    s = obj.s0 + 0.5 * torch.randn(obj.s0.shape, generator=g, dtype=torch.float64).to(device)
+    f, grad = obj.value_and_grad(s)
+    torch.testing.assert_close(f, obj.value(s), rtol=1e-12, atol=0)
+    h = 1e-6
+    idx = torch.randperm(s.shape[0], generator=g)[:40].to(device)
+    for i in idx.tolist():
+        e = torch.zeros_like(s)
+        e[i] = h
+        b = int(mesh.vert_item[i])
+        fd = (obj.value(s + e)[b] - obj.value(s - e)[b]) / (2 * h)
+        assert float(grad[i]) == pytest.approx(float(fd), rel=1e-5, abs=1e-7 * max(1.0, float(f[b])))
+    # one item selected: its objective and gradient entries are those of the full evaluation
+    sel = torch.tensor([False, True], device=device)
+    f1, g1 = obj.value_and_grad(s, sel)
+    mine = mesh.vert_item == 1
+    torch.testing.assert_close(f1[1], f[1], rtol=1e-12, atol=0)
+    torch.testing.assert_close(g1[mine], grad[mine], rtol=1e-12, atol=1e-15)
+
+
+def test_geometry_objective_is_delta1_over_tol2_without_extra_terms(device):
+    """With no smoothness and no crossing term the objective is Δ1 / tol² per item, Δ1 taken
+    as the mean over the points of f(p)²/|∇f|² (independent float64 reference)."""
+    obj, mesh, pts, face, tol = two_circle_objective(device, 0.0, 0.0)
+    g = torch.Generator().manual_seed(2)
+    s = obj.s0 + 0.3 * torch.randn(obj.s0.shape, generator=g, dtype=torch.float64).to(device)
+    f = obj.value(s)
+    F = obj.values(s)
+    item = mesh.face_item[face]
+    for b in range(2):
+        sub, vk, _ = mesh.select_items(torch.tensor([b], device=device))
+        fb = face[item == b] - int(mesh.faces_first_idx[b])
+        ref = delta1_from_points(sub, F[vk], pts[item == b], fb)
+        assert float(f[b]) == pytest.approx(ref / float(tol[b]) ** 2, rel=1e-9)
 
 
 def test_vertex_data_distance_near_is_exact_where_finite(device):

@@ -160,6 +160,52 @@ def test_batch_independence(device):
         assert torch.equal(rb.points, p)
 
 
+def mixed_shapes(count, seed):
+    """``count`` noisy point sets of 120-400 points: circles, ellipses, flowers, two circles
+    and annuli in turn, each with its own scale (0.1-10), rotation and offset (+-100)."""
+    g = torch.Generator().manual_seed(seed)
+    out = []
+    for i in range(count):
+        u = torch.rand(8, generator=g, dtype=torch.float64)
+        n = int(120 + 280 * u[0])
+        kind = i % 5
+        t = torch.arange(n, dtype=torch.float64) * (2 * math.pi / n) + u[1]
+        if kind == 0:
+            p = torch.stack([t.cos(), t.sin()], 1)
+        elif kind == 1:
+            p = torch.stack([t.cos(), (0.3 + 0.4 * u[2]) * t.sin()], 1)
+        elif kind == 2:
+            r = 1 + 0.3 * torch.cos(5 * t)
+            p = torch.stack([r * t.cos(), r * t.sin()], 1)
+        elif kind == 3:
+            h = n // 2
+            p = torch.cat([circle(h, 1.0, (-1.4, 0.0)), circle(n - h, 0.8, (1.3, 0.2), float(u[2]))])
+        else:
+            h = (3 * n) // 5
+            p = torch.cat([circle(h, 1.0), circle(n - h, 0.55, phase=float(u[2]))])
+        p = p + 0.002 * torch.randn(p.shape, generator=g, dtype=torch.float64)
+        a = 2 * math.pi * float(u[3])
+        R = torch.tensor([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]], dtype=torch.float64)
+        scale = 10 ** (2 * float(u[4]) - 1)
+        out.append((p @ R.T) * scale + 200 * (u[5:7] - 0.5))
+    return out
+
+
+def test_batch_of_64_mixed_items_equals_each_solved_alone():
+    """Issue 5's rule: in a batch of 64 mixed items (sizes, shapes, scales and the levels
+    they finish at all differ) every item has the components and, within 1e-3 of its
+    diagonal, the curve it has when solved alone."""
+    sets = mixed_shapes(64, seed=5)
+    batch = reconstruct_batch(sets)
+    levels = {len(r.stats) for r in batch}
+    assert len(levels) >= 2                              # items leave the batch at different levels
+    for i, (p, rb) in enumerate(zip(sets, batch)):
+        ra = reconstruct(p)
+        assert (rb.num_closed, rb.num_open) == (ra.num_closed, ra.num_open), f"item {i}"
+        assert hausdorff(rb.polylines, ra.polylines) < 1e-3 * bbox_diagonal(p), f"item {i}"
+        assert len(rb.stats) == len(ra.stats), f"item {i}"
+
+
 def test_empty_batch():
     assert reconstruct_batch([]) == []
 

@@ -15,7 +15,7 @@ from ..mesh import MeshBatch
 from .optim import batched_lbfgs
 from .topology import TriangleMoments
 
-__all__ = ["delta1_per_triangle", "vertex_data_distance", "vertex_data_distance_near", "fit_geometry",
+__all__ = ["GeometryObjective", "delta1_per_triangle", "vertex_data_distance", "vertex_data_distance_near", "fit_geometry",
            "point_residuals"]
 
 
@@ -102,6 +102,163 @@ def point_residuals(mesh: MeshBatch, values: torch.Tensor, face: torch.Tensor, b
     return torch.where(ok, r, torch.full_like(r, float("inf")))
 
 
+class GeometryObjective:
+    """The per-item objective of :func:`fit_geometry` in the log-magnitudes ``s (V,)``, with its
+    gradient written out by hand.
+
+    ``F = signs ⊙ (exp(s) + floor)`` and the objective of item ``b`` is
+    ``(Δ1 + crossing) / tol² + smoothness · J / S`` (see :func:`fit_geometry`). :meth:`value`
+    is plain tensor code (autograd can differentiate it: the tests check the hand-written
+    :meth:`value_and_grad` against it in float64); the optimizer calls
+    :meth:`value_and_grad`, which costs about half the tensor ops of a backward pass, and the
+    method is bound by op count on small meshes.
+
+    With ``items (B,)`` bool, only the faces, edges and crossings of those items are touched;
+    the other items' entries are then garbage (zero) and must be ignored by the caller.
+    """
+
+    def __init__(self, mesh: MeshBatch, mom: TriangleMoments, signs: torch.Tensor, init_mag: torch.Tensor,
+                 tol: torch.Tensor, magnitude_floor: float, smoothness: float,
+                 data_dist: Optional[torch.Tensor] = None, slack: Optional[torch.Tensor] = None,
+                 crossing_weight: float = 0.0):
+        B = mesh.num_items
+        vi, fi = mesh.vert_item, mesh.face_item
+        dt = mesh.dtype
+        dev = mesh.device
+        self.B, self.dt, self.dev, self.signs, self.smoothness = B, dt, dev, signs, smoothness
+        self.vi = vi
+        with torch.no_grad():
+            G = mesh.bary_gradients()
+            nb = torch.zeros(B, dtype=dt, device=dev).index_add_(0, fi, mom.count)
+            wt = mom.count / nb[fi].clamp_min(1)
+            nv = torch.bincount(vi, minlength=B).to(dt)
+            mean_mag = torch.zeros(B, dtype=dt, device=dev).index_add_(0, vi, init_mag) / nv.clamp_min(1)
+            self.floor = (magnitude_floor * mean_mag)[vi]
+            self.s0 = torch.log((init_mag - self.floor).clamp_min(1e-3 * mean_mag[vi])
+                                .clamp_min(torch.finfo(dt).tiny))
+            # penalize gradient jumps in the band where the curve can be: edges next to data or
+            # to a sign change (elsewhere f is far from 0 and its kinks do not move the curve)
+            fneg = signs[mesh.faces] < 0
+            band_t = (mom.count > 0) | (fneg.any(1) & ~fneg.all(1))
+            interior = ~mesh.is_boundary_edge
+            ef_all = mesh.edge_faces.clamp_min(0)
+            interior = interior & (band_t[ef_all[:, 0]] | band_t[ef_all[:, 1]])
+            v = mesh.verts.detach()
+            e = mesh.edges[interior]
+            self.inv_tol2 = 1.0 / (tol * tol)
+            # per face: vertices, gradients, moments, weight (Δ1 in units of tol²), guard
+            self.faces, self.G, self.M, self.fi = mesh.faces, G, mom.M, fi
+            self.wt = wt * self.inv_tol2[fi]
+            self.wt_raw = wt
+            self.guard = ((1e-10 * mean_mag) ** 2)[fi]
+            self.ef = mesh.edge_faces[interior]
+            self.el = (v[e[:, 0]] - v[e[:, 1]]).norm(dim=1)
+            self.eitem = mesh.edge_item[interior]
+            self.cross = crossing_weight > 0 and data_dist is not None and slack is not None
+            if self.cross:
+                ce = mesh.edges[signs[mesh.edges[:, 0]] != signs[mesh.edges[:, 1]]]
+                c_item = vi[ce[:, 0]]
+                self.cross = ce.shape[0] > 0
+                self.ce, self.c_item = ce, c_item
+                self.c_len = (v[ce[:, 0]] - v[ce[:, 1]]).norm(dim=1)
+                # how close to each end the crossing may come before it is provably off the data
+                c_lim = (data_dist[ce] - slack[c_item][:, None]).clamp_min(0)
+                self.c_lim = torch.where(torch.isfinite(c_lim), c_lim, torch.zeros_like(c_lim))
+                n_cross = torch.bincount(c_item, minlength=B).to(dt)
+                self.c_w = (crossing_weight / n_cross.clamp_min(1)[c_item]) * self.inv_tol2[c_item]
+
+    def values(self, s: torch.Tensor) -> torch.Tensor:
+        """``(V,)`` the nodal values ``F`` of the log-magnitudes ``s``."""
+        return self.signs * (torch.exp(s.clamp(-60.0, 60.0)) + self.floor)
+
+    def _parts(self, items: Optional[torch.Tensor]):
+        """The faces, smoothness edges (as local face pairs) and crossings of ``items``."""
+        if items is None:
+            return (self.faces, self.G, self.M, self.fi, self.wt, self.guard, self.ef, self.el, self.eitem,
+                    (self.ce, self.c_len, self.c_lim, self.c_w, self.c_item) if self.cross else None)
+        fs = items[self.fi].nonzero().squeeze(1)
+        es = items[self.eitem].nonzero().squeeze(1)
+        remap = torch.full((self.faces.shape[0],), -1, dtype=torch.long, device=self.dev)
+        remap[fs] = torch.arange(fs.shape[0], device=self.dev)
+        cr = None
+        if self.cross:
+            cs = items[self.c_item].nonzero().squeeze(1)
+            cr = (self.ce[cs], self.c_len[cs], self.c_lim[cs], self.c_w[cs], self.c_item[cs])
+        return (self.faces[fs], self.G[fs], self.M[fs], self.fi[fs], self.wt[fs], self.guard[fs], remap[self.ef[es]],
+                self.el[es], self.eitem[es], cr)
+
+    def value(self, s: torch.Tensor, items: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """``(B,)`` the objective of every item (differentiable by autograd)."""
+        faces, G, M, fi, wt, guard, ef, el, eitem, cr = self._parts(items)
+        B, dt, dev = self.B, self.dt, self.dev
+        F = self.values(s)
+        Ft = F[faces]
+        grad = (G * Ft[..., None]).sum(1)
+        g2 = (grad * grad).sum(1)
+        num = ((Ft[:, :, None] * M).sum(1) * Ft).sum(1)
+        obj = torch.zeros(B, dtype=dt, device=dev).index_add_(0, fi, wt * num / (g2 + guard))
+        if cr is not None:
+            ce, cl, clim, cw, cit = cr
+            m = F[ce].abs()
+            a = cl[:, None] * m / m.sum(1, keepdim=True)
+            over = (clim - a).clamp_min(0)
+            obj = obj + torch.zeros(B, dtype=dt, device=dev).index_add_(0, cit, cw * (over * over).sum(1))
+        if self.smoothness > 0 and ef.shape[0]:
+            jump = ((grad[ef[:, 0]] - grad[ef[:, 1]]) ** 2).sum(1)
+            size = 0.5 * (g2[ef[:, 0]] + g2[ef[:, 1]])
+            J = torch.zeros(B, dtype=dt, device=dev).index_add_(0, eitem, el * jump)
+            S = torch.zeros(B, dtype=dt, device=dev).index_add_(0, eitem, el * size)
+            obj = obj + self.smoothness * J / S.clamp_min(torch.finfo(dt).tiny)
+        return obj
+
+    def value_and_grad(self, s: torch.Tensor, items: Optional[torch.Tensor] = None
+                       ) -> Tuple[torch.Tensor, torch.Tensor]:
+        """``(B,)`` objectives and ``(V,)`` their gradient with respect to ``s``."""
+        faces, G, M, fi, wt, guard, ef, el, eitem, cr = self._parts(items)
+        B, dt, dev = self.B, self.dt, self.dev
+        e = torch.exp(s.clamp(-60.0, 60.0))
+        F = self.signs * (e + self.floor)
+        Ft = F[faces]                                        # (T,3)
+        grad = (G * Ft[..., None]).sum(1)                    # (T,2) ∇f_t
+        g2 = (grad * grad).sum(1)
+        MF = (M * Ft[:, None, :]).sum(2)                     # (T,3) M_t F_t (M symmetric)
+        num = (MF * Ft).sum(1)
+        rden = 1.0 / (g2 + guard)
+        q = num * rden
+        obj = torch.zeros(B, dtype=dt, device=dev).index_add_(0, fi, wt * q)
+        # d(num/den)/dF_t = 2 (M F − q G ∇f) / den, the G ∇f part added with the smoothness one
+        dgrad = (-2.0 * wt * q * rden)[:, None] * grad       # (T,2) d obj / d ∇f_t
+        dFt = (2.0 * wt * rden)[:, None] * MF
+        if self.smoothness > 0 and ef.shape[0]:
+            a, b = ef[:, 0], ef[:, 1]
+            diff = grad[a] - grad[b]
+            jump = (diff * diff).sum(1)
+            size = 0.5 * (g2[a] + g2[b])
+            J = torch.zeros(B, dtype=dt, device=dev).index_add_(0, eitem, el * jump)
+            S = torch.zeros(B, dtype=dt, device=dev).index_add_(0, eitem, el * size).clamp_min(torch.finfo(dt).tiny)
+            obj = obj + self.smoothness * J / S
+            cj = (self.smoothness / S)[eitem] * el                # d obj / d jump
+            cs = (-self.smoothness * J / (S * S))[eitem] * el     # d obj / d size
+            dj = (2.0 * cj)[:, None] * diff
+            dgrad = dgrad.index_add(0, torch.cat([a, b]),
+                                    torch.cat([dj + cs[:, None] * grad[a], cs[:, None] * grad[b] - dj]))
+        dFt = dFt + (G * dgrad[:, None, :]).sum(2)
+        dF = torch.zeros_like(F).index_add_(0, faces.reshape(-1), dFt.reshape(-1))
+        if cr is not None:
+            ce, cl, clim, cw, cit = cr
+            m = F[ce].abs()                                  # (C,2)
+            msum = m.sum(1)
+            a = cl[:, None] * m / msum[:, None]
+            over = (clim - a).clamp_min(0)
+            obj = obj + torch.zeros(B, dtype=dt, device=dev).index_add_(0, cit, cw * (over * over).sum(1))
+            # a_0 = ℓ m_0/(m_0+m_1), a_1 = ℓ − a_0: d obj/d m_0 = (h_0 − h_1) ℓ m_1/Σ², h_k = −2 w over_k
+            h = (2.0 * cw) * (over[:, 1] - over[:, 0]) * cl / (msum * msum)
+            dm = torch.stack([h * m[:, 1], -h * m[:, 0]], 1)
+            dF = dF.index_add(0, ce.reshape(-1), (dm * self.signs[ce]).reshape(-1))
+        ds = dF * self.signs * torch.where(s.abs() < 60.0, e, torch.zeros_like(e))
+        return obj, ds
+
+
 def fit_geometry(mesh: MeshBatch, mom: TriangleMoments, signs: torch.Tensor, init_mag: torch.Tensor,
                  tol: torch.Tensor, iterations: int, history: int, magnitude_floor: float,
                  smoothness: float, data_dist: Optional[torch.Tensor] = None,
@@ -133,88 +290,12 @@ def fit_geometry(mesh: MeshBatch, mom: TriangleMoments, signs: torch.Tensor, ini
     Returns:
         values ``(V,)`` and Δ1 per item ``(B,)``.
     """
-    B = mesh.num_items
-    vi, fi = mesh.vert_item, mesh.face_item
-    dt = mesh.dtype
+    obj = GeometryObjective(mesh, mom, signs, init_mag, tol, magnitude_floor, smoothness, data_dist, slack,
+                            crossing_weight)
+    s, _, _ = batched_lbfgs(obj.value_and_grad, obj.s0, mesh.vert_item, mesh.num_items, iterations=iterations,
+                            history=history, masked=True, with_grad=True)
     with torch.no_grad():
-        G = mesh.bary_gradients()
-        nb = torch.zeros(B, dtype=dt, device=mesh.device).index_add_(0, fi, mom.count)
-        wt = mom.count / nb[fi].clamp_min(1)
-        nv = torch.bincount(vi, minlength=B).to(dt)
-        mean_mag = torch.zeros(B, dtype=dt, device=mesh.device).index_add_(0, vi, init_mag) / nv.clamp_min(1)
-        floor = (magnitude_floor * mean_mag)[vi]
-        s0 = torch.log((init_mag - floor).clamp_min(1e-3 * mean_mag[vi]).clamp_min(torch.finfo(dt).tiny))
-        # penalize gradient jumps in the band where the curve can be: edges next to data or
-        # to a sign change (elsewhere f is far from 0 and its kinks do not move the curve)
-        fneg = signs[mesh.faces] < 0
-        band_t = (mom.count > 0) | (fneg.any(1) & ~fneg.all(1))
-        interior = ~mesh.is_boundary_edge
-        ef_all = mesh.edge_faces.clamp_min(0)
-        interior = interior & (band_t[ef_all[:, 0]] | band_t[ef_all[:, 1]])
-        ef = mesh.edge_faces[interior]
-        e = mesh.edges[interior]
-        el = (mesh.verts.detach()[e[:, 0]] - mesh.verts.detach()[e[:, 1]]).norm(dim=1)
-        eitem = mesh.edge_item[interior]
-        guard = (1e-10 * mean_mag) ** 2
-        inv_tol2 = 1.0 / (tol * tol)
-        cross = crossing_weight > 0 and data_dist is not None and slack is not None
-        if cross:
-            ce = mesh.edges[signs[mesh.edges[:, 0]] != signs[mesh.edges[:, 1]]]
-            c_item = mesh.vert_item[ce[:, 0]]
-            c_len = (mesh.verts.detach()[ce[:, 0]] - mesh.verts.detach()[ce[:, 1]]).norm(dim=1)
-            # how close to each end the crossing may come before it is provably off the data
-            c_lim = (data_dist[ce] - slack[c_item][:, None]).clamp_min(0)
-            c_lim = torch.where(torch.isfinite(c_lim), c_lim, torch.zeros_like(c_lim))
-            n_cross = torch.bincount(c_item, minlength=B).to(dt)
-            c_w = crossing_weight / n_cross.clamp_min(1)[c_item]
-
-    def values_of(s):
-        return signs * (torch.exp(s.clamp(-60.0, 60.0)) + floor)
-
-    T = mesh.faces.shape[0]
-    guard_t = guard[fi]
-
-    def objective(s, items=None):
-        F = values_of(s)
-        if items is None:
-            es, efs = None, ef
-            faces, Gs, Ms, fis, wts, gds = mesh.faces, G, mom.M, fi, wt, guard_t
-        else:                                   # only the faces and edges of these items
-            fs = items[fi].nonzero().squeeze(1)
-            es = items[eitem].nonzero().squeeze(1)
-            remap = torch.full((T,), -1, dtype=torch.long, device=mesh.device)
-            remap[fs] = torch.arange(fs.shape[0], device=mesh.device)
-            efs = remap[ef[es]]
-            faces, Gs, Ms, fis, wts, gds = mesh.faces[fs], G[fs], mom.M[fs], fi[fs], wt[fs], guard_t[fs]
-        Ft = F[faces]
-        grad = (Gs * Ft[..., None]).sum(1)             # (T,2)
-        g2 = (grad * grad).sum(1)
-        num = ((Ft[:, :, None] * Ms).sum(1) * Ft).sum(1)    # Ft' M Ft
-        d1 = torch.zeros(B, dtype=dt, device=mesh.device).index_add_(0, fis, wts * num / (g2 + gds))
-        obj = d1 * inv_tol2
-        if cross and ce.shape[0]:
-            if items is None:
-                ci, cl, clim, cw, cit = ce, c_len, c_lim, c_w, c_item
-            else:
-                cs = items[c_item].nonzero().squeeze(1)
-                ci, cl, clim, cw, cit = ce[cs], c_len[cs], c_lim[cs], c_w[cs], c_item[cs]
-            m = F[ci].abs()
-            a = cl[:, None] * m / m.sum(1, keepdim=True)
-            over = (clim - a).clamp_min(0)
-            pen = torch.zeros(B, dtype=dt, device=mesh.device).index_add_(0, cit, cw * (over * over).sum(1))
-            obj = obj + pen * inv_tol2
-        if smoothness > 0 and efs.shape[0]:
-            jump = ((grad[efs[:, 0]] - grad[efs[:, 1]]) ** 2).sum(1)
-            size = 0.5 * (g2[efs[:, 0]] + g2[efs[:, 1]])
-            ei, w = (eitem, el) if es is None else (eitem[es], el[es])
-            J = torch.zeros(B, dtype=dt, device=mesh.device).index_add_(0, ei, w * jump)
-            S = torch.zeros(B, dtype=dt, device=mesh.device).index_add_(0, ei, w * size)
-            obj = obj + smoothness * J / S.clamp_min(torch.finfo(dt).tiny)
-        return obj
-
-    s, _, _ = batched_lbfgs(objective, s0, vi, B, iterations=iterations, history=history, masked=True)
-    with torch.no_grad():
-        F = values_of(s)
-        d1 = torch.zeros(B, dtype=dt, device=mesh.device).index_add_(
-            0, fi, wt * delta1_per_triangle(mesh, mom.M, F, G, guard[fi]))
+        F = obj.values(s)
+        d1 = torch.zeros(mesh.num_items, dtype=mesh.dtype, device=mesh.device).index_add_(
+            0, obj.fi, obj.wt_raw * delta1_per_triangle(mesh, mom.M, F, obj.G, obj.guard))
     return F, d1

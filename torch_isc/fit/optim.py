@@ -35,22 +35,23 @@ def _direction(g: torch.Tensor, S: torch.Tensor, Y: torch.Tensor, SY: torch.Tens
     k = S.shape[0]
     if k == 0:
         return gamma[seg] * g
-    a = _segmat(S, g, seg, B).double()[..., None]             # (B, k, 1)
-    b = _segmat(Y, g, seg, B).double()[..., None]
+    W = torch.cat([S, Y])                                        # one product for both
+    ab = _segmat(W, g, seg, B).double()[..., None]              # (B, 2k, 1)
+    a, b = ab[:, :k], ab[:, k:]
     gm = gamma.double()[:, None, None]
     D = torch.diagonal(SY, dim1=1, dim2=2)
     # a pair stored as zeros (skipped for this segment) gets a unit pivot and contributes nothing
     R = torch.triu(SY) + torch.diag_embed((D == 0).double())
     p = torch.linalg.solve_triangular(R, a, upper=True)                      # R⁻¹ Sᵀg
     q = torch.linalg.solve_triangular(R.transpose(1, 2), (torch.diag_embed(D) + gm * YY) @ p - gm * b, upper=False)
-    c1 = q[..., 0].to(g.dtype)[seg]                                           # (N, k)
-    c2 = (-gm[..., 0] * p[..., 0]).to(g.dtype)[seg]
-    return gamma[seg] * g + (c1.T * S).sum(0) + (c2.T * Y).sum(0)
+    c = torch.cat([q, -gm * p], 1)[..., 0].to(g.dtype)[seg]                 # (N, 2k)
+    return gamma[seg] * g + (c.T * W).sum(0)
 
 
 def batched_lbfgs(fun: Callable[..., torch.Tensor], x0: torch.Tensor, seg: torch.Tensor, num_segments: int,
                   iterations: int = 50, history: int = 8, rel_tol: float = 1e-7, max_backtracks: int = 12,
-                  c1: float = 1e-4, masked: bool = False) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                  c1: float = 1e-4, masked: bool = False, with_grad: bool = False
+                  ) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Minimize ``fun`` segment by segment.
 
     Args:
@@ -58,7 +59,8 @@ def batched_lbfgs(fun: Callable[..., torch.Tensor], x0: torch.Tensor, seg: torch
             objective may depend only on ``x[seg == b]``. With ``masked=True`` it is called as
             ``fun(x, items)`` with ``items (num_segments,)`` bool (or None for all) and needs to
             be right only for the segments in ``items``: the line search then re-evaluates
-            only the segments still searching.
+            only the segments still searching. With ``with_grad=True`` it returns
+            ``(objectives, gradient (n,))`` itself (no autograd).
         x0: ``(n,)`` start. seg: ``(n,)`` long segment of each entry.
     Returns:
         ``x``, the per-segment objective at ``x``, and the number of iterations each segment ran.
@@ -68,6 +70,9 @@ def batched_lbfgs(fun: Callable[..., torch.Tensor], x0: torch.Tensor, seg: torch
     dev = x0.device
 
     def evaluate(x, items: Optional[torch.Tensor] = None):
+        if with_grad:
+            with torch.no_grad():
+                return fun(x, items) if masked else fun(x)
         x = x.detach().requires_grad_(True)
         with torch.enable_grad():
             f = fun(x, items) if masked else fun(x)
@@ -94,7 +99,7 @@ def batched_lbfgs(fun: Callable[..., torch.Tensor], x0: torch.Tensor, seg: torch
             gd = _segdot(g, d, seg, B)
         step = torch.ones(B, dtype=dt, device=dev)
         done = ~active
-        x_new, f_new, g_new = x.clone(), f.clone(), g.clone()
+        x_new, f_new, g_new = x, f, g             # replaced (never written) per accepted segment
         for _ in range(max_backtracks):
             xt = x + step[seg] * d
             searching = ~done
@@ -114,20 +119,23 @@ def batched_lbfgs(fun: Callable[..., torch.Tensor], x0: torch.Tensor, seg: torch
         iters = iters + moved.long()
         s_new = torch.where(moved[seg], x_new - x, torch.zeros_like(x))
         y_new = torch.where(moved[seg], g_new - g, torch.zeros_like(g))
-        sy = _segdot(s_new, y_new, seg, B)
-        yy = _segdot(y_new, y_new, seg, B)
+        # every new dot product in two segmented products: S·y, Y·y, s·y, y·y and Y·s, s·s
+        k = S.shape[0] + 1
+        P1 = _segmat(torch.cat([S, Y, s_new[None], y_new[None]]), y_new, seg, B)
+        P2 = _segmat(torch.cat([Y, s_new[None]]), s_new, seg, B)
+        sy, yy, ss = P1[:, -2], P1[:, -1], P2[:, -1]
         # keep a pair only with enough positive curvature; a skipped pair is stored as zeros
-        keep = (sy > 1e-12 * yy.sqrt() * _segdot(s_new, s_new, seg, B).sqrt()) & (sy > 0)
+        keep = (sy > 1e-12 * yy.sqrt() * ss.sqrt()) & (sy > 0)
         s_new = torch.where(keep[seg], s_new, torch.zeros_like(s_new))
         y_new = torch.where(keep[seg], y_new, torch.zeros_like(y_new))
         gamma = torch.where(keep & (yy > 0), sy / yy.clamp_min(torch.finfo(dt).tiny), torch.ones_like(sy))
+        kd = keep.double()[:, None]
+        col = P1[:, :k - 1].double() * kd                       # s_i · y_new
+        yrow = torch.cat([P1[:, k - 1:2 * k - 2], yy[:, None]], 1).double() * kd    # y_j · y_new
+        row = torch.cat([P2[:, :k - 1], sy[:, None]], 1).double() * kd              # s_new · y_j
         S = torch.cat([S, s_new[None]])
         Y = torch.cat([Y, y_new[None]])
-        row = _segmat(Y, s_new, seg, B).double()               # s_new · y_j
-        col = _segmat(S, y_new, seg, B).double()               # s_i · y_new
-        yrow = _segmat(Y, y_new, seg, B).double()
-        k = S.shape[0]
-        SY = torch.cat([torch.cat([SY, col[:, :k - 1, None]], 2), row[:, None, :]], 1)
+        SY = torch.cat([torch.cat([SY, col[:, :, None]], 2), row[:, None, :]], 1)
         YY = torch.cat([torch.cat([YY, yrow[:, :k - 1, None]], 2), yrow[:, None, :]], 1)
         if k > history:
             S, Y, SY, YY = S[1:], Y[1:], SY[:, 1:, 1:], YY[:, 1:, 1:]

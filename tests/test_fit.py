@@ -20,8 +20,8 @@ from torch_isc.fit.geometry import (GeometryObjective, delta1_per_triangle, fit_
 from torch_isc.fit.optim import batched_lbfgs
 from torch_isc.fit.relax import mesh_energy, relax_mesh
 from torch_isc.fit.subdivide import subdivide
-from torch_isc.fit.tolerance import (estimate_noise, mark_triangles, point_curve_distance2, segment_median,
-                                     triangle_errors)
+from torch_isc.fit.tolerance import (curve_coverage_excess, estimate_noise, mark_triangles, point_curve_distance2,
+                                     segment_median, triangle_errors)
 from torch_isc.fit.topology import (anneal, edge_weights, hash_uniform, ising_energy, line_fits, pooled_moments,
                                     triangle_moments, vertex_coloring)
 from torch_isc.locate import barycentric
@@ -1286,6 +1286,21 @@ def test_estimate_noise_circle_and_batch(device):
     assert float(estimate_noise(circ[:2].to(device), torch.zeros(2, dtype=torch.long, device=device), 1)[0]) == 0.0
 
 
+@pytest.mark.parametrize("n,sigma", [(60, 0.0), (60, 0.002), (100, 0.004), (60, 0.01)])
+def test_estimate_noise_sparse_circle_is_not_its_curvature(n, sigma, device):
+    """A unit circle sampled by n points (normalized: diagonal 1): eight neighbours span an arc
+    whose sagitta a line fit would read as noise (n=60: 0.036 of the radius against a true
+    0.002); the estimate follows sigma instead."""
+    g = torch.Generator().manual_seed(n)
+    t = torch.arange(n, dtype=torch.float64) * (2 * math.pi / n) + 0.3
+    p = torch.stack([t.cos(), t.sin()], 1) + sigma * torch.randn(n, 2, generator=g, dtype=torch.float64)
+    d = float((p.max(0).values - p.min(0).values).norm())
+    est = float(estimate_noise((p / d).to(device), torch.zeros(n, dtype=torch.long, device=device), 1)[0]) * d
+    spacing = 2 * math.pi / n
+    assert est < sigma * 1.3 + 0.01 * spacing
+    assert est > sigma * 0.7
+
+
 def test_segment_median_against_loop(device):
     g = torch.Generator().manual_seed(0)
     n, B = 500, 9
@@ -1352,6 +1367,93 @@ def test_point_curve_distance_hand_values(device, dtype):
     torch.testing.assert_close(r, (pts[:, 1] - 0.1) ** 2, rtol=1e-4, atol=tol)
 
 
+def coverage_reference(mesh, values, pts, face, frames):
+    """curve_coverage_excess by loops: segment midpoints by edge interpolation, neighbours as
+    triangles sharing two vertices (float64)."""
+    V = mesh.verts.double().cpu().numpy()
+    F = mesh.faces.cpu().tolist()
+    val = values.double().cpu().numpy()
+    P = pts.double().cpu().numpy()
+    fr = frames.double().cpu().numpy()
+    fc = face.cpu().tolist()
+    out = []
+    for t, tri in enumerate(F):
+        cross = []
+        for a, b in ((tri[0], tri[1]), (tri[1], tri[2]), (tri[2], tri[0])):
+            if (val[a] < 0) != (val[b] < 0):
+                u = val[a] / (val[a] - val[b])
+                cross.append(V[a] + u * (V[b] - V[a]))
+        if len(cross) != 2:
+            out.append(-math.inf)
+            continue
+        m = 0.5 * (cross[0] + cross[1])
+        near = {t} | {u for u, other in enumerate(F) if len(set(other) & set(tri)) == 2}
+        best = math.inf
+        for p, f, (tx, ty, r) in zip(P, fc, fr):
+            if f in near:
+                off = m - p
+                best = min(best, max(abs(off[0] * ty - off[1] * tx), abs(off[0] * tx + off[1] * ty) - r))
+        out.append(best)
+    return out
+
+
+def test_curve_coverage_excess_hand_values_and_reference(device, dtype):
+    mesh, values = hex1_line(device, dtype)
+    # upper-right triangle: segment y = 0.1, midpoint (0.5, 0.1)
+    pts = torch.tensor([[0.5, 0.12], [-0.3, 0.12], [0.0, -0.5]], device=device, dtype=dtype)
+    frames = torch.tensor([[1.0, 0.0, 0.05], [1.0, 0.0, 0.1], [0.0, 1.0, 0.0]], device=device, dtype=dtype)
+    _, face, _ = locate_single(mesh, pts)
+    ex, reach = curve_coverage_excess(mesh, values, pts, face, frames)
+    ur = which_face(mesh, (0.5, 0.3), dtype, device)
+    ul = which_face(mesh, (-0.5, 0.3), dtype, device)
+    low = which_face(mesh, (0.0, -0.5), dtype, device)
+    tol = 1e-5 if dtype == torch.float32 else 1e-12
+    # 0.02 across the tangent of the first point, within its reach along it
+    assert float(ex[ur]) == pytest.approx(0.02, abs=tol)
+    # upper-left midpoint (-0.5, 0.1): the second point is 0.2 along its tangent (reach 0.1)
+    assert float(ex[ul]) == pytest.approx(0.1, abs=tol)
+    assert float(ex[low]) == -math.inf                     # no segment
+    # the smallest reach among the points of the triangle and its neighbours
+    assert float(reach[ur]) == pytest.approx(0.05, abs=tol) and float(reach[ul]) == pytest.approx(0.1, abs=tol)
+    ref = coverage_reference(mesh, values, pts, face, frames)
+    for t, r in enumerate(ref):
+        if math.isinf(r):
+            assert float(ex[t]) == r
+        else:
+            assert float(ex[t]) == pytest.approx(r, abs=tol)
+    # a finer mesh, random points and frames: the reference again
+    m2 = hexagon_mesh(torch.zeros(1, 2, device=device, dtype=dtype), torch.ones(1, device=device, dtype=dtype), 4)
+    v2 = (m2.verts.double() ** 2).sum(1).sub(0.4).to(dtype)
+    g = torch.Generator().manual_seed(3)
+    p2 = (torch.rand(40, 2, generator=g, dtype=torch.float64) * 1.2 - 0.6).to(device=device, dtype=dtype)
+    ang = torch.rand(40, generator=g, dtype=torch.float64) * math.pi
+    f2 = torch.stack([ang.cos(), ang.sin(), 0.1 * torch.rand(40, generator=g, dtype=torch.float64)], 1).to(
+        device=device, dtype=dtype)
+    _, face2, _ = locate_single(m2, p2)
+    ex2, _ = curve_coverage_excess(m2, v2, p2, face2, f2)
+    ref2 = coverage_reference(m2, v2, p2, face2, f2)
+    assert any(math.isfinite(r) for r in ref2) and any(r == math.inf for r in ref2)
+    for t, r in enumerate(ref2):
+        if math.isinf(r):
+            assert float(ex2[t]) == r
+        else:
+            assert float(ex2[t]) == pytest.approx(r, abs=10 * tol)
+
+
+def test_estimate_noise_frames_follow_the_curve(device):
+    """The frames are the circle's tangents, and the reach is the farthest of 8 neighbours."""
+    n = 200
+    t = torch.arange(n, dtype=torch.float64) * (2 * math.pi / n)
+    p = 0.35 * torch.stack([t.cos(), t.sin()], 1)
+    noise, fr = estimate_noise(p.to(device), torch.zeros(n, dtype=torch.long, device=device), 1, return_frames=True)
+    fr = fr.cpu()
+    tangent = torch.stack([-t.sin(), t.cos()], 1)
+    assert float((fr[:, :2] * tangent).sum(1).abs().min()) > 0.999
+    step = 0.35 * 2 * math.pi / n
+    # eight nearest along a uniformly sampled circle: four on each side
+    torch.testing.assert_close(fr[:, 2], torch.full((n,), 4 * step, dtype=torch.float64), rtol=1e-3, atol=0)
+
+
 def _mark(mesh, pts, values, device, dtype, tol=0.004, noise=0.0, line_eps=None, statistic="max",
           noise_factor=3.0, min_points_split=6, min_points_fit=3, thin_factor=3.0, min_split_size=0.0):
     item, face, _ = locate_single(mesh, pts)
@@ -1362,6 +1464,25 @@ def _mark(mesh, pts, values, device, dtype, tol=0.004, noise=0.0, line_eps=None,
     return mark_triangles(mesh, res, face, count, line_eps, torch.tensor([tol], device=device, dtype=dtype),
                           torch.tensor([noise], device=device, dtype=dtype), statistic, noise_factor,
                           min_points_split, min_points_fit, thin_factor, min_split_size), face
+
+
+def test_mark_triangles_coverage_rule(device, dtype):
+    """A triangle is marked for coverage when its excess is finite and above the effective
+    tolerance and it is larger than twice the reach of the data near it."""
+    mesh, values = hex1_line(device, dtype)
+    pts = torch.zeros(0, 2, device=device, dtype=dtype)
+    face = torch.zeros(0, dtype=torch.long, device=device)
+    T = mesh.faces.shape[0]
+    z = torch.zeros(T, device=device, dtype=dtype)
+    excess = torch.tensor([0.1, 0.001, float("inf"), -float("inf"), 0.1, 0.1], device=device, dtype=dtype)
+    reach = torch.tensor([0.1, 0.1, 0.1, 0.1, 0.6, 0.1], device=device, dtype=dtype)
+    args = (mesh, torch.zeros(0, device=device, dtype=dtype), face, z, z, torch.tensor([0.004], device=device,
+            dtype=dtype), torch.tensor([0.0], device=device, dtype=dtype), "max", 3.0, 6, 3, 3.0)
+    marked, _, _ = mark_triangles(*args, coverage=(excess, reach))
+    # every edge of the unit hexagon's triangles is 1 long: 1 > 2 x 0.6 fails for the fifth
+    assert marked.tolist() == [True, False, False, False, False, True]
+    assert not mark_triangles(*args)[0].any()
+    assert not mark_triangles(*args, min_split_size=300.0, coverage=(excess, reach))[0].any()
 
 
 def cluster(x0, y, n, device, dtype, dx=0.04):

@@ -42,6 +42,7 @@ class ReconstructConfig:
     min_points_split: int = 6
     thin_feature_factor: float = 3.0
     min_split_size: float = 4.0
+    coverage_test: bool = True
     # topology
     min_points_fit: int = 3
     empty_weight: float = 1.0

@@ -28,7 +28,8 @@ from .curve import ImplicitCurve
 from .fit.geometry import fit_geometry, vertex_data_distance, vertex_data_distance_near
 from .fit.relax import relax_mesh
 from .fit.subdivide import subdivide
-from .fit.tolerance import effective_tolerance, estimate_noise, mark_triangles, point_curve_distance2
+from .fit.tolerance import (curve_coverage_excess, effective_tolerance, estimate_noise, mark_triangles,
+                             point_curve_distance2)
 from .fit.topology import anneal, crossing_reach, edge_weights, line_fits, pooled_moments, triangle_moments
 from .locate import locate_children, locate_grid
 from .mesh import MeshBatch, hexagon_mesh, square_mesh
@@ -180,7 +181,7 @@ def reconstruct_batch(point_sets: Sequence[PointsLike], config: Optional[Reconst
         tol = torch.full((B,), cfg.tolerance, dtype=dtype, device=device)
         if cfg.tolerance_mode == "absolute":
             tol = (cfg.tolerance / scale64).to(dtype)
-        noise = estimate_noise(pts, point_item, B)
+        noise, frames = estimate_noise(pts, point_item, B, return_frames=True)
 
     results: List[Optional[ReconstructionResult]] = [None] * B
     stats: List[List[Dict[str, Any]]] = [[] for _ in range(B)]
@@ -234,7 +235,8 @@ def reconstruct_batch(point_sets: Sequence[PointsLike], config: Optional[Reconst
             marked, eff_tol, worst = mark_triangles(
                 mesh, residual, face, mom.count, eps_t, tol[orig], noise[orig], cfg.test_statistic,
                 cfg.noise_factor, cfg.min_points_split, cfg.min_points_fit, cfg.thin_feature_factor,
-                cfg.min_split_size)
+                cfg.min_split_size,
+                coverage=curve_coverage_excess(mesh, values, pts, face, frames) if cfg.coverage_test else None)
             if sign_oracles is not None:
                 marked |= _oracle_disagreements(mesh, values, sign_oracles, orig, center64, scale64, 2.0 * eff_tol)
             n_marked = torch.zeros(nb, dtype=torch.long, device=device).index_add_(0, mesh.face_item, marked.long())
@@ -300,6 +302,7 @@ def reconstruct_batch(point_sets: Sequence[PointsLike], config: Optional[Reconst
                 new_item[keep] = torch.arange(keep.shape[0], device=device)
                 fkp = face[keep_p]
                 pts, face = pts[keep_p], torch.where(fkp >= 0, remap_f[fkp.clamp_min(0)], fkp)
+                frames = frames[keep_p]
                 point_item = new_item[point_item[keep_p]]
                 orig = orig[keep]
             old_edges = mesh.edges

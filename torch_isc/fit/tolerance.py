@@ -10,14 +10,15 @@ split even with few points.
 """
 from __future__ import annotations
 
-from typing import Tuple
+from typing import Optional, Tuple
 
 import torch
 
 from ..mesh import MeshBatch
 from .topology import hash_uniform
 
-__all__ = ["effective_tolerance", "estimate_noise", "segment_median", "triangle_errors", "mark_triangles"]
+__all__ = ["effective_tolerance", "estimate_noise", "segment_median", "triangle_errors", "mark_triangles",
+           "curve_coverage_excess", "point_curve_distance2", "triangle_segments"]
 
 
 def _morton(q: torch.Tensor) -> torch.Tensor:
@@ -46,10 +47,12 @@ def segment_median(x: torch.Tensor, seg: torch.Tensor, n: int) -> torch.Tensor:
 
 
 def _local_line_residual(points: torch.Tensor, point_item: torch.Tensor, idx: torch.Tensor, orders, offs,
-                         k: int) -> Tuple[torch.Tensor, torch.Tensor]:
+                         k: int) -> Tuple[torch.Tensor, ...]:
     """For the points ``idx``: the residual variance of a line fitted to each point and its ``k``
-    nearest candidates (its neighbours along the Morton ``orders``), the fit's point count, and
-    the larger eigenvalue of the neighbourhood's covariance."""
+    nearest candidates (its neighbours along the Morton ``orders``), the fit's point count, the
+    larger eigenvalue of the neighbourhood's covariance, the residual variance of a parabola
+    fitted to the same points, and the point's frame ``(n, 3)``: the unit major axis of the
+    neighbourhood (the local tangent) and the distance to its farthest neighbour."""
     P = points.shape[0]
     dev, dt = points.device, points.dtype
     c = torch.cat([order[(pos[idx][:, None] + offs[None, :]).clamp(0, P - 1)] for order, pos in orders], 1)
@@ -71,13 +74,46 @@ def _local_line_residual(points: torch.Tensor, point_item: torch.Tensor, idx: to
     a, b, d = C[:, 0, 0], C[:, 0, 1], C[:, 1, 1]
     root = torch.sqrt((0.5 * (a - d)) ** 2 + b * b)
     lam = (0.5 * (a + d) - root).clamp_min(0)
-    return lam * m / (m - 2).clamp_min(1), m, 0.5 * (a + d) + root
+    lmax = 0.5 * (a + d) + root
+    # major axis: eigenvector of lmax (the better-conditioned of two formulas)
+    v1 = torch.stack([b, lmax - a], 1)
+    v2 = torch.stack([lmax - d, b], 1)
+    t = torch.where((v1.norm(dim=1) >= v2.norm(dim=1))[:, None], v1, v2)
+    t = t / t.norm(dim=1, keepdim=True).clamp_min(torch.finfo(dt).tiny)
+    t = torch.where(torch.isfinite(t) & (t.norm(dim=1, keepdim=True) > 0.5), t,
+                    torch.tensor([1.0, 0.0], dtype=dt, device=dev))
+    reach = torch.where(valid, nd, torch.zeros_like(nd)).amax(1).sqrt()
+    return (lam * m / (m - 2).clamp_min(1), m, lmax, _quadratic_residual(qd, w, t, lmax, m),
+            torch.cat([t, reach[:, None]], 1))
+
+
+def _quadratic_residual(qd: torch.Tensor, w: torch.Tensor, t: torch.Tensor, lmax, m) -> torch.Tensor:
+    """``(n,)`` the residual variance of ``y = c0 + c1 x + c2 x²`` fitted to each neighbourhood
+    ``qd (n, k, 2)`` (centred, weights ``w``) in its principal frame (x along the major axis),
+    corrected for the three parameters. A line fit to a sparsely sampled curved arc measures
+    the curvature as well as the noise (an arc of half-length h and radius R leaves
+    ``h⁴ / 45R²``); the parabola takes the curvature out."""
+    dt = qd.dtype
+    q = qd.double()
+    t = t.double()
+    x = (q * t[:, None, :]).sum(-1) / lmax.double().sqrt().clamp_min(1e-300)[:, None]
+    y = q[..., 0] * t[:, None, 1] - q[..., 1] * t[:, None, 0]
+    ww = w.double()
+    basis = torch.stack([ww, ww * x, ww * x * x], -1)                       # (n, k, 3)
+    A = basis.transpose(1, 2) @ basis                                         # w² = w: 0/1 weights
+    r = (basis * y[..., None]).sum(1)                                         # (n, 3)
+    A = A + 1e-12 * torch.eye(3, dtype=A.dtype, device=A.device) * A.diagonal(dim1=1, dim2=2).sum(1)[:, None, None]
+    coef = torch.linalg.solve(A, r[..., None])[..., 0]
+    res = ((ww * (y - (coef[:, None, 0] + coef[:, None, 1] * x + coef[:, None, 2] * x * x))) ** 2).sum(1)
+    out = (res / (m.double() - 3).clamp_min(1)).to(dt)
+    return torch.where(m > 3, out, torch.zeros_like(out))
 
 
 def _noise_at_scale(points: torch.Tensor, point_item: torch.Tensor, num_items: int, k: int,
-                    window: int) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Per item: the median residual variance of the local line fits, the median aspect
-    ``sqrt(λmax / λmin)`` of the neighbourhoods, and the number of points used."""
+                    window: int) -> Tuple[torch.Tensor, ...]:
+    """Per item: the median residual variance of the local parabola fits, the median aspect
+    ``sqrt(λmax / λmin)`` of the neighbourhoods (line fits), and the number of points used;
+    per point: its frame (see :func:`_local_line_residual`)."""
     P = points.shape[0]
     dev, dt = points.device, points.dtype
     offs = torch.cat([torch.arange(-window, 0, device=dev), torch.arange(1, window + 1, device=dev)])
@@ -92,28 +128,33 @@ def _noise_at_scale(points: torch.Tensor, point_item: torch.Tensor, num_items: i
     lam = torch.empty(P, dtype=dt, device=dev)
     lmax = torch.empty(P, dtype=dt, device=dev)
     m = torch.empty(P, dtype=dt, device=dev)
+    quad = torch.empty(P, dtype=dt, device=dev)
+    frame = torch.empty(P, 3, dtype=dt, device=dev)
     # the (points x candidates) arrays go in blocks: bounded memory for millions of points
     block = max(1, (1 << 21) // (4 * window))
     for b0 in range(0, P, block):
         idx = torch.arange(b0, min(P, b0 + block), device=dev)
-        lam[idx], m[idx], lmax[idx] = _local_line_residual(points, point_item, idx, orders, offs, k)
+        lam[idx], m[idx], lmax[idx], quad[idx], frame[idx] = _local_line_residual(points, point_item, idx, orders,
+                                                                                  offs, k)
     ok = m >= 4
-    var = segment_median(lam[ok], point_item[ok], num_items)
+    var = segment_median(quad[ok], point_item[ok], num_items)
     aspect = torch.sqrt(lmax / lam.clamp_min(torch.finfo(dt).tiny))
     asp = segment_median(aspect[ok], point_item[ok], num_items)
-    return var, asp, torch.bincount(point_item[ok], minlength=num_items)
+    return var, asp, torch.bincount(point_item[ok], minlength=num_items), frame
 
 
 def estimate_noise(points: torch.Tensor, point_item: torch.Tensor, num_items: int, k: int = 8,
                    window: int = 12, blob_aspect: float = 2.0, line_aspect: float = 2.5,
-                   min_points: int = 256) -> torch.Tensor:
+                   min_points: int = 256, return_frames: bool = False):
     """``(B,)`` noise level (a standard deviation, in the points' units) of each item.
 
-    For every point, a line is fitted to its ``k`` nearest neighbours (approximate: taken
-    among its neighbours along two shifted Morton orders, so the cost is a sort, not a
-    search); the noise variance is the median over the item of the residual variance,
-    corrected for the two degrees of freedom of the fit. Points are expected normalized
-    per item (bounding box centred, diagonal 1).
+    For every point, a parabola ``y = c0 + c1 x + c2 x²`` (x along the principal axis) is fitted
+    to it and its ``k`` nearest neighbours (approximate: taken among its neighbours along two
+    shifted Morton orders, so the cost is a sort, not a search); the noise variance is the
+    median over the item of the residual variance, corrected for the three parameters of the
+    fit. A straight line would read the sagitta of a sparsely sampled arc as noise (60 points
+    on a circle: 1.8% of the radius). Points are expected normalized per item (bounding box
+    centred, diagonal 1).
 
     When the points are much denser than the noise is wide, ``k`` neighbours form a round
     blob and their residual measures the spacing, not the noise. An item whose median
@@ -125,16 +166,22 @@ def estimate_noise(points: torch.Tensor, point_item: torch.Tensor, num_items: in
     subsampled: there a longer neighbourhood would measure the curvature (or a nearby second
     curve) rather than the noise, so a few hundred points with noise about their spacing
     keep a low estimate (about 0.8 of the noise at aspect 1.6).
+
+    With ``return_frames=True`` it also returns ``(P, 3)`` each point's local frame: the unit
+    major axis of its neighbourhood (the curve's tangent there) and the distance to the
+    farthest of its ``k`` neighbours (0 for a point alone in its item).
     """
     with torch.no_grad():
         P = points.shape[0]
         dev, dt = points.device, points.dtype
         if P < 3:
-            return torch.zeros(num_items, dtype=dt, device=dev)
-        var, asp, _ = _noise_at_scale(points, point_item, num_items, k, window)
+            z = torch.zeros(num_items, dtype=dt, device=dev)
+            fr = torch.tensor([1.0, 0.0, 0.0], dtype=dt, device=dev).expand(P, 3).clone()
+            return (z, fr) if return_frames else z
+        var, asp, _, frames = _noise_at_scale(points, point_item, num_items, k, window)
         chosen = asp >= blob_aspect
         if bool(chosen.all()):
-            return var.sqrt()
+            return (var.sqrt(), frames) if return_frames else var.sqrt()
         cnt = torch.bincount(point_item, minlength=num_items)
         first = torch.cumsum(cnt, 0) - cnt
         u = hash_uniform(torch.arange(P, device=dev) - first[point_item], dtype=torch.float64)
@@ -147,14 +194,14 @@ def estimate_noise(points: torch.Tensor, point_item: torch.Tensor, num_items: in
                 break
             keep = todo[point_item] & (u < rate)
             pi = point_item[keep]
-            v2, a2, n2 = _noise_at_scale(points[keep], pi, num_items, k, window)
+            v2, a2, n2, _ = _noise_at_scale(points[keep], pi, num_items, k, window)
             use = todo & (n2 >= min_points)
             line = use & (a2 >= line_aspect)
             # only a line-like scale is believed: data that are a blob at every scale (no
             # curve, e.g. uniform clutter) keep the full-density estimate
             var = torch.where(line, v2, var)
             chosen = chosen | line | (todo & ~use)
-        return var.sqrt()
+        return (var.sqrt(), frames) if return_frames else var.sqrt()
 
 
 def triangle_errors(mesh: MeshBatch, residual: torch.Tensor, face: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
@@ -177,12 +224,17 @@ def effective_tolerance(tol: torch.Tensor, noise: torch.Tensor, noise_factor: fl
 def mark_triangles(mesh: MeshBatch, residual: torch.Tensor, face: torch.Tensor, count: torch.Tensor,
                    line_eps: torch.Tensor, tol: torch.Tensor, noise: torch.Tensor, statistic: str,
                    noise_factor: float, min_points_split: int, min_points_fit: int,
-                   thin_factor: float, min_split_size: float = 0.0) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                   thin_factor: float, min_split_size: float = 0.0,
+                   coverage: Optional[Tuple[torch.Tensor, torch.Tensor]] = None
+                   ) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Mark the triangles that fail the test.
 
     Args:
         residual: ``(P,)`` squared point-to-curve distances. count: ``(T,)`` points per triangle.
         line_eps: ``(T,)`` line-fit errors. tol, noise: ``(B,)`` distances.
+        coverage: optional :func:`curve_coverage_excess` ``(excess, reach)``: a triangle whose
+            piece of curve is farther from the data than the effective tolerance is marked too,
+            while it is larger than the reach of the points near it (the data's resolution).
     Returns:
         marked ``(T,)`` bool, the effective tolerance ``(B,)`` and the largest error ``(B,)``
         (a distance, the chosen statistic).
@@ -203,10 +255,16 @@ def mark_triangles(mesh: MeshBatch, residual: torch.Tensor, face: torch.Tensor, 
     marked |= (count >= min_points_fit) & (mean > eff[fi] ** 2)
     thin = torch.maximum(tol, thin_factor * noise)
     marked |= (count >= min_points_fit) & (line_eps > thin[fi] ** 2)
+    p = mesh.verts.detach()[mesh.faces]
+    longest = (p[:, [1, 2, 0]] - p).norm(dim=2).max(1).values
+    if coverage is not None:
+        # the data-to-curve test cannot see curve where there are no data (a wall across a
+        # ring, a bridge between two close curves): the curve-to-data side, down to the
+        # resolution of the sampling (finer, the data cannot tell where the curve goes)
+        excess, reach = coverage
+        marked |= torch.isfinite(excess) & (excess > eff[fi]) & (longest > 2.0 * reach)
     # below the resolution the tolerance allows, splitting only fits the noise
     if min_split_size > 0:
-        p = mesh.verts.detach()[mesh.faces]
-        longest = (p[:, [1, 2, 0]] - p).norm(dim=2).max(1).values
         marked &= longest > min_split_size * eff[fi]
     worst = torch.zeros(mesh.num_items, dtype=stat.dtype, device=stat.device).scatter_reduce(0, fi, stat, "amax")
     return marked, eff, worst.sqrt()
@@ -250,3 +308,36 @@ def point_curve_distance2(mesh: MeshBatch, values: torch.Tensor, points: torch.T
     d2 = ((p - q) ** 2).sum(-1)
     d2 = torch.where(valid, d2, torch.full_like(d2, float("inf")))
     return d2.min(1).values
+
+
+def curve_coverage_excess(mesh: MeshBatch, values: torch.Tensor, points: torch.Tensor, face: torch.Tensor,
+                          frames: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+    """``(T,)`` how far the midpoint ``m_t`` of each triangle's zero-set segment lies off the
+    data: the smallest, over the points ``p`` of the triangle and its three neighbours, of
+    ``max(|(m_t − p)·n_p|, |(m_t − p)·τ_p| − r_p)``, where ``τ_p, n_p`` are the tangent and
+    normal of the data at ``p`` and ``r_p`` the reach of its neighbourhood (``frames (P, 3)``
+    from :func:`estimate_noise`). So a curve that runs on along the data across a sampling gap
+    is covered, while one that leaves it sideways (a wall across a ring, a bridge between two
+    close curves) is not. ``-inf`` where the triangle holds no segment, ``inf`` where no point
+    is near (a gap no point reaches, which splitting cannot fill). Also ``(T,)`` the smallest
+    reach of those points (inf: none), the size below which the data cannot place the curve."""
+    seg, has = triangle_segments(mesh, values)
+    mid = seg.mean(1)                                              # (T,2)
+    T = mid.shape[0]
+    ok = face >= 0
+    f = face[ok]
+    p = points[ok].to(mid.dtype)
+    fr = frames[ok].to(mid.dtype)
+    tau, reach = fr[:, :2], fr[:, 2]
+    cand = torch.cat([f[:, None], mesh.face_neighbors[f]], 1)      # (P,4)
+    valid = (cand >= 0) & has[cand.clamp_min(0)]
+    c = cand.clamp_min(0)
+    off = mid[c] - p[:, None, :]                                   # (P,4,2)
+    along = (off * tau[:, None, :]).sum(-1)
+    across = off[..., 0] * tau[:, None, 1] - off[..., 1] * tau[:, None, 0]
+    d = torch.maximum(across.abs(), along.abs() - reach[:, None])
+    out = torch.full((T,), float("inf"), dtype=mid.dtype, device=mid.device)
+    out = out.scatter_reduce(0, c[valid], d[valid], "amin")
+    rmin = torch.full((T,), float("inf"), dtype=mid.dtype, device=mid.device)
+    rmin = rmin.scatter_reduce(0, c[valid], reach[:, None].expand_as(d)[valid], "amin")
+    return torch.where(has, out, torch.full_like(out, -float("inf"))), rmin

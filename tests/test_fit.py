@@ -1390,9 +1390,9 @@ def coverage_reference(mesh, values, pts, face, frames):
         near = {t} | {u for u, other in enumerate(F) if len(set(other) & set(tri)) == 2}
         best = math.inf
         for p, f, (tx, ty, r) in zip(P, fc, fr):
-            if f in near:
-                off = m - p
-                best = min(best, max(abs(off[0] * ty - off[1] * tx), abs(off[0] * tx + off[1] * ty) - r))
+            off = m - p
+            if f in near and abs(off[0] * tx + off[1] * ty) <= r:
+                best = min(best, abs(off[0] * ty - off[1] * tx))
         out.append(best)
     return out
 
@@ -1400,8 +1400,9 @@ def coverage_reference(mesh, values, pts, face, frames):
 def test_curve_coverage_excess_hand_values_and_reference(device, dtype):
     mesh, values = hex1_line(device, dtype)
     # upper-right triangle: segment y = 0.1, midpoint (0.5, 0.1)
-    pts = torch.tensor([[0.5, 0.12], [-0.3, 0.12], [0.0, -0.5]], device=device, dtype=dtype)
-    frames = torch.tensor([[1.0, 0.0, 0.05], [1.0, 0.0, 0.1], [0.0, 1.0, 0.0]], device=device, dtype=dtype)
+    pts = torch.tensor([[0.5, 0.12], [-0.3, 0.12], [0.0, -0.5], [-0.5, 0.3]], device=device, dtype=dtype)
+    frames = torch.tensor([[1.0, 0.0, 0.05], [1.0, 0.0, 0.1], [0.0, 1.0, 0.0], [1.0, 0.0, 0.05]], device=device,
+                          dtype=dtype)
     _, face, _ = locate_single(mesh, pts)
     ex, reach = curve_coverage_excess(mesh, values, pts, face, frames)
     ur = which_face(mesh, (0.5, 0.3), dtype, device)
@@ -1410,11 +1411,15 @@ def test_curve_coverage_excess_hand_values_and_reference(device, dtype):
     tol = 1e-5 if dtype == torch.float32 else 1e-12
     # 0.02 across the tangent of the first point, within its reach along it
     assert float(ex[ur]) == pytest.approx(0.02, abs=tol)
-    # upper-left midpoint (-0.5, 0.1): the second point is 0.2 along its tangent (reach 0.1)
-    assert float(ex[ul]) == pytest.approx(0.1, abs=tol)
+    # upper-left midpoint (-0.5, 0.1): the second point is 0.2 along its tangent, beyond its
+    # reach 0.1, so says nothing; the fourth is 0.2 across its tangent
+    assert float(ex[ul]) == pytest.approx(0.2, abs=tol)
+    # upper-middle midpoint (0, 0.1): every point near it sees it beyond its reach
+    um = which_face(mesh, (0.0, 0.5), dtype, device)
+    assert float(ex[um]) == math.inf
     assert float(ex[low]) == -math.inf                     # no segment
-    # the smallest reach among the points of the triangle and its neighbours
-    assert float(reach[ur]) == pytest.approx(0.05, abs=tol) and float(reach[ul]) == pytest.approx(0.1, abs=tol)
+    # the smallest reach among the points that see the midpoint
+    assert float(reach[ur]) == pytest.approx(0.05, abs=tol) and float(reach[ul]) == pytest.approx(0.05, abs=tol)
     ref = coverage_reference(mesh, values, pts, face, frames)
     for t, r in enumerate(ref):
         if math.isinf(r):

@@ -313,14 +313,15 @@ def point_curve_distance2(mesh: MeshBatch, values: torch.Tensor, points: torch.T
 def curve_coverage_excess(mesh: MeshBatch, values: torch.Tensor, points: torch.Tensor, face: torch.Tensor,
                           frames: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
     """``(T,)`` how far the midpoint ``m_t`` of each triangle's zero-set segment lies off the
-    data: the smallest, over the points ``p`` of the triangle and its three neighbours, of
-    ``max(|(m_t − p)·n_p|, |(m_t − p)·τ_p| − r_p)``, where ``τ_p, n_p`` are the tangent and
-    normal of the data at ``p`` and ``r_p`` the reach of its neighbourhood (``frames (P, 3)``
-    from :func:`estimate_noise`). So a curve that runs on along the data across a sampling gap
-    is covered, while one that leaves it sideways (a wall across a ring, a bridge between two
-    close curves) is not. ``-inf`` where the triangle holds no segment, ``inf`` where no point
-    is near (a gap no point reaches, which splitting cannot fill). Also ``(T,)`` the smallest
-    reach of those points (inf: none), the size below which the data cannot place the curve."""
+    data, sideways: the smallest ``|(m_t − p)·n_p|`` over the points ``p`` of the triangle and
+    its three neighbours that see it, i.e. with ``|(m_t − p)·τ_p| ≤ r_p``, where ``τ_p, n_p``
+    are the tangent and normal of the data at ``p`` and ``r_p`` the reach of its neighbourhood
+    (``frames (P, 3)`` from :func:`estimate_noise`). A curve that leaves the data sideways (a
+    wall across a ring, a bridge between two close curves) is caught; one that runs on along
+    the data into a sampling gap is seen by no point and left alone (splitting cannot fill a
+    gap). ``-inf`` where the triangle holds no segment, ``inf`` where no point sees it. Also
+    ``(T,)`` the smallest reach of those points (inf: none): the size below which the data
+    cannot place the curve."""
     seg, has = triangle_segments(mesh, values)
     mid = seg.mean(1)                                              # (T,2)
     T = mid.shape[0]
@@ -335,9 +336,12 @@ def curve_coverage_excess(mesh: MeshBatch, values: torch.Tensor, points: torch.T
     off = mid[c] - p[:, None, :]                                   # (P,4,2)
     along = (off * tau[:, None, :]).sum(-1)
     across = off[..., 0] * tau[:, None, 1] - off[..., 1] * tau[:, None, 0]
-    d = torch.maximum(across.abs(), along.abs() - reach[:, None])
+    # a point vouches only for what lies within its neighbourhood along the curve: beyond it
+    # (a sampling gap) it says nothing, and splitting would not fill the gap
+    seen = valid & (along.abs() <= reach[:, None])
+    d = across.abs()
     out = torch.full((T,), float("inf"), dtype=mid.dtype, device=mid.device)
-    out = out.scatter_reduce(0, c[valid], d[valid], "amin")
+    out = out.scatter_reduce(0, c[seen], d[seen], "amin")
     rmin = torch.full((T,), float("inf"), dtype=mid.dtype, device=mid.device)
-    rmin = rmin.scatter_reduce(0, c[valid], reach[:, None].expand_as(d)[valid], "amin")
+    rmin = rmin.scatter_reduce(0, c[seen], reach[:, None].expand_as(d)[seen], "amin")
     return torch.where(has, out, torch.full_like(out, -float("inf"))), rmin

@@ -1301,6 +1301,20 @@ def test_estimate_noise_sparse_circle_is_not_its_curvature(n, sigma, device):
     assert est > sigma * 0.7
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_estimate_noise_circle_noise_wider_than_spacing(seed, device):
+    """600 points on a circle with noise 2.7x their spacing: eight neighbours are a round blob,
+    so the estimate comes from subsets (64+ points, parabola fits); full-density fits read 0.68
+    of the noise."""
+    n, sigma = 600, 0.01 * 2 * math.sqrt(2)
+    g = torch.Generator().manual_seed(seed)
+    t = torch.arange(n, dtype=torch.float64) * (2 * math.pi / n)
+    p = torch.stack([t.cos(), t.sin()], 1) + sigma * torch.randn(n, 2, generator=g, dtype=torch.float64)
+    d = float((p.max(0).values - p.min(0).values).norm())
+    est = float(estimate_noise((p / d).to(device), torch.zeros(n, dtype=torch.long, device=device), 1)[0]) * d
+    assert 0.78 * sigma < est < 1.25 * sigma
+
+
 def test_segment_median_against_loop(device):
     g = torch.Generator().manual_seed(0)
     n, B = 500, 9

@@ -223,6 +223,36 @@ def test_sparse_annulus_is_not_cut_into_pieces(seed, item):
         assert float(d.max()) < 0.03 * diag
 
 
+def test_distinct_points_packed_against_a_loop():
+    """Exact repeats are merged per item, first occurrences kept in input order (-0.0 equals
+    0.0; integer and float32 inputs compared exactly in float64); a set left with fewer than 3
+    distinct points is named in the error."""
+    from torch_isc.reconstruct import _distinct
+    g = torch.Generator().manual_seed(0)
+    a = torch.randint(0, 4, (50, 2), generator=g)
+    b = torch.tensor([[0.0, 1.0], [-0.0, 1.0], [2.0, 2.0], [3.0, 1.0], [2.0, 2.0]])
+    c = torch.randn(20, 2, generator=g).float().repeat(2, 1)
+    d = torch.randn(30, 2, generator=g, dtype=torch.float64)
+
+    def first_occurrences(x):
+        seen, out = set(), []
+        for r in x.double().tolist():
+            key = (r[0] + 0.0, r[1] + 0.0)
+            if key not in seen:
+                seen.add(key)
+                out.append(r)
+        return torch.tensor(out, dtype=torch.float64)
+
+    sets = [a, b, c, d]
+    pts, item, counts = _distinct(sets, ["a", "b", "c", "d"])
+    assert pts.dtype == torch.float64
+    assert counts.tolist() == [first_occurrences(x).shape[0] for x in sets]
+    for k, x in enumerate(sets):
+        assert torch.equal(pts[item == k], first_occurrences(x)), k
+    with pytest.raises(PointSetError, match="^two: needs at least 3 distinct points, got 2$"):
+        _distinct([d, torch.tensor([[1.0, 1.0], [1.0, 1.0], [2.0, 0.0]])], ["one", "two"])
+
+
 def test_empty_batch():
     assert reconstruct_batch([]) == []
 

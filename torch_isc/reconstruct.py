@@ -62,19 +62,39 @@ def _check_points(x: PointsLike, label: str) -> torch.Tensor:
     return x
 
 
-def _distinct(x: torch.Tensor, label: str) -> torch.Tensor:
-    """``x`` without exact repeats of a point, in the order of first occurrence. Repeats say
-    nothing about the curve, but they would fool the noise estimate (a point's nearest
-    neighbours would be its own copies: noise 0, tolerance floor gone) and the point-count
-    guards of the test, and noisy data would be refined into spurious loops."""
-    u, inv = torch.unique(x, dim=0, return_inverse=True)
-    if u.shape[0] < 3:
-        raise PointSetError(f"{label}: needs at least 3 distinct points, got {u.shape[0]}")
-    if u.shape[0] == x.shape[0]:
-        return x
-    first = torch.full((u.shape[0],), x.shape[0], dtype=torch.long, device=x.device)
-    first.scatter_reduce_(0, inv, torch.arange(x.shape[0], device=x.device), "amin")
-    return x[first.sort().values]
+def _distinct(sets: Sequence[torch.Tensor], labels: Sequence[str]):
+    """The point *sets*: every item's points without exact repeats, in the order of first
+    occurrence, packed in float64 (exact for the inputs' float32/float64/integer values).
+    Repeats say nothing about the curve, but they would fool the noise estimate (a point's
+    nearest neighbours would be its own copies: noise 0, tolerance floor gone) and the
+    point-count guards of the test, and noisy data would be refined into spurious loops.
+
+    Returns ``(points (P, 2) float64, point_item (P,), counts (B,))``, for the whole batch at
+    once: rows ``(item, x, y)`` sorted by three stable sorts (``unique(dim=0)`` is several
+    times slower), equal neighbours grouped."""
+    dev = sets[0].device
+    B = len(sets)
+    n = torch.tensor([p.shape[0] for p in sets], device=dev)
+    item = torch.repeat_interleave(torch.arange(B, device=dev), n)
+    x = torch.cat([p.to(torch.float64) for p in sets])
+    o = torch.argsort(x[:, 1], stable=True)
+    o = o[torch.argsort(x[o, 0], stable=True)]
+    o = o[torch.argsort(item[o], stable=True)]
+    xs, its = x[o], item[o]
+    new = torch.ones(o.shape[0], dtype=torch.bool, device=dev)
+    new[1:] = (its[1:] != its[:-1]) | (xs[1:] != xs[:-1]).any(1)
+    gid = torch.cumsum(new.long(), 0) - 1
+    G = int(gid[-1]) + 1
+    counts = torch.bincount(its[new], minlength=B)
+    few = (counts < 3).nonzero().squeeze(1)
+    if few.numel():
+        b = int(few[0])
+        raise PointSetError(f"{labels[b]}: needs at least 3 distinct points, got {int(counts[b])}")
+    if G == x.shape[0]:
+        return x, item, counts
+    first = torch.full((G,), x.shape[0], dtype=torch.long, device=dev).scatter_reduce_(0, gid, o, "amin")
+    keep = first.sort().values                       # item-major, first occurrence within an item
+    return x[keep], item[keep], counts
 
 
 def _collinear(pts64: torch.Tensor, point_item: torch.Tensor, B: int, slack: torch.Tensor) -> torch.Tensor:
@@ -151,7 +171,6 @@ def reconstruct_batch(point_sets: Sequence[PointsLike], config: Optional[Reconst
     names = list(names) if names is not None else [None] * len(point_sets)
     labels = [n if n is not None else f"point set {i}" for i, n in enumerate(names)]
     raw = [_check_points(p, lab) for p, lab in zip(point_sets, labels)]
-    solve = [_distinct(p, lab) for p, lab in zip(raw, labels)]   # the point *set*: exact repeats merged
     device = raw[0].device
     for p, lab in zip(raw, labels):
         if p.device != device:
@@ -160,19 +179,20 @@ def reconstruct_batch(point_sets: Sequence[PointsLike], config: Optional[Reconst
     B = len(raw)
 
     with torch.no_grad():
+        pts64, point_item, counts = _distinct(raw, labels)
         # normalize in float64, then cast: large offsets (1e7) must not cost precision
-        lo = torch.stack([p.double().min(0).values for p in solve])
-        hi = torch.stack([p.double().max(0).values for p in solve])
+        big = torch.finfo(torch.float64).max
+        lo = torch.full((B, 2), big, dtype=torch.float64, device=device).scatter_reduce(
+            0, point_item[:, None].expand(-1, 2), pts64, "amin")
+        hi = torch.full((B, 2), -big, dtype=torch.float64, device=device).scatter_reduce(
+            0, point_item[:, None].expand(-1, 2), pts64, "amax")
         center64 = 0.5 * (lo + hi)
         scale64 = (hi - lo).norm(dim=1)
-        counts = torch.tensor([p.shape[0] for p in solve], device=device)
-        point_item = torch.repeat_interleave(torch.arange(B, device=device), counts)
-        pts64 = torch.cat([p.double() for p in solve])
         norm64 = (pts64 - center64[point_item]) / scale64[point_item, None]
         pts = norm64.to(dtype)
         # points on one line (up to the rounding of the input) enclose no region: such an item
         # stops at level 0 with no curve (limit "no_curve"), not with a loop the data cannot support
-        ulp = torch.tensor([torch.finfo(p.dtype).eps if p.dtype.is_floating_point else 0.0 for p in solve],
+        ulp = torch.tensor([torch.finfo(p.dtype).eps if p.dtype.is_floating_point else 0.0 for p in raw],
                            dtype=torch.float64, device=device)
         reach = torch.maximum(lo.abs(), hi.abs()).amax(1)
         flat = _collinear(norm64, point_item, B, 1e-12 + 8 * ulp * reach / scale64)
@@ -250,37 +270,42 @@ def reconstruct_batch(point_sets: Sequence[PointsLike], config: Optional[Reconst
             done = (n_marked == 0) | over | (level == cfg.max_level) | flat[orig]
             clock.tick("test")
             pts_per_item = torch.bincount(point_item, minlength=nb)
-            s_list = scale[orig]
-            for j in range(nb):                    # bookkeeping per item, not a hot path
-                b = int(orig[j])
-                sc = float(s_list[j])
+            # one transfer per quantity (on a GPU every scalar read is a synchronization)
+            sc_t = scale[orig].double()
+            cols = zip(orig.tolist(), mesh.faces_per_item.tolist(), pts_per_item.tolist(),
+                       (d1.double() * sc_t * sc_t).tolist(), (worst.double() * sc_t).tolist(),
+                       (eff_tol.double() * sc_t).tolist(), (noise[orig].double() * sc_t).tolist(),
+                       n_marked.tolist(), beyond.tolist())
+            for b, tri, npts, dl, mx, tl, ns, mk, bt in cols:       # bookkeeping, plain Python numbers
                 level_stats.append({
-                    "level": level, "triangles": int(mesh.faces_per_item[j]), "points": int(pts_per_item[j]),
-                    "delta1": float(d1[j]) * sc * sc, "max_error": float(worst[j]) * sc,
-                    "tolerance": float(eff_tol[j]) * sc, "noise": float(noise[b]) * sc,
-                    "marked": int(n_marked[j]), "points_beyond_tolerance": int(beyond[j])})
+                    "level": level, "triangles": tri, "points": npts, "delta1": dl, "max_error": mx,
+                    "tolerance": tl, "noise": ns, "marked": mk, "points_beyond_tolerance": bt})
                 stats[b].append(level_stats[-1])
             fin = done.nonzero().squeeze(1)
             if fin.numel():
                 sub, vk, _ = mesh.select_items(fin)
-                curve_vals = values[vk]
-                for jj, j in enumerate(fin.tolist()):
-                    b = int(orig[j])
+                ob = orig[fin]
+                vitem = sub.vert_item
+                vals = values[vk]
+                vals = torch.where(flat[ob][vitem], vals.abs(), vals)        # all outside: no curve
+                inside = torch.zeros(fin.shape[0], dtype=torch.bool, device=device).index_put_(
+                    (vitem[vals < 0],), torch.ones((), dtype=torch.bool, device=device))
+                # back to the caller's frame in float64 (an offset of 1e7 must not be rounded
+                # away), then to the caller's precision, at least the working one
+                verts64 = sub.verts.double() * scale64[ob][vitem, None] + center64[ob][vitem]
+                vals64 = vals.double() * scale64[ob][vitem]
+                first = sub.verts_first_idx.tolist() + [sub.verts.shape[0]]
+                for jj, (j, b, mk, ov, has_in) in enumerate(zip(fin.tolist(), ob.tolist(), n_marked[fin].tolist(),
+                                                              over[fin].tolist(), inside.tolist())):
                     limit = None
-                    if n_marked[j] > 0:
-                        limit = "max_triangles" if bool(over[j]) else "max_level"
-                    m1 = sub[jj]
-                    v0 = int(sub.verts_first_idx[jj])
-                    vals = curve_vals[v0:v0 + m1.verts.shape[0]]
-                    if bool(flat[b]):
-                        vals = vals.abs()                  # all outside: no curve
-                    # back to the caller's frame in float64, then to the caller's precision (at
-                    # least the working one): an offset of 1e7 must not be rounded away
+                    if mk > 0:
+                        limit = "max_triangles" if ov else "max_level"
                     odt = torch.promote_types(raw[b].dtype if raw[b].dtype.is_floating_point else dtype, dtype)
-                    out_mesh = m1.with_verts((m1.verts.double() * scale64[b] + center64[b]).to(odt))
-                    curve = ImplicitCurve(out_mesh, (vals.double() * scale64[b]).to(odt), validate=False)
-                    converged = bool(n_marked[j] == 0)
-                    if not bool((vals < 0).any()):
+                    v0, v1 = first[jj], first[jj + 1]
+                    out_mesh = sub[jj].with_verts(verts64[v0:v1].to(odt))
+                    curve = ImplicitCurve(out_mesh, vals64[v0:v1].to(odt), validate=False)
+                    converged = mk == 0
+                    if not has_in:
                         # no inside vertex, so no curve: the data did not define one (too few
                         # points, or all of them on one line)
                         converged, limit = False, "no_curve"

@@ -18,7 +18,10 @@ per curve, spaced evenly in arclength with a random phase):
 - two: circles of radius 1 and 0.8 with a gap of 0.1-0.6 between them;
 - annulus (inner radius 0.4-0.75), nested3 (radii 1, 0.7, 0.35);
 - gapcircle, gapflower: one or two arcs of 0.15-0.5 rad with no samples (the truth is closed);
-- outliers: an ellipse plus 3-24 points uniform over its box widened by 10% of the diagonal.
+- outliers: an ellipse plus 3-24 points uniform over its box widened by 10% of the diagonal;
+- glyph: a character of ``GLYPHS`` (with holes or without) drawn by OpenCV's Hershey stroke fonts
+  with strokes 40-70 px wide at 1024 px, outlines from ``cv2.findContours`` (outer boundaries and
+  holes, simplified to 1 px), 240-1800 points in all.
 
 The public cases (``--rotations K``) are turned about the origin by K angles spread over
 (0, 60) degrees (the hexagonal initial mesh repeats every 60 degrees), truth included: the
@@ -52,7 +55,10 @@ from _common import add_run_args, resolve_dir, run_main  # noqa: E402
 from torch_isc import metrics  # noqa: E402
 
 KINDS = ("circle", "ellipse", "flower", "two", "annulus", "squircle", "nested3", "gapcircle", "gapflower",
-         "outliers")
+         "outliers", "glyph")
+GLYPHS = "ABDOPQRabdegopq04689CGSUVXZ235"
+import os as _os
+GLYPHS = _os.environ.get("GLYPHS", GLYPHS)
 NOISES = (0.0, 0.25, 0.5, 1.0)          # % of the truth's diagonal
 Curve = Callable[[np.ndarray], np.ndarray]
 
@@ -83,6 +89,36 @@ def arclength_samples(fn: Curve, n: int, phase: float, dense: int = 20000) -> Tu
     return p[i - 1] * (1 - w) + p[i] * w, float(s[-1])
 
 
+def polyline_curve(poly: np.ndarray) -> Curve:
+    """The closed polyline ``poly (n, 2)`` as a curve of ``t in [0, 2 pi]`` (by arclength)."""
+    q = np.concatenate([poly, poly[:1]])
+    s = np.concatenate([[0.0], np.cumsum(np.hypot(*(q[1:] - q[:-1]).T))])
+
+    def fn(t):
+        u = np.asarray(t) / (2 * math.pi) * s[-1]
+        return np.stack([np.interp(u, s, q[:, 0]), np.interp(u, s, q[:, 1])], 1)
+    return fn
+
+
+def glyph_outlines(ch: str, font: int, thickness: int) -> List[np.ndarray]:
+    """The outlines of ``ch`` drawn by OpenCV's stroke font (outer boundaries and holes), as
+    closed polylines in a unit-height frame (y up), from a 1024 px rendering."""
+    import cv2
+    size = 1024
+    img = np.zeros((size, size), np.uint8)
+    scale = 18.0
+    (w, h), _ = cv2.getTextSize(ch, font, scale, thickness)
+    cv2.putText(img, ch, ((size - w) // 2, (size + h) // 2), font, scale, 255, thickness, cv2.LINE_AA)
+    contours, _ = cv2.findContours((img > 127).astype(np.uint8), cv2.RETR_CCOMP, cv2.CHAIN_APPROX_NONE)
+    out = []
+    for c in contours:
+        if cv2.contourArea(c) < 400:                  # specks of the anti-aliasing
+            continue
+        c = cv2.approxPolyDP(c, 1.0, True)[:, 0, :].astype(np.float64)
+        out.append(np.stack([c[:, 0], size - c[:, 1]], 1) / size)
+    return out
+
+
 def make_case(i: int, kinds: Sequence[str], rng: np.random.Generator) -> Dict[str, Any]:
     kind = kinds[i % len(kinds)]
     noise = NOISES[(i // len(kinds)) % len(NOISES)]
@@ -104,9 +140,14 @@ def make_case(i: int, kinds: Sequence[str], rng: np.random.Generator) -> Dict[st
         fns = [ellipse(1, 1), ellipse(0.7, 0.7), ellipse(0.35, 0.35)]
     elif kind in ("gapcircle", "outliers"):
         fns = [ellipse(1, rng.uniform(0.6, 1.0))]
+    elif kind == "glyph":
+        import cv2
+        ch = GLYPHS[int(rng.integers(len(GLYPHS)))]
+        font = (cv2.FONT_HERSHEY_SIMPLEX, cv2.FONT_HERSHEY_DUPLEX)[int(rng.integers(2))]
+        fns = [polyline_curve(c) for c in glyph_outlines(ch, font, int(rng.integers(40, 70)))]
     else:
         raise ValueError(f"unknown kind {kind!r} (known: {', '.join(KINDS)})")
-    n = int(rng.uniform(80, 600)) * len(fns)
+    n = int(rng.uniform(80, 600)) * (len(fns) if kind != "glyph" else 3)
     lengths = [arclength_samples(f, 8, 0.0)[1] for f in fns]
     counts = [max(12, int(round(n * ln / sum(lengths)))) for ln in lengths]
     pts = np.concatenate([arclength_samples(f, c, rng.uniform())[0] for f, c in zip(fns, counts)])

@@ -23,7 +23,7 @@ from torch_isc.fit.subdivide import subdivide
 from torch_isc.fit.tolerance import (curve_coverage_excess, estimate_noise, mark_triangles, point_curve_distance2,
                                      segment_median, triangle_errors)
 from torch_isc.fit.topology import (anneal, edge_weights, hash_uniform, ising_energy, line_fits, pooled_moments,
-                                    triangle_moments, vertex_coloring)
+                                    remove_small_islands, sign_islands, triangle_moments, vertex_coloring)
 from torch_isc.locate import barycentric
 from torch_isc.mesh import MeshBatch, hexagon_mesh, square_mesh
 
@@ -444,6 +444,48 @@ def test_anneal_batch_independent(device):
     s_b = anneal(batch, H, init, fixed, 40, 3.0, 0.02, replicas=3, seed=2)
     s_1 = anneal(one, H[e0:e0 + ne], init[v0:v0 + nv], fixed[v0:v0 + nv], 40, 3.0, 0.02, replicas=3, seed=2)
     assert torch.equal(s_b[v0:v0 + nv], s_1)
+
+
+def islands_by_bfs(mesh, signs):
+    """Same-sign regions by breadth-first search over the edges (Python)."""
+    V = signs.shape[0]
+    nb = [[] for _ in range(V)]
+    for a, b in mesh.edges.cpu().tolist():
+        nb[a].append(b)
+        nb[b].append(a)
+    neg = (signs < 0).cpu().tolist()
+    lab = [-1] * V
+    for v in range(V):
+        if lab[v] >= 0:
+            continue
+        lab[v], todo = v, [v]
+        while todo:
+            u = todo.pop()
+            for w in nb[u]:
+                if lab[w] < 0 and neg[w] == neg[v]:
+                    lab[w] = v
+                    todo.append(w)
+    return lab
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_sign_islands_and_their_removal_against_bfs(seed, device):
+    mesh = hexagons(2, 6, device, torch.float64)
+    g = torch.Generator().manual_seed(seed)
+    signs = torch.where(torch.rand(mesh.verts.shape[0], generator=g) < 0.4, -1.0, 1.0).double().to(device)
+    lab = sign_islands(mesh, signs).cpu().tolist()
+    ref = islands_by_bfs(mesh, signs)
+    assert lab == ref                                   # both label a region by its smallest vertex
+    fixed = mesh.is_boundary_vert
+    for k in (2, 3):
+        out = remove_small_islands(mesh, signs, fixed, k).cpu()
+        size = {r: ref.count(r) for r in set(ref)}
+        pinned = {ref[v] for v in fixed.nonzero().squeeze(1).cpu().tolist()}
+        want = [-float(x) if size[r] < k and r not in pinned else float(x)
+                for x, r in zip(signs.cpu().tolist(), ref)]
+        assert out.tolist() == want
+        assert any(size[r] < k and r not in pinned for r in ref)     # the rule really fired
+    assert torch.equal(remove_small_islands(mesh, signs, fixed, 0), signs)
 
 
 @pytest.mark.parametrize("active_frac", [1.0, 0.6])

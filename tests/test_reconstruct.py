@@ -253,6 +253,45 @@ def test_distinct_points_packed_against_a_loop():
         _distinct([d, torch.tensor([[1.0, 1.0], [1.0, 1.0], [2.0, 0.0]])], ["one", "two"])
 
 
+def glyph_four(thickness):
+    """The outlines of a '4' in OpenCV's Hershey simplex font (outer boundary and the
+    triangular counter, whose corners are acute wedges), unit height, from a 1024 px render."""
+    import cv2
+    img = np.zeros((1024, 1024), np.uint8)
+    (w, h), _ = cv2.getTextSize("4", cv2.FONT_HERSHEY_SIMPLEX, 18.0, thickness)
+    cv2.putText(img, "4", ((1024 - w) // 2, (1024 + h) // 2), cv2.FONT_HERSHEY_SIMPLEX, 18.0, 255, thickness,
+                cv2.LINE_AA)
+    contours, _ = cv2.findContours((img > 127).astype(np.uint8), cv2.RETR_CCOMP, cv2.CHAIN_APPROX_NONE)
+    out = []
+    for c in contours:
+        if cv2.contourArea(c) >= 400:
+            c = cv2.approxPolyDP(c, 1.0, True)[:, 0, :].astype(np.float64)
+            out.append(np.stack([c[:, 0], 1024 - c[:, 1]], 1) / 1024)
+    return out
+
+
+def resample_closed(poly, n, phase=0.3):
+    q = np.concatenate([poly, poly[:1]])
+    s = np.concatenate([[0.0], np.cumsum(np.hypot(*(q[1:] - q[:-1]).T))])
+    u = (phase + np.arange(n)) / n * s[-1]
+    return np.stack([np.interp(u, s, q[:, 0]), np.interp(u, s, q[:, 1])], 1)
+
+
+@pytest.mark.parametrize("thickness", [40, 70])
+def test_glyph_with_acute_counter_has_no_pinched_off_loop(thickness):
+    """The counter of a '4' ends in acute corners; the wedge tip used to be cut off as a third
+    loop (a single inside vertex whose star the data cannot resolve): 2 curves now."""
+    outlines = glyph_four(thickness)
+    assert len(outlines) == 2
+    pts = torch.as_tensor(np.concatenate([resample_closed(o, 300) for o in outlines]))
+    res = reconstruct(pts)
+    assert (res.num_closed, res.num_open) == (2, 0)
+    truth = [(torch.as_tensor(resample_closed(o, 4000, 0.0)), True) for o in outlines]
+    assert hausdorff(res.polylines, truth) < 0.02 * bbox_diagonal(pts)
+    off = reconstruct(pts, ReconstructConfig(min_island_vertices=0))
+    assert off.num_closed == 3                          # the rule is what removes the third loop
+
+
 def test_empty_batch():
     assert reconstruct_batch([]) == []
 

@@ -51,6 +51,7 @@ class ReconstructConfig:
     anneal_t_end: float = 0.02
     anneal_warm_t_start: float = 0.3
     anneal_replicas: int = 4
+    min_island_vertices: int = 2
     # geometry
     lbfgs_iterations: int = 60
     lbfgs_history: int = 8

@@ -30,7 +30,8 @@ from .fit.relax import relax_mesh
 from .fit.subdivide import subdivide
 from .fit.tolerance import (curve_coverage_excess, effective_tolerance, estimate_noise, mark_triangles,
                              point_curve_distance2)
-from .fit.topology import anneal, crossing_reach, edge_weights, line_fits, pooled_moments, triangle_moments
+from .fit.topology import (anneal, crossing_reach, edge_weights, line_fits, pooled_moments, remove_small_islands,
+                            triangle_moments)
 from .locate import locate_children, locate_grid
 from .mesh import MeshBatch, hexagon_mesh, square_mesh
 from .result import ReconstructionResult
@@ -237,6 +238,7 @@ def reconstruct_batch(point_sets: Sequence[PointsLike], config: Optional[Reconst
                 signs = anneal(mesh, H, init, fixed, cfg.anneal_sweeps, cfg.anneal_t_start, cfg.anneal_t_end,
                                cfg.anneal_replicas, cfg.seed,
                                warm_t_start=None if level == 0 else cfg.anneal_warm_t_start)
+                signs = remove_small_islands(mesh, signs, fixed, cfg.min_island_vertices)
             init_mag = vertex_data_distance(mesh, pts, face)
             near = vertex_data_distance_near(mesh, pts, face) if cfg.crossing_weight > 0 else None
             clock.tick("topology")
@@ -295,8 +297,9 @@ def reconstruct_batch(point_sets: Sequence[PointsLike], config: Optional[Reconst
                 verts64 = sub.verts.double() * scale64[ob][vitem, None] + center64[ob][vitem]
                 vals64 = vals.double() * scale64[ob][vitem]
                 first = sub.verts_first_idx.tolist() + [sub.verts.shape[0]]
-                for jj, (j, b, mk, ov, has_in) in enumerate(zip(fin.tolist(), ob.tolist(), n_marked[fin].tolist(),
-                                                              over[fin].tolist(), inside.tolist())):
+                for jj, (j, b, mk, ov, has_in, fl) in enumerate(zip(fin.tolist(), ob.tolist(), n_marked[fin].tolist(),
+                                                                  over[fin].tolist(), inside.tolist(),
+                                                                  flat[ob].tolist())):
                     limit = None
                     if mk > 0:
                         limit = "max_triangles" if ov else "max_level"
@@ -305,9 +308,10 @@ def reconstruct_batch(point_sets: Sequence[PointsLike], config: Optional[Reconst
                     out_mesh = sub[jj].with_verts(verts64[v0:v1].to(odt))
                     curve = ImplicitCurve(out_mesh, vals64[v0:v1].to(odt), validate=False)
                     converged = mk == 0
-                    if not has_in:
+                    if fl or (not has_in and limit is None):
                         # no inside vertex, so no curve: the data did not define one (too few
-                        # points, or all of them on one line)
+                        # points, or all of them on one line); a run cut short by a limit
+                        # keeps that limit as its reason
                         converged, limit = False, "no_curve"
                     results[b] = ReconstructionResult(curve=curve, points=raw[b], stats=stats[b], config=cfg,
                                                       converged=converged, limit=limit, name=names[b])

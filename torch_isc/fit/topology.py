@@ -15,7 +15,7 @@ import torch
 from ..mesh import MeshBatch
 
 __all__ = ["TriangleMoments", "triangle_moments", "pooled_moments", "line_fits", "crossing_reach", "edge_weights", "vertex_coloring",
-           "anneal", "ising_energy", "hash_uniform"]
+           "anneal", "ising_energy", "hash_uniform", "sign_islands", "remove_small_islands"]
 
 
 @dataclass
@@ -321,3 +321,44 @@ def anneal(mesh: MeshBatch, H: torch.Tensor, init: torch.Tensor, fixed: torch.Te
         E = ising_energy(mesh, H, s)                              # (B, R)
         best = torch.argmin(E, 1)                                 # first minimum
         return s.gather(1, best[mesh.vert_item][:, None]).squeeze(1)
+
+
+def sign_islands(mesh: MeshBatch, signs: torch.Tensor) -> torch.Tensor:
+    """``(V,)`` long: a label per vertex, equal for vertices joined by a path of edges whose
+    ends have the same sign (the label is the smallest vertex index of the region). Label
+    propagation with pointer jumping: a few tensor ops per round, rounds ~ log of the regions'
+    diameters in practice."""
+    with torch.no_grad():
+        V = signs.shape[0]
+        e = mesh.edges
+        same = (signs[e[:, 0]] < 0) == (signs[e[:, 1]] < 0)
+        a, b = e[same, 0], e[same, 1]
+        lab = torch.arange(V, device=signs.device)
+        while True:
+            m = torch.minimum(lab[a], lab[b])
+            new = lab.scatter_reduce(0, a, m, "amin").scatter_reduce(0, b, m, "amin")
+            new = new[new]                                 # pointer jumping
+            if torch.equal(new, lab):
+                return lab
+            lab = new
+
+
+def remove_small_islands(mesh: MeshBatch, signs: torch.Tensor, keep: torch.Tensor, min_vertices: int) -> torch.Tensor:
+    """Flip every sign region of fewer than ``min_vertices`` vertices that holds no ``keep``
+    vertex. A region that small, where the mesh cannot be refined further, is below its
+    resolution: the zero set around it is a loop within one vertex star (a pinched-off wedge
+    tip, a speck of noise), which the data cannot place.
+
+    Args:
+        keep: ``(V,)`` bool, vertices whose region stays: the fixed boundary, and vertices
+            of a triangle the test may still split (there the next level resolves the region
+            with more vertices, as at a coarse level where a whole small curve is one vertex).
+    """
+    if min_vertices <= 1:
+        return signs
+    with torch.no_grad():
+        lab = sign_islands(mesh, signs)
+        size = torch.bincount(lab, minlength=signs.shape[0])
+        pinned = torch.zeros_like(size, dtype=torch.bool).index_fill_(0, lab[keep], True)
+        flip = (size[lab] < min_vertices) & ~pinned[lab]
+        return torch.where(flip, -signs, signs)

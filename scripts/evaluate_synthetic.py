@@ -19,7 +19,7 @@ per curve, spaced evenly in arclength with a random phase):
 - annulus (inner radius 0.4-0.75), nested3 (radii 1, 0.7, 0.35);
 - gapcircle, gapflower: one or two arcs of 0.15-0.5 rad with no samples (the truth is closed);
 - outliers: an ellipse plus 3-24 points uniform over its box widened by 10% of the diagonal;
-- glyph: a character of ``GLYPHS`` (with holes or without) drawn by OpenCV's Hershey stroke fonts
+- glyph: a character of ``--glyphs`` (default: with holes or without, no dots) drawn by OpenCV's Hershey stroke fonts
   with strokes 40-70 px wide at 1024 px, outlines from ``cv2.findContours`` (outer boundaries and
   holes, simplified to 1 px), 240-1800 points in all.
 
@@ -57,8 +57,6 @@ from torch_isc import metrics  # noqa: E402
 KINDS = ("circle", "ellipse", "flower", "two", "annulus", "squircle", "nested3", "gapcircle", "gapflower",
          "outliers", "glyph")
 GLYPHS = "ABDOPQRabdegopq04689CGSUVXZ235"
-import os as _os
-GLYPHS = _os.environ.get("GLYPHS", GLYPHS)
 NOISES = (0.0, 0.25, 0.5, 1.0)          # % of the truth's diagonal
 Curve = Callable[[np.ndarray], np.ndarray]
 
@@ -119,7 +117,7 @@ def glyph_outlines(ch: str, font: int, thickness: int) -> List[np.ndarray]:
     return out
 
 
-def make_case(i: int, kinds: Sequence[str], rng: np.random.Generator) -> Dict[str, Any]:
+def make_case(i: int, kinds: Sequence[str], rng: np.random.Generator, glyphs: str = GLYPHS) -> Dict[str, Any]:
     kind = kinds[i % len(kinds)]
     noise = NOISES[(i // len(kinds)) % len(NOISES)]
     if kind == "circle":
@@ -142,7 +140,7 @@ def make_case(i: int, kinds: Sequence[str], rng: np.random.Generator) -> Dict[st
         fns = [ellipse(1, rng.uniform(0.6, 1.0))]
     elif kind == "glyph":
         import cv2
-        ch = GLYPHS[int(rng.integers(len(GLYPHS)))]
+        ch = glyphs[int(rng.integers(len(glyphs)))]
         font = (cv2.FONT_HERSHEY_SIMPLEX, cv2.FONT_HERSHEY_DUPLEX)[int(rng.integers(2))]
         fns = [polyline_curve(c) for c in glyph_outlines(ch, font, int(rng.integers(40, 70)))]
     else:
@@ -225,6 +223,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--count", type=int, default=280, help="generated shapes (default 280)")
     ap.add_argument("--seed", type=int, default=0, help="generator seed (default 0)")
     ap.add_argument("--kinds", default=",".join(KINDS), help=f"comma list, taken in turn (default: {','.join(KINDS)})")
+    ap.add_argument("--glyphs", default=GLYPHS, help=f"characters of the glyph kind (default {GLYPHS})")
     ap.add_argument("--rotations", type=int, default=0, help="also the public cases turned by K angles (default 0)")
     ap.add_argument("--cases", default=None, help="public cases folder (default: ../shared/cases)")
     ap.add_argument("--peers", action="store_true", help="also score NN-crust and shapely.concave_hull")
@@ -245,7 +244,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         print(f"--kinds: unknown {', '.join(unknown)} (known: {', '.join(KINDS)})", file=sys.stderr)
         return 2
     rng = np.random.default_rng(args.seed)
-    cases = [make_case(i, kinds, rng) for i in range(args.count)]
+    cases = [make_case(i, kinds, rng, args.glyphs) for i in range(args.count)]
     if args.rotations > 0:
         cases += rotated_public(resolve_dir(args.cases, REPO / ".." / "shared" / "cases"), args.rotations)
     if args.filter:

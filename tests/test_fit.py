@@ -1398,13 +1398,14 @@ def test_point_curve_distance_hand_values(device, dtype):
     pts = torch.tensor([[0.5, 0.11], [0.4, 0.15], [0.5, 0.3],
                         [-0.6, 0.15],                # upper-left triangle: 0.05 from its own segment
                         [0.6, -0.1],                 # lower-right: no curve, neighbour above has it: 0.2
-                        [0.0, -0.5],                 # lower-middle: no curve in it or its neighbours
+                        [0.0, -0.5],                 # lower-middle: no curve in it or its neighbours,
+                                                     # the nearest in their neighbours (upper-left/right)
                         [0.02, 0.5]],                # upper-middle: the short segment x in [-0.0577, 0.0577]
                        device=device, dtype=dtype)
     _, face, _ = locate_single(mesh, pts)
     d2 = point_curve_distance2(mesh, values, pts, face)
     # last point: above the short segment of its own triangle (|x| < 0.1/√3), 0.4 above it
-    want = [0.01 ** 2, 0.05 ** 2, 0.2 ** 2, 0.05 ** 2, 0.2 ** 2, float("inf"), 0.4 ** 2]
+    want = [0.01 ** 2, 0.05 ** 2, 0.2 ** 2, 0.05 ** 2, 0.2 ** 2, 0.6 ** 2 + (0.1 / SQ3) ** 2, 0.4 ** 2]
     tol = 1e-5 if dtype == torch.float32 else 1e-12
     for k, w in enumerate(want):
         if math.isinf(w):
@@ -1513,6 +1514,56 @@ def test_estimate_noise_frames_follow_the_curve(device):
     step = 0.35 * 2 * math.pi / n
     # eight nearest along a uniformly sampled circle: four on each side
     torch.testing.assert_close(fr[:, 2], torch.full((n,), 4 * step, dtype=torch.float64), rtol=1e-3, atol=0)
+
+
+def test_point_curve_distance_second_ring_against_loops(device):
+    """Points with no curve in their triangle's 1-ring are measured against the 2-ring, and
+    read inf beyond it (float64 loops over triangles sharing an edge as the reference)."""
+    dtype = torch.float64
+    mesh = hexagon_mesh(torch.zeros(1, 2, device=device, dtype=dtype), torch.ones(1, device=device, dtype=dtype), 5)
+    # a small closed curve around (0.45, 0.1): most of the hexagon is far from it
+    values = ((mesh.verts - torch.tensor([0.45, 0.1], device=device, dtype=dtype)) ** 2).sum(1) - 0.03
+    g = torch.Generator().manual_seed(4)
+    pts = (torch.rand(200, 2, generator=g, dtype=dtype) * 1.4 - 0.7).to(device)
+    _, face, _ = locate_single(mesh, pts)
+    d2 = point_curve_distance2(mesh, values, pts, face).cpu()
+    F = mesh.faces.cpu().tolist()
+    V = mesh.verts.cpu().numpy()
+    val = values.cpu().numpy()
+    nbrs = [[u for u, o in enumerate(F) if len(set(o) & set(t)) == 2] for t in F]
+
+    def segment(t):
+        cross = []
+        for a, b in ((F[t][0], F[t][1]), (F[t][1], F[t][2]), (F[t][2], F[t][0])):
+            if (val[a] < 0) != (val[b] < 0):
+                u = val[a] / (val[a] - val[b])
+                cross.append(V[a] + u * (V[b] - V[a]))
+        return cross if len(cross) == 2 else None
+
+    def dist2(p, ts):
+        best = math.inf
+        for t in ts:
+            sg = segment(t)
+            if sg is None:
+                continue
+            a, d = sg[0], sg[1] - sg[0]
+            u = min(max(float((p - a) @ d / max(d @ d, 1e-300)), 0.0), 1.0)
+            best = min(best, float(((p - a - u * d) ** 2).sum()))
+        return best
+    kinds = set()
+    for p, f, got in zip(pts.cpu().numpy(), face.cpu().tolist(), d2.tolist()):
+        ring1 = [f] + nbrs[f]
+        want = dist2(p, ring1)
+        if math.isinf(want):
+            want = dist2(p, sorted({u for t in nbrs[f] for u in nbrs[t]}))
+            kinds.add("ring2" if math.isfinite(want) else "inf")
+        else:
+            kinds.add("ring1")
+        if math.isinf(want):
+            assert math.isinf(got)
+        else:
+            assert got == pytest.approx(want, rel=1e-9, abs=1e-15)
+    assert kinds == {"ring1", "ring2", "inf"}
 
 
 def _mark(mesh, pts, values, device, dtype, tol=0.004, noise=0.0, line_eps=None, statistic="max",

@@ -302,9 +302,9 @@ def test_cli_offset_1e7(tmp_path, capsys):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="dense noisy data: 3 closed curves instead of 1 (was 40); the noise is now "
-                   "estimated right (0.00084 for 0.00085), but refinement near the thick band still ends in small "
-                   "spurious loops and vertex clumps (open problem, see README)")
+@pytest.mark.xfail(strict=True, reason="dense noisy data: 1 closed curve now (3 before, 40 at first), but not "
+                   "converged: the max test still finds points about 6 noise levels off the curve in a few triangles "
+                   "of the band and refines them into vertex clumps until max_level (open problem, see README)")
 def test_million_points_dense_noisy_ellipse():
     """1,000,000 points about an ellipse with noise 0.002 (0.09% of the diagonal): a line fit
     on 8 neighbours reads the spacing, not the noise, and the largest of thousands of

@@ -290,19 +290,11 @@ def triangle_segments(mesh: MeshBatch, values: torch.Tensor) -> Tuple[torch.Tens
     return seg, has
 
 
-def point_curve_distance2(mesh: MeshBatch, values: torch.Tensor, points: torch.Tensor,
-                          face: torch.Tensor) -> torch.Tensor:
-    """``(P,)`` squared distance of each point to the zero-set segments of its triangle and
-    of that triangle's three neighbours (inf when none of them holds a segment).
-
-    Unlike ``f²/|∇f|²`` (the distance to the *extended* zero line of the point's triangle),
-    this sees a point whose triangle has no curve at all."""
-    seg, has = triangle_segments(mesh, values)
-    ok = face >= 0
-    f = face.clamp_min(0)
-    cand = torch.cat([f[:, None], mesh.face_neighbors[f]], 1)         # (P,4)
-    valid = (cand >= 0) & has[cand.clamp_min(0)] & ok[:, None]
-    s = seg[cand.clamp_min(0)]                                       # (P,4,2,2)
+def _segment_distance2(seg: torch.Tensor, has: torch.Tensor, points: torch.Tensor, cand: torch.Tensor) -> torch.Tensor:
+    """``(P,)`` the smallest squared distance of each point to the segments of its candidate
+    triangles ``cand (P, K)`` (-1: none; inf when no candidate holds a segment)."""
+    valid = (cand >= 0) & has[cand.clamp_min(0)]
+    s = seg[cand.clamp_min(0)]                                       # (P,K,2,2)
     p = points.to(seg.dtype)[:, None, :]
     a, d = s[:, :, 0], s[:, :, 1] - s[:, :, 0]
     tt = (((p - a) * d).sum(-1) / (d * d).sum(-1).clamp_min(torch.finfo(seg.dtype).tiny)).clamp(0, 1)
@@ -310,6 +302,30 @@ def point_curve_distance2(mesh: MeshBatch, values: torch.Tensor, points: torch.T
     d2 = ((p - q) ** 2).sum(-1)
     d2 = torch.where(valid, d2, torch.full_like(d2, float("inf")))
     return d2.min(1).values
+
+
+def point_curve_distance2(mesh: MeshBatch, values: torch.Tensor, points: torch.Tensor,
+                          face: torch.Tensor) -> torch.Tensor:
+    """``(P,)`` squared distance of each point to the zero-set segments of its triangle and
+    of that triangle's three neighbours, or, for a point none of them holds a segment for, of
+    the neighbours' neighbours (inf when none of those does either).
+
+    Unlike ``f²/|∇f|²`` (the distance to the *extended* zero line of the point's triangle),
+    this sees a point whose triangle has no curve at all. The second ring keeps a point next
+    to the curve from reading "no curve near" only because the triangles around it are small
+    (refinement near a dense noisy band)."""
+    seg, has = triangle_segments(mesh, values)
+    ok = face >= 0
+    f = face.clamp_min(0)
+    nb = mesh.face_neighbors
+    ring1 = torch.cat([f[:, None], nb[f]], 1)                         # (P,4)
+    d2 = _segment_distance2(seg, has, points, ring1)
+    far = (ok & torch.isinf(d2)).nonzero().squeeze(1)
+    if far.numel():
+        r1 = nb[f[far]]                                              # (F,3)
+        ring2 = torch.where((r1 >= 0)[..., None], nb[r1.clamp_min(0)], torch.full_like(nb[r1.clamp_min(0)], -1))
+        d2[far] = _segment_distance2(seg, has, points[far], ring2.reshape(far.shape[0], 9))
+    return torch.where(ok, d2, torch.full_like(d2, float("inf")))
 
 
 def curve_coverage_excess(mesh: MeshBatch, values: torch.Tensor, points: torch.Tensor, face: torch.Tensor,

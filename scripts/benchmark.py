@@ -60,7 +60,7 @@ for _p in (str(REPO), str(SCRIPTS)):
         sys.path.insert(0, _p)
 
 import torch_isc  # noqa: E402
-from _common import run_main  # noqa: E402
+from _common import arclength_samples, ellipse, flower, run_main  # noqa: E402
 
 STAGES = ("topology", "geometry", "test", "subdivide", "locate", "relax")
 NOISE = 0.001          # Gaussian noise sigma, fraction of the bounding-box diagonal
@@ -79,37 +79,15 @@ TARGET_BATCH_SPEEDUP = 5.0
 # ----------------------------------------------------------------------------- data
 
 def sample_closed(fn, n: int, rng: np.random.Generator, dense: int = 20000) -> np.ndarray:
-    """``n`` points uniformly spaced in arclength (random phase) on the closed curve
-    ``fn(t), t in [0, 2 pi)`` (``fn`` maps an array of t to ``(len(t), 2)``)."""
+    """``n`` points uniformly spaced in arclength (random phase) on the closed curve ``fn``."""
     if n <= 0:
         return np.zeros((0, 2))
-    dense = max(dense, 20 * n)
-    t = np.linspace(0.0, 2 * math.pi, dense + 1)
-    p = fn(t)
-    seg = np.hypot(*(p[1:] - p[:-1]).T)
-    s = np.concatenate([[0.0], np.cumsum(seg)])
-    u = (rng.uniform() + np.arange(n)) / n * s[-1]
-    i = np.clip(np.searchsorted(s, u, side="right"), 1, dense)
-    w = ((u - s[i - 1]) / np.maximum(s[i] - s[i - 1], 1e-300))[:, None]
-    return p[i - 1] * (1 - w) + p[i] * w
+    return arclength_samples(fn, n, rng.uniform(), max(dense, 20 * n))[0]
 
 
 def add_noise(p: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     diag = float(np.hypot(*(p.max(0) - p.min(0))))
     return p + rng.normal(0.0, NOISE * diag, p.shape)
-
-
-def flower(a: float = 0.3, k: int = 5):
-    def fn(t):
-        r = 1 + a * np.cos(k * t)
-        return np.stack([r * np.cos(t), r * np.sin(t)], 1)
-    return fn
-
-
-def ellipse(a: float, b: float, cx: float = 0.0, cy: float = 0.0):
-    def fn(t):
-        return np.stack([cx + a * np.cos(t), cy + b * np.sin(t)], 1)
-    return fn
 
 
 def star_points(n: int, seed: int) -> np.ndarray:

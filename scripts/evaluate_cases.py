@@ -39,7 +39,7 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 import torch_isc  # noqa: E402
-from _common import add_run_args, json_text, resolve_dir, run_main  # noqa: E402
+from _common import add_run_args, json_text, resolve_dir, run_main, setup_run  # noqa: E402
 from torch_isc.io import read_points  # noqa: E402
 from torch_isc import metrics  # noqa: E402
 
@@ -338,15 +338,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     args = build_parser().parse_args(argv)
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    config = setup_run(args)
     cases_dir = resolve_dir(args.cases, DEFAULT_CASES)
     cases = load_cases(cases_dir, args.filter)
     if not cases:
         print(f"no case found in {cases_dir}" + (f" matching {args.filter!r}" if args.filter else ""), file=sys.stderr)
         return 2
-    from torch_isc.config import parse_overrides
-    config = torch_isc.load_config(args.config, parse_overrides(args.set))
     print(f"{len(cases)} case(s) from {cases_dir}; "
           f"{'one call per case' if args.one_by_one else 'one reconstruct_batch call'}; device {args.device}\n")
 

@@ -39,7 +39,7 @@ import statistics
 import sys
 import time
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
@@ -51,22 +51,14 @@ for _p in (str(REPO), str(SCRIPTS)):
         sys.path.insert(0, _p)
 
 import torch_isc  # noqa: E402
-from _common import add_run_args, resolve_dir, run_main  # noqa: E402
+from _common import (Curve, add_run_args, arclength_samples, ellipse, flower, resolve_dir,  # noqa: E402
+                     run_main, setup_run)
 from torch_isc import metrics  # noqa: E402
 
 KINDS = ("circle", "ellipse", "flower", "two", "annulus", "squircle", "nested3", "gapcircle", "gapflower",
          "outliers", "glyph")
 GLYPHS = "ABDOPQRabdegopq04689CGSUVXZ235"
 NOISES = (0.0, 0.25, 0.5, 1.0)          # % of the truth's diagonal
-Curve = Callable[[np.ndarray], np.ndarray]
-
-
-def ellipse(a: float, b: float, cx: float = 0.0, cy: float = 0.0) -> Curve:
-    return lambda t: np.stack([cx + a * np.cos(t), cy + b * np.sin(t)], 1)
-
-
-def flower(a: float, k: int) -> Curve:
-    return lambda t: np.stack([(1 + a * np.cos(k * t)) * np.cos(t), (1 + a * np.cos(k * t)) * np.sin(t)], 1)
 
 
 def squircle(p: float) -> Curve:
@@ -74,17 +66,6 @@ def squircle(p: float) -> Curve:
         c, s = np.cos(t), np.sin(t)
         return np.stack([np.sign(c) * np.abs(c) ** (2 / p), np.sign(s) * np.abs(s) ** (2 / p)], 1)
     return fn
-
-
-def arclength_samples(fn: Curve, n: int, phase: float, dense: int = 20000) -> Tuple[np.ndarray, float]:
-    """``n`` points evenly spaced in arclength on the closed curve ``fn`` (and its length)."""
-    t = np.linspace(0.0, 2 * math.pi, dense + 1)
-    p = fn(t)
-    s = np.concatenate([[0.0], np.cumsum(np.hypot(*(p[1:] - p[:-1]).T))])
-    u = (phase + np.arange(n)) / max(n, 1) * s[-1]
-    i = np.clip(np.searchsorted(s, u, side="right"), 1, dense)
-    w = ((u - s[i - 1]) / np.maximum(s[i] - s[i - 1], 1e-300))[:, None]
-    return p[i - 1] * (1 - w) + p[i] * w, float(s[-1])
 
 
 def polyline_curve(poly: np.ndarray) -> Curve:
@@ -234,10 +215,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     args = build_parser().parse_args(argv)
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    from torch_isc.config import parse_overrides
-    config = torch_isc.load_config(args.config, parse_overrides(args.set))
+    config = setup_run(args)
     kinds = [k.strip() for k in args.kinds.split(",") if k.strip()]
     unknown = [k for k in kinds if k not in KINDS]
     if unknown:

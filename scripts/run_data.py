@@ -31,7 +31,7 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 import torch_isc  # noqa: E402
-from _common import add_run_args, json_text, resolve_dir, run_main  # noqa: E402
+from _common import add_run_args, json_text, resolve_dir, run_main, setup_run  # noqa: E402
 from torch_isc.io import read_points  # noqa: E402
 from torch_isc import metrics  # noqa: E402
 
@@ -111,8 +111,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     args = build_parser().parse_args(argv)
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    config = setup_run(args)
     root = resolve_dir(args.data, DEFAULT_DATA)
     files = find_files(root, args.filter)
     if not files:
@@ -122,8 +121,6 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     if not hasattr(torch_isc, "reconstruct_batch"):
         print("torch_isc.reconstruct_batch is not importable", file=sys.stderr)
         return 1
-    from torch_isc.config import parse_overrides
-    config = torch_isc.load_config(args.config, parse_overrides(args.set))
 
     items: List[Dict[str, Any]] = []
     for f in files:

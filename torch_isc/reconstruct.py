@@ -297,9 +297,9 @@ def reconstruct_batch(point_sets: Sequence[PointsLike], config: Optional[Reconst
                 verts64 = sub.verts.double() * scale64[ob][vitem, None] + center64[ob][vitem]
                 vals64 = vals.double() * scale64[ob][vitem]
                 first = sub.verts_first_idx.tolist() + [sub.verts.shape[0]]
-                for jj, (j, b, mk, ov, has_in, fl) in enumerate(zip(fin.tolist(), ob.tolist(), n_marked[fin].tolist(),
-                                                                  over[fin].tolist(), inside.tolist(),
-                                                                  flat[ob].tolist())):
+                for jj, (b, mk, ov, has_in, fl) in enumerate(zip(ob.tolist(), n_marked[fin].tolist(),
+                                                               over[fin].tolist(), inside.tolist(),
+                                                               flat[ob].tolist())):
                     limit = None
                     if mk > 0:
                         limit = "max_triangles" if ov else "max_level"

@@ -15,7 +15,7 @@ from typing import Optional, Tuple
 import torch
 
 from ..mesh import MeshBatch
-from .topology import hash_uniform
+from .topology import eigvec_2x2, hash_uniform
 
 __all__ = ["effective_tolerance", "estimate_noise", "segment_median", "triangle_errors", "mark_triangles",
            "curve_coverage_excess", "point_curve_distance2", "triangle_segments"]
@@ -75,10 +75,7 @@ def _local_line_residual(points: torch.Tensor, point_item: torch.Tensor, idx: to
     root = torch.sqrt((0.5 * (a - d)) ** 2 + b * b)
     lam = (0.5 * (a + d) - root).clamp_min(0)
     lmax = 0.5 * (a + d) + root
-    # major axis: eigenvector of lmax (the better-conditioned of two formulas)
-    v1 = torch.stack([b, lmax - a], 1)
-    v2 = torch.stack([lmax - d, b], 1)
-    t = torch.where((v1.norm(dim=1) >= v2.norm(dim=1))[:, None], v1, v2)
+    t = eigvec_2x2(a, b, d, lmax)                                       # the major axis
     t = t / t.norm(dim=1, keepdim=True).clamp_min(torch.finfo(dt).tiny)
     t = torch.where(torch.isfinite(t) & (t.norm(dim=1, keepdim=True) > 0.5), t,
                     torch.tensor([1.0, 0.0], dtype=dt, device=dev))
@@ -323,7 +320,7 @@ def point_curve_distance2(mesh: MeshBatch, values: torch.Tensor, points: torch.T
     far = (ok & torch.isinf(d2)).nonzero().squeeze(1)
     if far.numel():
         r1 = nb[f[far]]                                              # (F,3)
-        ring2 = torch.where((r1 >= 0)[..., None], nb[r1.clamp_min(0)], torch.full_like(nb[r1.clamp_min(0)], -1))
+        ring2 = nb[r1.clamp_min(0)].masked_fill((r1 < 0)[..., None], -1)   # (F,3,3)
         d2[far] = _segment_distance2(seg, has, points[far], ring2.reshape(far.shape[0], 9))
     return torch.where(ok, d2, torch.full_like(d2, float("inf")))
 

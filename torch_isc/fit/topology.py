@@ -14,7 +14,7 @@ import torch
 
 from ..mesh import MeshBatch
 
-__all__ = ["TriangleMoments", "triangle_moments", "pooled_moments", "line_fits", "crossing_reach", "edge_weights", "vertex_coloring",
+__all__ = ["TriangleMoments", "triangle_moments", "pooled_moments", "eigvec_2x2", "line_fits", "crossing_reach", "edge_weights", "vertex_coloring",
            "anneal", "ising_energy", "hash_uniform", "sign_islands", "remove_small_islands"]
 
 
@@ -77,6 +77,14 @@ def pooled_moments(mesh: MeshBatch, mom: TriangleMoments) -> TriangleMoments:
     return TriangleMoments(N, mom.M, mom.centroid + mean_d, C)
 
 
+def eigvec_2x2(a: torch.Tensor, b: torch.Tensor, d: torch.Tensor, lam: torch.Tensor) -> torch.Tensor:
+    """``(n, 2)`` an eigenvector (not normalized) of the symmetric ``[[a, b], [b, d]]`` for its
+    eigenvalue ``lam``: the better-conditioned (longer) of the two rows of the adjugate."""
+    v1 = torch.stack([b, lam - a], 1)
+    v2 = torch.stack([lam - d, b], 1)
+    return torch.where((v1.norm(dim=1) >= v2.norm(dim=1))[:, None], v1, v2)
+
+
 def line_fits(mesh: MeshBatch, mom: TriangleMoments):
     """Closed-form least-squares line in every triangle.
 
@@ -90,11 +98,7 @@ def line_fits(mesh: MeshBatch, mom: TriangleMoments):
     half_diff = 0.5 * (a - d)
     rad = torch.sqrt(half_diff * half_diff + b * b)
     lam = (0.5 * (a + d) - rad).clamp_min(0)
-    # eigenvector of the smallest eigenvalue; pick the better-conditioned of two formulas
-    v1 = torch.stack([b, (0.5 * (a + d) - rad) - a], 1)
-    v2 = torch.stack([(0.5 * (a + d) - rad) - d, b], 1)
-    n1, n2 = v1.norm(dim=1), v2.norm(dim=1)
-    v = torch.where((n1 >= n2)[:, None], v1, v2)
+    v = eigvec_2x2(a, b, d, 0.5 * (a + d) - rad)            # of the smallest eigenvalue
     nv = v.norm(dim=1, keepdim=True)
     iso = nv.squeeze(1) <= 1e-30
     normal = torch.where(iso[:, None], torch.tensor([0.0, 1.0], dtype=C.dtype, device=C.device).expand_as(v),
@@ -345,14 +349,12 @@ def sign_islands(mesh: MeshBatch, signs: torch.Tensor) -> torch.Tensor:
 
 def remove_small_islands(mesh: MeshBatch, signs: torch.Tensor, keep: torch.Tensor, min_vertices: int) -> torch.Tensor:
     """Flip every sign region of fewer than ``min_vertices`` vertices that holds no ``keep``
-    vertex. A region that small, where the mesh cannot be refined further, is below its
-    resolution: the zero set around it is a loop within one vertex star (a pinched-off wedge
-    tip, a speck of noise), which the data cannot place.
-
-    Args:
-        keep: ``(V,)`` bool, vertices whose region stays: the fixed boundary, and vertices
-            of a triangle the test may still split (there the next level resolves the region
-            with more vertices, as at a coarse level where a whole small curve is one vertex).
+    vertex (the reconstruction passes the fixed boundary). A region that small is below the
+    mesh's resolution: the zero set around a single vertex is a loop within its star (a
+    pinched-off wedge tip, a speck around an outlier), which the data cannot place. Where the
+    data do hold a feature, the test still finds its points far from the curve and refines,
+    and the next level anneals it with more vertices; a feature the refinement stops short of
+    (fewer than ``min_points_fit`` points, or the size floor) is lost.
     """
     if min_vertices <= 1:
         return signs

@@ -55,7 +55,7 @@ def setup_run(args):
     """Apply ``--threads`` and return the :class:`ReconstructConfig` of ``--config`` / ``--set``."""
     import torch
     import torch_isc
-    from torch_isc.config import parse_overrides
+    from torch_isc.pipeline.config import parse_overrides
     if args.threads:
         torch.set_num_threads(args.threads)
     return torch_isc.load_config(args.config, parse_overrides(args.set))

@@ -482,7 +482,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         args.sizes = [1_000, 10_000, 100_000]
     if args.batches is None:
         args.batches = [1, 16, 64, 256]
-    from torch_isc.config import parse_overrides
+    from torch_isc.pipeline.config import parse_overrides
     config = torch_isc.load_config(args.config, parse_overrides(args.set))
     if torch.device(args.device).type == "cuda" and not torch.cuda.is_available():
         print(f"--device {args.device}: CUDA is not available here", file=sys.stderr)

@@ -58,7 +58,7 @@ import cv2  # noqa: E402
 
 from _common import resolve_dir  # noqa: E402
 from torch_isc import images, metrics  # noqa: E402
-from torch_isc.config import load_config, parse_overrides  # noqa: E402
+from torch_isc.pipeline.config import load_config, parse_overrides  # noqa: E402
 
 DEFAULT_CASES = REPO / ".." / "shared" / "cases"
 

@@ -19,10 +19,10 @@ import torch
 
 import torch_isc
 from torch_isc import cli
-from torch_isc.curve import ImplicitCurve
+from torch_isc.core.curve import ImplicitCurve
 from torch_isc.io import load_npz, read_points
-from torch_isc.mesh import hexagon_mesh
-from torch_isc.result import ReconstructionResult
+from torch_isc.core.mesh import hexagon_mesh
+from torch_isc.pipeline.result import ReconstructionResult
 
 REPO = Path(__file__).resolve().parents[1]
 FAST = ["--set", "max_level=3"]

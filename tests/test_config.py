@@ -6,7 +6,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from torch_isc.config import ConfigError, ReconstructConfig, load_config, parse_overrides
+from torch_isc.pipeline.config import ConfigError, ReconstructConfig, load_config, parse_overrides
 
 DEFAULT_YAML = Path(__file__).resolve().parents[1] / "configs" / "default.yaml"
 

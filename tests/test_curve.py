@@ -1,4 +1,4 @@
-"""Tests of torch_isc.curve: evaluation, gradients, zero sets, inside/outside, deformation.
+"""Tests of torch_isc.core.curve: evaluation, gradients, zero sets, inside/outside, deformation.
 
 Expected values come from analytic curves (linear functions, circles), hand-computed
 interpolation, float64 linear solves, brute-force point location and autograd.gradcheck.
@@ -12,8 +12,8 @@ import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from torch_isc.curve import ImplicitCurve, InvalidValuesError, check_values
-from torch_isc.mesh import InvalidMeshError, MeshBatch, hexagon_mesh, square_mesh
+from torch_isc.core.curve import ImplicitCurve, InvalidValuesError, check_values
+from torch_isc.core.mesh import InvalidMeshError, MeshBatch, hexagon_mesh, square_mesh
 
 from conftest import brute_locate, find_intersections, polygon_signed_area, ref_bary64, winding_number
 

@@ -1,4 +1,4 @@
-"""Tests of torch_isc.extract against a naive dictionary-based tracer.
+"""Tests of torch_isc.core.extract against a naive dictionary-based tracer.
 
 The reference builds one directed segment per mixed triangle, orients it with a determinant
 of the actual crossing points against a negative vertex (negative side on the left), chains
@@ -11,8 +11,8 @@ import math
 import pytest
 import torch
 
-from torch_isc.extract import Polylines, extract_zero_set
-from torch_isc.mesh import MeshBatch, hexagon_mesh, square_mesh
+from torch_isc.core.extract import Polylines, extract_zero_set
+from torch_isc.core.mesh import MeshBatch, hexagon_mesh, square_mesh
 
 from conftest import find_intersections, polygon_signed_area
 

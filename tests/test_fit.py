@@ -1,4 +1,4 @@
-"""Tests of the stages of the reconstruction loop (torch_isc.fit), each stage alone.
+"""Tests of the stages of the reconstruction loop (torch_isc.pipeline), each stage alone.
 
 Expected values are computed by hand or by an independent route (float64 numpy / Python
 loops over triangles and points, brute force over all sign patterns, closed forms); none is
@@ -14,18 +14,18 @@ import pytest
 import torch
 
 from torch_isc import locate_children, locate_grid
-from torch_isc.curve import ImplicitCurve
-from torch_isc.fit.geometry import (GeometryObjective, delta1_per_triangle, fit_geometry, point_residuals,
+from torch_isc.core.curve import ImplicitCurve
+from torch_isc.pipeline.values import (GeometryObjective, delta1_per_triangle, fit_geometry, point_residuals,
                                    vertex_data_distance, vertex_data_distance_near)
-from torch_isc.fit.optim import batched_lbfgs
-from torch_isc.fit.relax import mesh_energy, relax_mesh
-from torch_isc.fit.subdivide import subdivide
-from torch_isc.fit.tolerance import (curve_coverage_excess, estimate_noise, mark_triangles, point_curve_distance2,
+from torch_isc.pipeline.optim import batched_lbfgs
+from torch_isc.pipeline.relax import mesh_energy, relax_mesh
+from torch_isc.pipeline.subdivide import subdivide
+from torch_isc.pipeline.tolerance import (curve_coverage_excess, estimate_noise, mark_triangles, point_curve_distance2,
                                      segment_median, triangle_errors)
-from torch_isc.fit.topology import (anneal, edge_weights, hash_uniform, ising_energy, line_fits, pooled_moments,
+from torch_isc.pipeline.signs import (anneal, edge_weights, hash_uniform, ising_energy, line_fits, pooled_moments,
                                     remove_small_islands, sign_islands, triangle_moments, vertex_coloring)
-from torch_isc.locate import barycentric
-from torch_isc.mesh import MeshBatch, hexagon_mesh, square_mesh
+from torch_isc.core.locate import barycentric
+from torch_isc.core.mesh import MeshBatch, hexagon_mesh, square_mesh
 
 from conftest import ref_bary64
 
@@ -672,7 +672,7 @@ def _two_loop_reference(g, pairs, gamma):
 
 def test_compact_lbfgs_direction_matches_two_loop(device):
     """The compact form gives the two-loop direction, per segment, with skipped (zero) pairs."""
-    from torch_isc.fit.optim import _direction, _segmat
+    from torch_isc.pipeline.optim import _direction, _segmat
     gen = torch.Generator().manual_seed(3)
     sizes, k = [5, 3, 7], 4
     seg = torch.repeat_interleave(torch.arange(3), torch.tensor(sizes))

@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 import torch
 
-from torch_isc.config import ReconstructConfig
-from torch_isc.curve import ImplicitCurve
+from torch_isc.pipeline.config import ReconstructConfig
+from torch_isc.core.curve import ImplicitCurve
 from torch_isc.io import (EXPORTERS, CurveFileError, PointFileError, atomic_write, export, json_dumps, load_npz,
                           read_points, render_png, save_npz, write_json, write_png, write_svg)
-from torch_isc.mesh import MeshBatch, hexagon_mesh
-from torch_isc.result import ReconstructionResult
+from torch_isc.core.mesh import MeshBatch, hexagon_mesh
+from torch_isc.pipeline.result import ReconstructionResult
 
 
 # ----------------------------------------------------------------------------- helpers

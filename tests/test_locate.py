@@ -1,4 +1,4 @@
-"""Tests of torch_isc.locate against a brute-force loop over all triangles.
+"""Tests of torch_isc.core.locate against a brute-force loop over all triangles.
 
 On meshes whose coordinates are small dyadic numbers (squares) the reference uses exact
 rational arithmetic, so points exactly on shared edges and vertices test the tie rule
@@ -9,9 +9,9 @@ from __future__ import annotations
 import pytest
 import torch
 
-import torch_isc.locate as L
-from torch_isc.locate import barycentric, inside_tolerance, locate_children, locate_grid, locate_walk
-from torch_isc.mesh import MeshBatch, hexagon_mesh, square_mesh
+import torch_isc.core.locate as L
+from torch_isc.core.locate import barycentric, inside_tolerance, locate_children, locate_grid, locate_walk
+from torch_isc.core.mesh import MeshBatch, hexagon_mesh, square_mesh
 
 from conftest import brute_locate, ref_bary_exact
 

@@ -1,4 +1,4 @@
-"""Tests of torch_isc.mesh: packed batches, initial meshes, adjacency and validation.
+"""Tests of torch_isc.core.mesh: packed batches, initial meshes, adjacency and validation.
 
 Every expected value is counted or computed here by hand or by a naive Python loop over
 the faces; nothing is taken from the library's own tables.
@@ -11,7 +11,7 @@ from collections import defaultdict
 import pytest
 import torch
 
-from torch_isc.mesh import InvalidMeshError, MeshBatch, hexagon_mesh, square_mesh
+from torch_isc.core.mesh import InvalidMeshError, MeshBatch, hexagon_mesh, square_mesh
 
 SQ3 = math.sqrt(3.0)
 

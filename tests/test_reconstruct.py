@@ -227,7 +227,7 @@ def test_distinct_points_packed_against_a_loop():
     """Exact repeats are merged per item, first occurrences kept in input order (-0.0 equals
     0.0; integer and float32 inputs compared exactly in float64); a set left with fewer than 3
     distinct points is named in the error."""
-    from torch_isc.reconstruct import _distinct
+    from torch_isc.pipeline.loop import _distinct
     g = torch.Generator().manual_seed(0)
     a = torch.randint(0, 4, (50, 2), generator=g)
     b = torch.tensor([[0.0, 1.0], [-0.0, 1.0], [2.0, 2.0], [3.0, 1.0], [2.0, 2.0]])

@@ -2,13 +2,13 @@
 
 Reconstruct 2D curves of unknown topology from unorganized points, batched, on CPU or GPU.
 """
-from .config import ConfigError, ReconstructConfig, load_config
-from .curve import ImplicitCurve, InvalidValuesError
-from .extract import Polylines, extract_zero_set
-from .locate import barycentric, locate_children, locate_grid, locate_walk
-from .mesh import InvalidMeshError, MeshBatch, hexagon_mesh, square_mesh
-from .result import ReconstructionResult
-from .reconstruct import PointSetError, reconstruct, reconstruct_batch
+from torch_isc.pipeline.config import ConfigError, ReconstructConfig, load_config
+from torch_isc.core.curve import ImplicitCurve, InvalidValuesError
+from torch_isc.core.extract import Polylines, extract_zero_set
+from torch_isc.core.locate import barycentric, locate_children, locate_grid, locate_walk
+from torch_isc.core.mesh import InvalidMeshError, MeshBatch, hexagon_mesh, square_mesh
+from torch_isc.pipeline.result import ReconstructionResult
+from torch_isc.pipeline.loop import PointSetError, reconstruct, reconstruct_batch
 
 __version__ = "0.1.0"
 

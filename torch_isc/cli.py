@@ -40,9 +40,9 @@ import torch
 
 import torch_isc
 
-from .config import ConfigError, load_config, parse_overrides
-from .images import IMAGE_SUFFIXES
-from .io import EXPORTERS, PointFileError, export, read_points
+from torch_isc.pipeline.config import ConfigError, load_config, parse_overrides
+from torch_isc.images import IMAGE_SUFFIXES
+from torch_isc.io import EXPORTERS, PointFileError, export, read_points
 
 #: Suffixes of point files picked up from a folder INPUT (any file given by name is tried).
 POINT_SUFFIXES = (".xy", ".txt", ".csv", ".npy")
@@ -306,7 +306,7 @@ class _Options:
     """What the command line asks for, resolved once."""
 
     def __init__(self, args, formats, image_formats, config, low, high):
-        from . import images
+        from torch_isc import images
 
         self.args = args
         self.formats = formats
@@ -322,7 +322,7 @@ class _Options:
 
 
 def _input_errors() -> tuple:
-    from .images import ImageError
+    from torch_isc.images import ImageError
 
     return (PointFileError, ImageError)
 
@@ -332,7 +332,7 @@ def _read(job: _Job, opts: _Options, device) -> None:
     if not job.is_image:
         job.points = torch.from_numpy(read_points(job.source)).to(device)
         return
-    from . import images
+    from torch_isc import images
 
     gray = images.read_image(job.source)
     job.image = gray
@@ -381,7 +381,7 @@ def _process_batch(batch: List[_Job], opts: _Options, out_dir: Path, total: int,
             job.outputs = export(res, out_dir / job.stem, [f for f in fmts if f != "overlay.png"],
                                  y_down=job.is_image)
             if job.is_image:
-                from .images import write_overlay
+                from torch_isc.images import write_overlay
 
                 job.outputs.append(write_overlay(out_dir / f"{job.stem}.overlay.png", image, res))
         except OSError as e:
@@ -405,7 +405,7 @@ def _solve(jobs: List[_Job], opts: _Options, kind: str) -> list:
     names = [j.stem for j in jobs]
     points = [j.points for j in jobs]
     if kind == "mask":
-        from .images import solve_masks
+        from torch_isc.images import solve_masks
 
         return solve_masks(points, [j.mask for j in jobs], [j.n_boundaries for j in jobs], opts.image_config,
                            names)

@@ -46,8 +46,8 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
 import numpy as np
 import torch
 
-from .config import ReconstructConfig
-from .io import read_file_bytes
+from torch_isc.pipeline.config import ReconstructConfig
+from torch_isc.io import read_file_bytes
 
 __all__ = [
     "IMAGE_SUFFIXES", "IMAGE_CONFIG", "MASK_CONFIG", "EDGE_CONFIG", "ImageError", "image_config", "read_image", "as_masks",
@@ -555,7 +555,7 @@ def solve_masks(points: Sequence[torch.Tensor], masks: Sequence[ImageLike], n_bo
     """The reconstruction step of :func:`reconstruct_masks`, for boundary points already made
     (:func:`mask_points`): one batched solve, the mask as oracle, and the retry of the masks
     whose count of closed curves differs from ``n_boundaries``."""
-    from .reconstruct import reconstruct_batch
+    from torch_isc.pipeline.loop import reconstruct_batch
 
     oracle = MaskOracle(list(masks), threshold, interpolation) if use_oracle else None
     results = reconstruct_batch(list(points), config, list(names), oracle)
@@ -603,7 +603,7 @@ def reconstruct_masks(masks: Union[ImageLike, Sequence[ImageLike]], config: Opti
         names: labels for errors and results (default ``"mask b"``).
 
     Returns:
-        one :class:`~torch_isc.result.ReconstructionResult` per mask, in pixel coordinates.
+        one :class:`~torch_isc.pipeline.result.ReconstructionResult` per mask, in pixel coordinates.
 
     Raises:
         ImageError: a mask with no foreground pixel (naming it).
@@ -625,7 +625,7 @@ def reconstruct_edges(images: Union[ImageLike, Sequence[ImageLike]], config: Opt
     Raises:
         ImageError: an image with fewer than 3 edge pixels (naming it).
     """
-    from .reconstruct import reconstruct_batch
+    from torch_isc.pipeline.loop import reconstruct_batch
 
     cfg = config if config is not None else image_config(mode="edges")
     ts = _image_list(images, "image")
@@ -746,7 +746,7 @@ def to_cv_contours(src, mode: str = "tree", dtype=np.float32) -> Tuple[List[np.n
     """Curves as OpenCV contours, so code written for ``cv2.findContours`` can use them.
 
     Args:
-        src: a :class:`~torch_isc.result.ReconstructionResult`, its ``polylines``, or a list of
+        src: a :class:`~torch_isc.pipeline.result.ReconstructionResult`, its ``polylines``, or a list of
             ``(n, 2)`` closed polygons, in the pixel convention of this module. Open chains are
             left out (OpenCV contours are closed).
         mode: ``"tree"`` (like ``cv2.RETR_TREE``) or ``"ccomp"`` (``cv2.RETR_CCOMP``).
@@ -857,7 +857,7 @@ def render_overlay(image: ImageLike, result, points: bool = False, scale: int = 
 
 def write_overlay(path: Union[str, os.PathLike], image: ImageLike, result, **kw) -> Path:
     """:func:`render_overlay` written as PNG (atomic write)."""
-    from .io import atomic_write
+    from torch_isc.io import atomic_write
 
     ok, buf = _cv2().imencode(".png", render_overlay(image, result, **kw))
     if not ok:  # pragma: no cover
@@ -874,7 +874,7 @@ def write_contours(path: Union[str, os.PathLike], result, mode: str = "tree") ->
     ``.npz`` (atomic): ``points (P, 2)`` float32 in OpenCV coordinates, ``counts (N,)``
     vertices per contour, ``hierarchy (N, 4)`` int32, ``mode``. :func:`load_contours` reads it
     back as ``(contours, hierarchy)``."""
-    from .io import atomic_write
+    from torch_isc.io import atomic_write
 
     contours, h = to_cv_contours(result, mode)
     pts = np.concatenate([c.reshape(-1, 2) for c in contours]) if contours else np.zeros((0, 2), np.float32)

@@ -8,7 +8,7 @@ Writing: every writer goes through :func:`atomic_write` (a temporary file in the
 folder, then ``os.replace``), so an interrupted run never leaves a half-written output: a file
 either has its old content or its complete new content.
 
-Exporters work on a :class:`~torch_isc.result.ReconstructionResult` and are registered in
+Exporters work on a :class:`~torch_isc.pipeline.result.ReconstructionResult` and are registered in
 :data:`EXPORTERS` by format name, the way trimesh registers its exporters; :func:`export` writes
 several formats next to each other.
 
@@ -29,8 +29,8 @@ from typing import Any, Callable, Dict, Iterable, List, Optional, Tuple, Union
 import numpy as np
 import torch
 
-from .curve import ImplicitCurve, InvalidValuesError
-from .mesh import InvalidMeshError, MeshBatch
+from torch_isc.core.curve import ImplicitCurve, InvalidValuesError
+from torch_isc.core.mesh import InvalidMeshError, MeshBatch
 
 __all__ = [
     "PointFileError", "CurveFileError", "read_file_bytes", "read_points", "atomic_write", "save_npz", "load_npz",
@@ -580,7 +580,7 @@ def write_contours(path: PathLike, result, mode: str = "tree") -> Path:
     """The closed curves as OpenCV contours with their ``RETR_TREE`` hierarchy, in OpenCV's
     pixel coordinates (:func:`torch_isc.images.write_contours`; read back with
     :func:`torch_isc.images.load_contours`)."""
-    from .images import write_contours as _write
+    from torch_isc.images import write_contours as _write
 
     return _write(path, result, mode)
 

@@ -12,7 +12,7 @@ from typing import Optional
 
 import torch
 
-from ..mesh import MeshBatch
+from torch_isc.core.mesh import MeshBatch
 
 __all__ = ["TriangleMoments", "triangle_moments", "pooled_moments", "eigvec_2x2", "line_fits", "crossing_reach", "edge_weights", "vertex_coloring",
            "anneal", "ising_energy", "hash_uniform", "sign_islands", "remove_small_islands"]

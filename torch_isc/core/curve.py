@@ -12,9 +12,9 @@ from typing import Optional, Tuple
 
 import torch
 
-from .extract import Polylines, extract_zero_set
-from .locate import barycentric, locate_grid
-from .mesh import InvalidMeshError, MeshBatch
+from torch_isc.core.extract import Polylines, extract_zero_set
+from torch_isc.core.locate import barycentric, locate_grid
+from torch_isc.core.mesh import InvalidMeshError, MeshBatch
 
 __all__ = ["ImplicitCurve", "InvalidValuesError", "check_values"]
 
@@ -45,7 +45,7 @@ class ImplicitCurve:
         validate: check the mesh and values (default True).
 
     Example:
-        >>> from torch_isc.mesh import hexagon_mesh
+        >>> from torch_isc.core.mesh import hexagon_mesh
         >>> mesh = hexagon_mesh(torch.zeros(1, 2), torch.ones(1), 2)
         >>> values = mesh.verts.norm(dim=1) - 0.6             # a signed distance to a circle
         >>> c = ImplicitCurve(mesh, values)
@@ -125,7 +125,7 @@ class ImplicitCurve:
 
     # --------------------------------------------------------------- zero set
     def zero_set(self) -> Polylines:
-        """The polylines of every item (see :mod:`torch_isc.extract`). Differentiable."""
+        """The polylines of every item (see :mod:`torch_isc.core.extract`). Differentiable."""
         return extract_zero_set(self.mesh, self.values)
 
     @cached_property

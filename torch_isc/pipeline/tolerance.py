@@ -14,8 +14,8 @@ from typing import Optional, Tuple
 
 import torch
 
-from ..mesh import MeshBatch
-from .topology import eigvec_2x2, hash_uniform
+from torch_isc.core.mesh import MeshBatch
+from torch_isc.pipeline.signs import eigvec_2x2, hash_uniform
 
 __all__ = ["effective_tolerance", "estimate_noise", "segment_median", "triangle_errors", "mark_triangles",
            "curve_coverage_excess", "point_curve_distance2", "triangle_segments"]

@@ -23,18 +23,18 @@ from typing import Any, Callable, Dict, List, Optional, Sequence, Union
 import numpy as np
 import torch
 
-from .config import ReconstructConfig
-from .curve import ImplicitCurve
-from .fit.geometry import fit_geometry, vertex_data_distance, vertex_data_distance_near
-from .fit.relax import relax_mesh
-from .fit.subdivide import subdivide
-from .fit.tolerance import (curve_coverage_excess, effective_tolerance, estimate_noise, mark_triangles,
+from torch_isc.pipeline.config import ReconstructConfig
+from torch_isc.core.curve import ImplicitCurve
+from torch_isc.pipeline.values import fit_geometry, vertex_data_distance, vertex_data_distance_near
+from torch_isc.pipeline.relax import relax_mesh
+from torch_isc.pipeline.subdivide import subdivide
+from torch_isc.pipeline.tolerance import (curve_coverage_excess, effective_tolerance, estimate_noise, mark_triangles,
                              point_curve_distance2)
-from .fit.topology import (anneal, crossing_reach, edge_weights, line_fits, pooled_moments, remove_small_islands,
+from torch_isc.pipeline.signs import (anneal, crossing_reach, edge_weights, line_fits, pooled_moments, remove_small_islands,
                             triangle_moments)
-from .locate import locate_children, locate_grid
-from .mesh import MeshBatch, hexagon_mesh, square_mesh
-from .result import ReconstructionResult
+from torch_isc.core.locate import locate_children, locate_grid
+from torch_isc.core.mesh import MeshBatch, hexagon_mesh, square_mesh
+from torch_isc.pipeline.result import ReconstructionResult
 
 __all__ = ["reconstruct", "reconstruct_batch", "PointSetError"]
 

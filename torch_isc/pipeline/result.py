@@ -6,8 +6,8 @@ from typing import Any, Dict, List, Optional
 
 import torch
 
-from .config import ReconstructConfig
-from .curve import ImplicitCurve
+from torch_isc.pipeline.config import ReconstructConfig
+from torch_isc.core.curve import ImplicitCurve
 
 __all__ = ["ReconstructionResult"]
 

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..mesh import MeshBatch
+from torch_isc.core.mesh import MeshBatch
 
 __all__ = ["Subdivision", "subdivide"]
 

@@ -21,7 +21,7 @@ from typing import Optional, Tuple
 
 import torch
 
-from .mesh import MeshBatch
+from torch_isc.core.mesh import MeshBatch
 
 __all__ = ["barycentric", "locate_grid", "locate_children", "locate_walk", "inside_tolerance"]
 

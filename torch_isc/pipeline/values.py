@@ -11,9 +11,9 @@ from typing import Optional, Tuple
 
 import torch
 
-from ..mesh import MeshBatch
-from .optim import batched_lbfgs
-from .topology import TriangleMoments
+from torch_isc.core.mesh import MeshBatch
+from torch_isc.pipeline.optim import batched_lbfgs
+from torch_isc.pipeline.signs import TriangleMoments
 
 __all__ = ["GeometryObjective", "delta1_per_triangle", "vertex_data_distance", "vertex_data_distance_near", "fit_geometry",
            "point_residuals"]

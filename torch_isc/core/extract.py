@@ -17,7 +17,7 @@ from typing import List
 
 import torch
 
-from .mesh import MeshBatch
+from torch_isc.core.mesh import MeshBatch
 
 __all__ = ["Polylines", "extract_zero_set"]
 
@@ -86,7 +86,7 @@ def extract_zero_set(mesh: MeshBatch, values: torch.Tensor) -> Polylines:
     interpolations along edges). Values must be nonzero.
 
     Example:
-        >>> from torch_isc.mesh import hexagon_mesh
+        >>> from torch_isc.core.mesh import hexagon_mesh
         >>> m = hexagon_mesh(torch.zeros(1, 2), torch.ones(1), 1)
         >>> vals = torch.ones(7); vals[3] = -1          # vertex 3 is the centre
         >>> pl = extract_zero_set(m, vals)

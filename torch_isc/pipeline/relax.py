@@ -14,8 +14,8 @@ from typing import Optional, Tuple
 
 import torch
 
-from ..locate import barycentric, locate_walk
-from ..mesh import MeshBatch
+from torch_isc.core.locate import barycentric, locate_walk
+from torch_isc.core.mesh import MeshBatch
 
 __all__ = ["mesh_energy", "degree_weights", "relax_mesh"]
 

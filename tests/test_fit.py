@@ -21,8 +21,9 @@ from torch_isc.pipeline.optim import batched_lbfgs
 from torch_isc.pipeline.relax import mesh_energy, relax_mesh
 from torch_isc.pipeline.subdivide import subdivide
 from torch_isc.pipeline.tolerance import (curve_coverage_excess, estimate_noise, mark_triangles, point_curve_distance2,
-                                     segment_median, triangle_errors)
-from torch_isc.pipeline.signs import (anneal, edge_weights, hash_uniform, ising_energy, line_fits, pooled_moments,
+                                          triangle_errors)
+from torch_isc.core.segments import hash_uniform, segment_median
+from torch_isc.pipeline.signs import (anneal, edge_weights, ising_energy, line_fits, pooled_moments,
                                     remove_small_islands, sign_islands, triangle_moments, vertex_coloring)
 from torch_isc.core.locate import barycentric
 from torch_isc.core.mesh import MeshBatch, hexagon_mesh, square_mesh

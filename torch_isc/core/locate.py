@@ -22,6 +22,7 @@ from typing import Optional, Tuple
 import torch
 
 from torch_isc.core.mesh import MeshBatch
+from torch_isc.core.simplex import TRIANGLES
 
 __all__ = ["barycentric", "locate_grid", "locate_children", "locate_walk", "inside_tolerance"]
 
@@ -46,18 +47,7 @@ def barycentric(verts: torch.Tensor, faces: torch.Tensor, face_idx: torch.Tensor
         tensor([[0.5000, 0.2500, 0.2500]])
     """
     ok = face_idx >= 0
-    fi = face_idx.clamp_min(0)
-    tri = verts[faces[fi]]                                   # (P,3,2)
-    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
-
-    def cross(u, w):
-        return u[:, 0] * w[:, 1] - u[:, 1] * w[:, 0]
-
-    det = cross(b - a, c - a)
-    l0 = cross(c - b, points - b)
-    l1 = cross(a - c, points - c)
-    l2 = cross(b - a, points - a)
-    out = torch.stack([l0, l1, l2], 1) / det[:, None]
+    out = TRIANGLES.barycentric(verts[faces[face_idx.clamp_min(0)]], points)
     return torch.where(ok[:, None], out, torch.full_like(out, float("nan")))
 
 

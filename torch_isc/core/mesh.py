@@ -21,15 +21,14 @@ from typing import List, Optional, Sequence, Tuple
 
 import torch
 
+from torch_isc.core.segments import first_index
+from torch_isc.core.simplex import TRIANGLES
+
 __all__ = ["MeshBatch", "hexagon_mesh", "square_mesh", "InvalidMeshError"]
 
 
 class InvalidMeshError(ValueError):
     """A mesh that violates the ISC requirements (orientation, manifoldness, ...)."""
-
-
-def _segment_first(counts: torch.Tensor) -> torch.Tensor:
-    return torch.cumsum(counts, 0) - counts
 
 
 class MeshBatch:
@@ -48,6 +47,9 @@ class MeshBatch:
         >>> bool((m.signed_areas() > 0).all())
         True
     """
+
+    #: the simplex kernel (triangle geometry, line fits, zero-set pieces, split rule)
+    kernel = TRIANGLES
 
     def __init__(self, verts: torch.Tensor, faces: torch.Tensor,
                  verts_per_item: torch.Tensor, faces_per_item: torch.Tensor):
@@ -79,12 +81,12 @@ class MeshBatch:
     @cached_property
     def verts_first_idx(self) -> torch.Tensor:
         """``(B,)`` index of each item's first vertex in the packed tensor."""
-        return _segment_first(self.verts_per_item)
+        return first_index(self.verts_per_item)
 
     @cached_property
     def faces_first_idx(self) -> torch.Tensor:
         """``(B,)`` index of each item's first triangle in the packed tensor."""
-        return _segment_first(self.faces_per_item)
+        return first_index(self.faces_per_item)
 
     @cached_property
     def vert_item(self) -> torch.Tensor:
@@ -152,7 +154,7 @@ class MeshBatch:
             raise InvalidMeshError("from_list needs as many face lists as vertex lists, at least one")
         nv = torch.tensor([v.shape[0] for v in verts], dtype=torch.long)
         nf = torch.tensor([f.shape[0] for f in faces], dtype=torch.long)
-        off = _segment_first(nv)
+        off = first_index(nv)
         dev = verts[0].device
         fs = torch.cat([f.to(dev).long() + int(o) for f, o in zip(faces, off)], 0)
         return MeshBatch(torch.cat(list(verts), 0), fs, nv.to(dev), nf.to(dev))
@@ -187,26 +189,17 @@ class MeshBatch:
     def signed_areas(self, verts: Optional[torch.Tensor] = None) -> torch.Tensor:
         """``(T,)`` the determinants of eq. 2.2 (twice the signed areas); differentiable."""
         v = self.verts if verts is None else verts
-        a, b, c = v[self.faces[:, 0]], v[self.faces[:, 1]], v[self.faces[:, 2]]
-        return (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
+        return self.kernel.volumes(v[self.faces])
 
     def bary_gradients(self, verts: Optional[torch.Tensor] = None) -> torch.Tensor:
-        """``(T, 3, 2)`` the constant gradients of the barycentric coordinates
-        (rows of ``G_t``): the edge opposite each vertex rotated inward, over twice the area."""
+        """``(T, 3, 2)`` the constant gradients of the barycentric coordinates (rows of ``G_t``)."""
         v = self.verts if verts is None else verts
-        p = v[self.faces]                                    # (T,3,2)
-        e = p[:, [2, 0, 1]] - p[:, [1, 2, 0]]                # edge opposite k: v[k+2]-v[k+1]
-        det = self.signed_areas(v)
-        # rotate (x, y) -> (-y, x) gives the inward normal for a positive triangle
-        g = torch.stack([-e[..., 1], e[..., 0]], -1)
-        return g / det[:, None, None]
+        return self.kernel.bary_gradients(v[self.faces])
 
     def quality(self, verts: Optional[torch.Tensor] = None) -> torch.Tensor:
         """``(T,)`` shape quality in (−∞, 1]: 4√3·area / Σ edge², 1 for equilateral."""
         v = self.verts if verts is None else verts
-        p = v[self.faces]
-        l2 = ((p[:, [1, 2, 0]] - p) ** 2).sum(-1).sum(-1)
-        return 2.0 * math.sqrt(3.0) * self.signed_areas(v) / l2.clamp_min(torch.finfo(v.dtype).tiny)
+        return self.kernel.quality(v[self.faces])
 
     def item_bbox(self) -> torch.Tensor:
         """``(B, 4)`` xmin, ymin, xmax, ymax of each item's vertices."""

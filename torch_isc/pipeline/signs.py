@@ -13,9 +13,10 @@ from typing import Optional
 import torch
 
 from torch_isc.core.mesh import MeshBatch
+from torch_isc.core.segments import hash_keys, hash_to_unit, mix32
 
-__all__ = ["TriangleMoments", "triangle_moments", "pooled_moments", "eigvec_2x2", "line_fits", "crossing_reach", "edge_weights", "vertex_coloring",
-           "anneal", "ising_energy", "hash_uniform", "sign_islands", "remove_small_islands"]
+__all__ = ["TriangleMoments", "triangle_moments", "pooled_moments", "line_fits", "crossing_reach", "edge_weights", "vertex_coloring",
+           "anneal", "ising_energy", "sign_islands", "remove_small_islands"]
 
 
 @dataclass
@@ -77,14 +78,6 @@ def pooled_moments(mesh: MeshBatch, mom: TriangleMoments) -> TriangleMoments:
     return TriangleMoments(N, mom.M, mom.centroid + mean_d, C)
 
 
-def eigvec_2x2(a: torch.Tensor, b: torch.Tensor, d: torch.Tensor, lam: torch.Tensor) -> torch.Tensor:
-    """``(n, 2)`` an eigenvector (not normalized) of the symmetric ``[[a, b], [b, d]]`` for its
-    eigenvalue ``lam``: the better-conditioned (longer) of the two rows of the adjugate."""
-    v1 = torch.stack([b, lam - a], 1)
-    v2 = torch.stack([lam - d, b], 1)
-    return torch.where((v1.norm(dim=1) >= v2.norm(dim=1))[:, None], v1, v2)
-
-
 def line_fits(mesh: MeshBatch, mom: TriangleMoments):
     """Closed-form least-squares line in every triangle.
 
@@ -93,16 +86,7 @@ def line_fits(mesh: MeshBatch, mom: TriangleMoments):
         minimizer of ``Lᵀ M L / Lᵀ N L`` up to scale); eps ``(T,)``: mean squared distance
         of the points to the line (the local error of fit ``ε_t``); normal ``(T, 2)``.
     """
-    C = mom.scatter
-    a, b, d = C[:, 0, 0], C[:, 0, 1], C[:, 1, 1]
-    half_diff = 0.5 * (a - d)
-    rad = torch.sqrt(half_diff * half_diff + b * b)
-    lam = (0.5 * (a + d) - rad).clamp_min(0)
-    v = eigvec_2x2(a, b, d, 0.5 * (a + d) - rad)            # of the smallest eigenvalue
-    nv = v.norm(dim=1, keepdim=True)
-    iso = nv.squeeze(1) <= 1e-30
-    normal = torch.where(iso[:, None], torch.tensor([0.0, 1.0], dtype=C.dtype, device=C.device).expand_as(v),
-                         v / nv.clamp_min(1e-30))
+    lam, normal = mesh.kernel.hyperplane_fit(mom.scatter)
     tri = mesh.verts.detach()[mesh.faces]                    # (T,3,2)
     L = ((tri - mom.centroid[:, None, :]) * normal[:, None, :]).sum(-1)
     return L, lam, normal
@@ -115,20 +99,12 @@ def crossing_reach(mesh: MeshBatch, mom: TriangleMoments, L: torch.Tensor, norma
 
     Points spread along a segment of half-length ``h`` have variance ``h²/3`` along it, so
     the extent is ``h = √(3 λ_max)`` (plus ``slack ×`` the residual spread ``√ε``)."""
-    C = mom.scatter
-    tr = C[:, 0, 0] + C[:, 1, 1]
-    det = C[:, 0, 0] * C[:, 1, 1] - C[:, 0, 1] * C[:, 1, 0]
-    disc = (0.25 * tr * tr - det).clamp_min(0).sqrt()
-    lam_max, lam_min = 0.5 * tr + disc, (0.5 * tr - disc).clamp_min(0)
+    lam_max, lam_min = mesh.kernel.principal_spread(mom.scatter)
     h = torch.sqrt(3.0 * lam_max)
     # the curve runs on about half a sample spacing (h / (n-1)) past the last point
     half = h * (1.0 + 1.0 / (mom.count - 1).clamp_min(1)) + slack * torch.sqrt(lam_min)
     tang = torch.stack([-normal[:, 1], normal[:, 0]], 1)
-    tri = mesh.verts.detach()[mesh.faces]
-    a, b = [1, 2, 0], [2, 0, 1]
-    la, lb = L[:, a], L[:, b]
-    t = la / torch.where(la != lb, la - lb, torch.ones_like(la))
-    x = tri[:, a] + t[..., None] * (tri[:, b] - tri[:, a])              # (T,3,2)
+    x, _ = mesh.kernel.edge_crossings(mesh.verts.detach()[mesh.faces], L)     # (T,3,2)
     u = ((x - mom.centroid[:, None, :]) * tang[:, None, :]).sum(-1)
     return u.abs() <= half[:, None]
 
@@ -165,8 +141,8 @@ def edge_weights(mesh: MeshBatch, L: torch.Tensor, eps: torch.Tensor, count: tor
     w = torch.where(fit, w, torch.zeros_like(w))
     w = torch.where(empty, torch.full_like(w, float(empty_weight)), w)
     sig = torch.where(empty[:, None], torch.ones_like(L), torch.where(L >= 0, 1.0, -1.0).to(dt))
-    # edge k of a face joins corners k+1 and k+2
-    prod = sig[:, [1, 2, 0]] * sig[:, [2, 0, 1]]
+    ea, eb = mesh.kernel.edge_corners
+    prod = sig[:, ea] * sig[:, eb]
     if reach is not None:
         # a line testifies to a crossing only where its points are, not where it is extrapolated
         prod = torch.where((prod < 0) & ~reach, torch.zeros_like(prod), prod)
@@ -176,35 +152,6 @@ def edge_weights(mesh: MeshBatch, L: torch.Tensor, eps: torch.Tensor, count: tor
 
 
 # ------------------------------------------------------------------- Ising model
-def _mix32(x: torch.Tensor) -> torch.Tensor:
-    """A 32-bit integer hash (lowbias32-like) in int64 arithmetic."""
-    m = 0xFFFFFFFF
-    x = x & m
-    x = ((x >> 16) ^ x) * 0x7FEB352D & m
-    x = ((x >> 15) ^ x) * 0x846CA68B & m
-    x = (x >> 16) ^ x
-    return x
-
-
-def hash_uniform(*keys: torch.Tensor, dtype=torch.float32) -> torch.Tensor:
-    """Uniform numbers in (0, 1) from integer keys: a counter-based generator, so an item's
-    random stream depends only on its own keys (seed, local index, step), not on its batch."""
-    return _hash_to_unit(_hash_keys(torch.zeros_like(keys[0], dtype=torch.long), *keys), dtype)
-
-
-def _hash_keys(h: torch.Tensor, *keys: torch.Tensor) -> torch.Tensor:
-    """Fold integer keys into the running hash ``h`` (so constant keys can be folded once)."""
-    for k in keys:
-        h = _mix32(h * 0x9E3779B1 + k.long() + 0x632BE5AB)
-    return h
-
-
-def _hash_to_unit(h: torch.Tensor, dtype) -> torch.Tensor:
-    u = ((h.to(torch.float64) + 0.5) / 4294967296.0).to(dtype)
-    # the cast can round the top values up to 1.0; keep the interval open
-    return u.clamp_max(1.0 - torch.finfo(dtype).eps / 2)
-
-
 def vertex_coloring(mesh: MeshBatch, active: Optional[torch.Tensor] = None, max_colors: int = 64) -> torch.Tensor:
     """Greedy colouring (Jones–Plassmann with hashed priorities): adjacent vertices get
     different colours; ``-1`` for inactive vertices. Depends only on each item's own mesh."""
@@ -212,7 +159,7 @@ def vertex_coloring(mesh: MeshBatch, active: Optional[torch.Tensor] = None, max_
         V = mesh.verts.shape[0]
         dev = mesh.device
         local = torch.arange(V, device=dev) - mesh.verts_first_idx[mesh.vert_item]
-        prio = _mix32(local * 2654435761 + 12345) * V + local        # unique within an item
+        prio = mix32(local * 2654435761 + 12345) * V + local        # unique within an item
         color = torch.full((V,), -1, dtype=torch.long, device=dev)
         todo = torch.ones(V, dtype=torch.bool, device=dev) if active is None else active.clone()
         e = mesh.edges
@@ -302,7 +249,7 @@ def anneal(mesh: MeshBatch, H: torch.Tensor, init: torch.Tensor, fixed: torch.Te
             if g.numel() == 0:
                 continue
             n = g.shape[0]
-            h0 = _hash_keys(torch.zeros(n, R, dtype=torch.long, device=dev), torch.full((n, R), int(seed), device=dev),
+            h0 = hash_keys(torch.zeros(n, R, dtype=torch.long, device=dev), torch.full((n, R), int(seed), device=dev),
                             local[g][:, None].expand(-1, R), rep[None, :].expand(n, -1))
             prep.append((g, _coupling_rows(mesh, H, g), h0))
         # the random numbers of a block of sweeps are hashed in one op per colour (the
@@ -315,7 +262,7 @@ def anneal(mesh: MeshBatch, H: torch.Tensor, init: torch.Tensor, fixed: torch.Te
                 ks = torch.arange(k, min(k + block, int(sweeps)), device=dev) * 64
                 # Metropolis: accept when u < exp(-dE / T), i.e. dE < -T log u (a threshold >= 0)
                 tk = torch.stack(temps[k:k + ks.shape[0]])[:, None, :]
-                uniforms = [-tk * torch.log(_hash_to_unit(_hash_keys(h0[None], (ks + c)[:, None, None].expand(
+                uniforms = [-tk * torch.log(hash_to_unit(hash_keys(h0[None], (ks + c)[:, None, None].expand(
                     -1, *h0.shape)), dt)) for c, (_, _, h0) in enumerate(prep)]
             for c, (g, W, h0) in enumerate(prep):
                 sg = s[g]

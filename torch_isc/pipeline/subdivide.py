@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import torch
 
 from torch_isc.core.mesh import MeshBatch
+from torch_isc.core.segments import first_index
 
 __all__ = ["Subdivision", "subdivide"]
 
@@ -62,31 +63,13 @@ def subdivide(mesh: MeshBatch, marked: torch.Tensor) -> Subdivision:
         rank = torch.empty_like(perm)
         rank[perm] = torch.arange(perm.shape[0], device=dev)       # provisional -> new index
 
-        fm = vmark[mesh.faces]                                     # (T,3)
-        c = fm.sum(1)
-        nchild = torch.where(c == 3, 4, torch.where(c == 2, 2, 1))
         mids = mid_of_edge[mesh.face_edges]                        # (T,3) midpoint opposite corner k
-        f = mesh.faces
-        # four-way split
-        v0, v1, v2 = f[:, 0], f[:, 1], f[:, 2]
-        m0, m1, m2 = mids[:, 0], mids[:, 1], mids[:, 2]
-        four = torch.stack([torch.stack([v0, m2, m1], 1), torch.stack([v1, m0, m2], 1),
-                            torch.stack([v2, m1, m0], 1), torch.stack([m0, m1, m2], 1)], 1)   # (T,4,3)
-        # two-way split: k = the unmarked corner, m = midpoint of the opposite edge
-        k = torch.argmin(fm.to(torch.int8), 1)
-        vk = f.gather(1, k[:, None]).squeeze(1)
-        vk1 = f.gather(1, ((k + 1) % 3)[:, None]).squeeze(1)
-        vk2 = f.gather(1, ((k + 2) % 3)[:, None]).squeeze(1)
-        mk = mids.gather(1, k[:, None]).squeeze(1)
-        two = torch.stack([torch.stack([vk, vk1, mk], 1), torch.stack([vk, mk, vk2], 1)], 1)   # (T,2,3)
-        one = f[:, None, :]
-        two_pad = torch.cat([two, one, one], 1)
-        one_pad = one.expand(-1, 4, -1)
-        cand = torch.where((c == 3)[:, None, None], four, torch.where((c == 2)[:, None, None], two_pad, one_pad))
-        slot = torch.arange(4, device=dev)[None, :] < nchild[:, None]   # (T,4)
+        cand, nchild = mesh.kernel.split_children(mesh.faces, mids, vmark[mesh.faces])
+        K = cand.shape[1]
+        slot = torch.arange(K, device=dev)[None, :] < nchild[:, None]   # (T,K)
         new_faces = rank[cand[slot]]                                      # row-major: parent order kept
-        first = torch.cumsum(nchild, 0) - nchild
-        children = torch.where(slot, first[:, None] + torch.arange(4, device=dev)[None, :], torch.full_like(slot, -1, dtype=torch.long))
+        first = first_index(nchild)
+        children = torch.where(slot, first[:, None] + torch.arange(K, device=dev)[None, :], torch.full_like(slot, -1, dtype=torch.long))
 
         new_vert_edge = torch.full((V + n_new,), -1, dtype=torch.long, device=dev)
         new_vert_edge[V:] = split_ids

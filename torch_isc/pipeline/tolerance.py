@@ -15,9 +15,9 @@ from typing import Optional, Tuple
 import torch
 
 from torch_isc.core.mesh import MeshBatch
-from torch_isc.pipeline.signs import eigvec_2x2, hash_uniform
+from torch_isc.core.segments import hash_uniform, segment_median, sym2_eigvals, sym2_eigvec
 
-__all__ = ["effective_tolerance", "estimate_noise", "segment_median", "triangle_errors", "mark_triangles",
+__all__ = ["effective_tolerance", "estimate_noise", "triangle_errors", "mark_triangles",
            "curve_coverage_excess", "point_curve_distance2", "triangle_segments"]
 
 
@@ -31,19 +31,6 @@ def _morton(q: torch.Tensor) -> torch.Tensor:
         x = (x | (x << 1)) & 0x55555555
         return x
     return spread(q[:, 0]) | (spread(q[:, 1]) << 1)
-
-
-def segment_median(x: torch.Tensor, seg: torch.Tensor, n: int) -> torch.Tensor:
-    """Lower median of ``x`` within each segment (0 for empty segments)."""
-    if x.numel() == 0:
-        return torch.zeros(n, dtype=x.dtype, device=x.device)
-    o1 = torch.argsort(x, stable=True)
-    o2 = torch.argsort(seg[o1], stable=True)
-    order = o1[o2]
-    cnt = torch.bincount(seg, minlength=n)
-    first = torch.cumsum(cnt, 0) - cnt
-    mid = (first + (cnt - 1).clamp_min(0) // 2).clamp_max(x.numel() - 1)
-    return torch.where(cnt > 0, x[order][mid], torch.zeros(n, dtype=x.dtype, device=x.device))
 
 
 def _local_line_residual(points: torch.Tensor, point_item: torch.Tensor, idx: torch.Tensor, orders, offs,
@@ -72,10 +59,9 @@ def _local_line_residual(points: torch.Tensor, point_item: torch.Tensor, idx: to
     qd = (pts - mean[:, None, :]) * w[..., None]
     C = torch.einsum("pki,pkj->pij", qd, qd) / m[:, None, None]
     a, b, d = C[:, 0, 0], C[:, 0, 1], C[:, 1, 1]
-    root = torch.sqrt((0.5 * (a - d)) ** 2 + b * b)
-    lam = (0.5 * (a + d) - root).clamp_min(0)
-    lmax = 0.5 * (a + d) + root
-    t = eigvec_2x2(a, b, d, lmax)                                       # the major axis
+    lam, lmax = sym2_eigvals(a, b, d)
+    lam = lam.clamp_min(0)
+    t = sym2_eigvec(a, b, d, lmax)                                        # the major axis
     t = t / t.norm(dim=1, keepdim=True).clamp_min(torch.finfo(dt).tiny)
     t = torch.where(torch.isfinite(t) & (t.norm(dim=1, keepdim=True) > 0.5), t,
                     torch.tensor([1.0, 0.0], dtype=dt, device=dev))
@@ -254,8 +240,7 @@ def mark_triangles(mesh: MeshBatch, residual: torch.Tensor, face: torch.Tensor, 
     marked |= (count >= min_points_fit) & (mean > eff[fi] ** 2)
     thin = torch.maximum(tol, thin_factor * noise)
     marked |= (count >= min_points_fit) & (line_eps > thin[fi] ** 2)
-    p = mesh.verts.detach()[mesh.faces]
-    longest = (p[:, [1, 2, 0]] - p).norm(dim=2).max(1).values
+    longest = mesh.kernel.longest_edge(mesh.verts.detach()[mesh.faces])
     if coverage is not None:
         # the data-to-curve test cannot see curve where there are no data (a wall across a
         # ring, a bridge between two close curves): the curve-to-data side, down to the
@@ -270,35 +255,9 @@ def mark_triangles(mesh: MeshBatch, residual: torch.Tensor, face: torch.Tensor, 
 
 
 def triangle_segments(mesh: MeshBatch, values: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
-    """The zero-set segment of every triangle: ``(T, 2, 2)`` end points and ``(T,)`` bool
+    """The zero-set piece of every triangle: ``(T, 2, 2)`` end points and ``(T,)`` bool
     (whether the triangle holds one)."""
-    v = mesh.verts.detach()
-    F = values.detach()[mesh.faces]                               # (T,3)
-    P = v[mesh.faces]                                             # (T,3,2)
-    # crossing on edge k (corners k+1, k+2), NaN where that edge does not change sign
-    a, b = [1, 2, 0], [2, 0, 1]
-    fa, fb = F[:, a], F[:, b]
-    cross = (fa < 0) != (fb < 0)
-    t = fa / torch.where(cross, fa - fb, torch.ones_like(fa))
-    pts = P[:, a] + t[..., None] * (P[:, b] - P[:, a])           # (T,3,2)
-    has = cross.sum(1) == 2
-    order = torch.argsort((~cross).to(torch.int8), dim=1, stable=True)[:, :2]
-    seg = pts.gather(1, order[..., None].expand(-1, -1, 2))
-    return seg, has
-
-
-def _segment_distance2(seg: torch.Tensor, has: torch.Tensor, points: torch.Tensor, cand: torch.Tensor) -> torch.Tensor:
-    """``(P,)`` the smallest squared distance of each point to the segments of its candidate
-    triangles ``cand (P, K)`` (-1: none; inf when no candidate holds a segment)."""
-    valid = (cand >= 0) & has[cand.clamp_min(0)]
-    s = seg[cand.clamp_min(0)]                                       # (P,K,2,2)
-    p = points.to(seg.dtype)[:, None, :]
-    a, d = s[:, :, 0], s[:, :, 1] - s[:, :, 0]
-    tt = (((p - a) * d).sum(-1) / (d * d).sum(-1).clamp_min(torch.finfo(seg.dtype).tiny)).clamp(0, 1)
-    q = a + tt[..., None] * d
-    d2 = ((p - q) ** 2).sum(-1)
-    d2 = torch.where(valid, d2, torch.full_like(d2, float("inf")))
-    return d2.min(1).values
+    return mesh.kernel.zero_set_pieces(mesh.verts.detach()[mesh.faces], values.detach()[mesh.faces])
 
 
 def point_curve_distance2(mesh: MeshBatch, values: torch.Tensor, points: torch.Tensor,
@@ -316,12 +275,12 @@ def point_curve_distance2(mesh: MeshBatch, values: torch.Tensor, points: torch.T
     f = face.clamp_min(0)
     nb = mesh.face_neighbors
     ring1 = torch.cat([f[:, None], nb[f]], 1)                         # (P,4)
-    d2 = _segment_distance2(seg, has, points, ring1)
+    d2 = mesh.kernel.piece_distance2(seg, has, points, ring1)
     far = (ok & torch.isinf(d2)).nonzero().squeeze(1)
     if far.numel():
         r1 = nb[f[far]]                                              # (F,3)
         ring2 = nb[r1.clamp_min(0)].masked_fill((r1 < 0)[..., None], -1)   # (F,3,3)
-        d2[far] = _segment_distance2(seg, has, points[far], ring2.reshape(far.shape[0], 9))
+        d2[far] = mesh.kernel.piece_distance2(seg, has, points[far], ring2.reshape(far.shape[0], 9))
     return torch.where(ok, d2, torch.full_like(d2, float("inf")))
 
 

@@ -1,0 +1,132 @@
+"""Generic helpers over packed batches: reductions per segment (an item's rows), first
+indices, a counter-based hash generator, and the small symmetric eigen-solve.
+
+A *segment* index ``seg (N,)`` says which of ``n`` segments (items, triangles, ...) each row
+belongs to; rows of one segment need not be contiguous unless said. Every helper is a few
+tensor ops for the whole batch and keeps the dtype and device of its input.
+
+Example:
+    >>> x = torch.tensor([1.0, 2.0, 5.0, 3.0]); seg = torch.tensor([0, 0, 2, 2])
+    >>> segment_sum(x, seg, 3).tolist(), segment_max(x, seg, 3).tolist()
+    ([3.0, 0.0, 8.0], [2.0, -inf, 5.0])
+    >>> first_index(torch.tensor([2, 0, 3])).tolist()
+    [0, 2, 2]
+"""
+from __future__ import annotations
+
+from typing import Optional, Tuple
+
+import torch
+
+__all__ = ["segment_sum", "segment_max", "segment_min", "segment_count", "segment_mean", "segment_any",
+           "segment_median", "first_index", "local_index", "mix32", "hash_keys", "hash_to_unit", "hash_uniform",
+           "sym2_eigvals", "sym2_eigvec"]
+
+
+def segment_sum(x: torch.Tensor, seg: torch.Tensor, n: int) -> torch.Tensor:
+    """``(n, ...)`` the sum of the rows ``x (N, ...)`` of each segment (0 where empty)."""
+    return torch.zeros((n,) + tuple(x.shape[1:]), dtype=x.dtype, device=x.device).index_add_(0, seg, x)
+
+
+def segment_max(x: torch.Tensor, seg: torch.Tensor, n: int, fill: Optional[float] = None) -> torch.Tensor:
+    """``(n,)`` the largest ``x (N,)`` of each segment; ``fill`` where empty (default -inf, or
+    the dtype's lowest value for integers). Also the start of a running maximum: a ``fill`` of
+    0 gives ``max(0, ...)``."""
+    if fill is None:
+        fill = -float("inf") if x.dtype.is_floating_point else torch.iinfo(x.dtype).min
+    return torch.full((n,), fill, dtype=x.dtype, device=x.device).scatter_reduce(0, seg, x, "amax")
+
+
+def segment_min(x: torch.Tensor, seg: torch.Tensor, n: int, fill: Optional[float] = None) -> torch.Tensor:
+    """``(n,)`` the smallest ``x (N,)`` of each segment; ``fill`` where empty (default inf)."""
+    if fill is None:
+        fill = float("inf") if x.dtype.is_floating_point else torch.iinfo(x.dtype).max
+    return torch.full((n,), fill, dtype=x.dtype, device=x.device).scatter_reduce(0, seg, x, "amin")
+
+
+def segment_count(seg: torch.Tensor, n: int) -> torch.Tensor:
+    """``(n,)`` long, the rows of each segment."""
+    return torch.bincount(seg, minlength=n)
+
+
+def segment_mean(x: torch.Tensor, seg: torch.Tensor, n: int) -> torch.Tensor:
+    """``(n, ...)`` the mean of the rows of each segment (0 where empty)."""
+    cnt = segment_count(seg, n).to(x.dtype).clamp_min(1)
+    return segment_sum(x, seg, n) / cnt.view((n,) + (1,) * (x.dim() - 1))
+
+
+def segment_any(mask: torch.Tensor, seg: torch.Tensor, n: int) -> torch.Tensor:
+    """``(n,)`` bool, whether any row of the segment is True."""
+    return torch.zeros(n, dtype=torch.bool, device=mask.device).index_fill_(0, seg[mask], True)
+
+
+def segment_median(x: torch.Tensor, seg: torch.Tensor, n: int) -> torch.Tensor:
+    """``(n,)`` the lower median of ``x`` within each segment (0 for empty segments)."""
+    if x.numel() == 0:
+        return torch.zeros(n, dtype=x.dtype, device=x.device)
+    o1 = torch.argsort(x, stable=True)
+    o2 = torch.argsort(seg[o1], stable=True)
+    order = o1[o2]
+    cnt = torch.bincount(seg, minlength=n)
+    first = first_index(cnt)
+    mid = (first + (cnt - 1).clamp_min(0) // 2).clamp_max(x.numel() - 1)
+    return torch.where(cnt > 0, x[order][mid], torch.zeros(n, dtype=x.dtype, device=x.device))
+
+
+def first_index(counts: torch.Tensor) -> torch.Tensor:
+    """``(n,)`` the first row of each of ``n`` contiguous segments of ``counts (n,)`` rows."""
+    return torch.cumsum(counts, 0) - counts
+
+
+def local_index(seg: torch.Tensor, first: torch.Tensor) -> torch.Tensor:
+    """``(N,)`` each row's index within its contiguous segment (``first``: see :func:`first_index`)."""
+    return torch.arange(seg.shape[0], device=seg.device) - first[seg]
+
+
+# ------------------------------------------------------------------ counter-based random numbers
+def mix32(x: torch.Tensor) -> torch.Tensor:
+    """A 32-bit integer hash (lowbias32-like) in int64 arithmetic."""
+    m = 0xFFFFFFFF
+    x = x & m
+    x = ((x >> 16) ^ x) * 0x7FEB352D & m
+    x = ((x >> 15) ^ x) * 0x846CA68B & m
+    x = (x >> 16) ^ x
+    return x
+
+
+def hash_keys(h: torch.Tensor, *keys: torch.Tensor) -> torch.Tensor:
+    """Fold integer keys into the running hash ``h`` (so constant keys can be folded once)."""
+    for k in keys:
+        h = mix32(h * 0x9E3779B1 + k.long() + 0x632BE5AB)
+    return h
+
+
+def hash_to_unit(h: torch.Tensor, dtype) -> torch.Tensor:
+    """Hashes ``h`` (32-bit values in int64) as uniform numbers in the open interval (0, 1)."""
+    u = ((h.to(torch.float64) + 0.5) / 4294967296.0).to(dtype)
+    # the cast can round the top values up to 1.0; keep the interval open
+    return u.clamp_max(1.0 - torch.finfo(dtype).eps / 2)
+
+
+def hash_uniform(*keys: torch.Tensor, dtype=torch.float32) -> torch.Tensor:
+    """Uniform numbers in (0, 1) from integer keys: a counter-based generator, so an item's
+    random stream depends only on its own keys (seed, local index, step), not on its batch."""
+    return hash_to_unit(hash_keys(torch.zeros_like(keys[0], dtype=torch.long), *keys), dtype)
+
+
+# ------------------------------------------------------------------ 2x2 symmetric eigen-solve
+def sym2_eigvals(a: torch.Tensor, b: torch.Tensor, d: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+    """The eigenvalues ``(small, large)`` of the symmetric ``[[a, b], [b, d]]`` (elementwise),
+    from the half difference of the diagonal: no cancellation of a squared trace."""
+    half_diff = 0.5 * (a - d)
+    rad = torch.sqrt(half_diff * half_diff + b * b)
+    mid = 0.5 * (a + d)
+    return mid - rad, mid + rad
+
+
+def sym2_eigvec(a: torch.Tensor, b: torch.Tensor, d: torch.Tensor, lam: torch.Tensor) -> torch.Tensor:
+    """``(n, 2)`` an eigenvector (not normalized) of the symmetric ``[[a, b], [b, d]]`` for its
+    eigenvalue ``lam``: the better-conditioned (longer) of the two rows of the adjugate."""
+    v1 = torch.stack([b, lam - a], 1)
+    v2 = torch.stack([lam - d, b], 1)
+    return torch.where((v1.norm(dim=1) >= v2.norm(dim=1))[:, None], v1, v2)

@@ -155,7 +155,7 @@ def stage_sums(stats: List[Dict[str, Any]]) -> Dict[str, float]:
     shared by the items solved in it, so the item with the most levels sees them all)."""
     out = {k: 0.0 for k in STAGES}
     for lv in stats:
-        for k, v in (lv.get("stage_seconds") or {}).items():
+        for k, v in lv.stage_seconds.items():
             out[k] = out.get(k, 0.0) + float(v)
     return out
 
@@ -211,7 +211,7 @@ def size_worker(args, config) -> Dict[str, Any]:
         pl = res.polylines
         t2 = clock(device)
         runs.append(dict(total=t1 - t0, extract=t2 - t1, stages=stage_sums(res.stats), levels=len(res.stats),
-                         triangles=int(res.stats[-1]["triangles"]),
+                         triangles=res.stats[-1].triangles,
                          closed=sum(1 for p in pl if p["closed"]), open=sum(1 for p in pl if not p["closed"]),
                          converged=bool(res.converged)))
         del res, pl

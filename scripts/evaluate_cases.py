@@ -202,7 +202,7 @@ def run_isc(cases, config, one_by_one: bool, device: str) -> Tuple[List[Dict[str
     else:
         results = torch_isc.reconstruct_batch(sets, config, names=names)
         for res in results:
-            sec = sum(float(lv.get("seconds", 0.0) or 0.0) for lv in res.stats) if res.stats else None
+            sec = sum(lv.seconds for lv in res.stats) if res.stats else None
             rows.append(dict(result=res, seconds=sec))
     total = time.perf_counter() - t0
     for r in rows:

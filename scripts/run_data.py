@@ -63,7 +63,7 @@ def reconstruct(items: List[Dict[str, Any]], config, one_by_one: bool, device: s
             results = torch_isc.reconstruct_batch(sets, config, names=[it["name"] for it in todo])
             for it, res in zip(todo, results):
                 it["result"] = res
-                it["seconds"] = sum(float(lv.get("seconds", 0.0) or 0.0) for lv in res.stats)
+                it["seconds"] = sum(lv.seconds for lv in res.stats)
             batch_ok = True
         except Exception as e:
             print(f"batch failed ({one_line(e)}); going on one file at a time", file=sys.stderr)

@@ -23,6 +23,7 @@ from torch_isc.core.curve import ImplicitCurve
 from torch_isc.io import load_npz, read_points
 from torch_isc.core.mesh import hexagon_mesh
 from torch_isc.pipeline.result import ReconstructionResult
+from torch_isc.pipeline.stats import LevelStats
 
 REPO = Path(__file__).resolve().parents[1]
 FAST = ["--set", "max_level=3"]
@@ -41,7 +42,8 @@ def _fake_reconstruct(points, config=None, name=None):
     mesh = hexagon_mesh(c[None], (2 * r)[None], 6)
     values = (mesh.verts - c).norm(dim=1) - r
     values = torch.where(values == 0, torch.full_like(values, 1e-9), values)
-    stats = [{"level": 0, "triangles": int(mesh.faces.shape[0]), "seconds": 0.0}]
+    stats = [LevelStats(level=0, triangles=int(mesh.faces.shape[0]), points=points.shape[0], delta1=0.0,
+                        max_error=0.0, tolerance=0.0, noise=0.0, marked=0, points_beyond_tolerance=0)]
     return ReconstructionResult(ImplicitCurve(mesh, values), points, stats, config, True, None, name)
 
 
@@ -101,7 +103,7 @@ def test_one_input_all_formats(tmp_path, capsys):
     x0, y0, x1, y1 = d["bbox"]
     assert abs(x0 + 1) < 0.1 and abs(x1 - 1) < 0.1 and abs(y0 + 1) < 0.1 and abs(y1 - 1) < 0.1
     curve, meta = load_npz(out_dir / "circle.npz")
-    assert curve.num_items == 1 and meta["name"] == "circle" and meta["config"]["max_level"] == 3
+    assert curve.num_items == 1 and meta["name"] == "circle" and meta["config"]["limits"]["max_level"] == 3
     img = cv2.imread(str(out_dir / "circle.png"))
     assert img is not None and img.shape == (800, 800, 3)
     assert "Traceback" not in err and not _error_lines(err)

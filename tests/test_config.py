@@ -12,30 +12,63 @@ DEFAULT_YAML = Path(__file__).resolve().parents[1] / "configs" / "default.yaml"
 
 
 def _fields():
-    return {f.name: f.default for f in dataclasses.fields(ReconstructConfig)}
+    """Flat key -> default, from the section dataclasses themselves."""
+    out = {}
+    for sec in dataclasses.fields(ReconstructConfig):
+        for f in dataclasses.fields(sec.default_factory):
+            out[f.name] = f.default
+    return out
 
 
 # ----------------------------------------------------------------------------- default.yaml
 def test_default_yaml_lists_exactly_the_fields_with_their_defaults():
     d = yaml.safe_load(DEFAULT_YAML.read_text())
-    ref = _fields()
-    assert list(d) == list(ref), "default.yaml must list every field, in the dataclass order"
-    for k, v in ref.items():
-        assert d[k] == v and type(d[k]) is type(v), f"{k}: default.yaml has {d[k]!r}, the dataclass {v!r}"
+    assert list(d) == [f.name for f in dataclasses.fields(ReconstructConfig)], "one block per section, in order"
+    for sec in dataclasses.fields(ReconstructConfig):
+        ref = {f.name: f.default for f in dataclasses.fields(sec.default_factory)}
+        assert list(d[sec.name]) == list(ref), f"section {sec.name}: every field, in the dataclass order"
+        for k, v in ref.items():
+            got = d[sec.name][k]
+            assert got == v and type(got) is type(v), f"{k}: default.yaml has {got!r}, the dataclass {v!r}"
 
 
 def test_default_yaml_documents_every_field():
     lines = DEFAULT_YAML.read_text().splitlines()
     for k in _fields():
-        line = next(ln for ln in lines if re.match(rf"{k}:", ln))
+        line = next(ln for ln in lines if re.match(rf"\s+{k}:", ln))
         assert "#" in line and len(line.split("#", 1)[1].strip()) > 10, f"{k} has no comment"
+
+
+def test_flat_and_sectioned_files_agree(tmp_path):
+    """Older flat files keep working: the same keys by section or flat give the same config."""
+    flat = _load(tmp_path, "tolerance: 0.01\nrelax_iterations: 5\nseed: 3\n")
+    nested = _load(tmp_path, "test:\n  tolerance: 0.01\nrelaxation:\n  relax_iterations: 5\nrun:\n  seed: 3\n")
+    assert flat == nested
+    assert flat.test.tolerance == 0.01 and flat.relaxation.relax_iterations == 5 and flat.run.seed == 3
+    assert flat.limits == ReconstructConfig().limits                  # untouched sections keep defaults
+    with pytest.raises(ConfigError, match="unknown config key 'test.relax_iterations'"):
+        _load(tmp_path, "test:\n  relax_iterations: 5\n")              # a key in the wrong section
+    with pytest.raises(ConfigError, match="section 'test' must be a mapping"):
+        _load(tmp_path, "test: 3\n")
+    # every flat key of the old single-dataclass layout is still accepted
+    for k, v in _fields().items():
+        assert load_config(None, {k: v}) == ReconstructConfig()
+
+
+def test_sections_declare_their_bounds():
+    from torch_isc.pipeline.config import TestConfig, RelaxConfig
+    with pytest.raises(ConfigError, match="'noise_factor'.*>= 0"):
+        TestConfig(noise_factor=-1.0)
+    with pytest.raises(ConfigError, match="'relax_max_move'.*<= 1"):
+        RelaxConfig(relax_max_move=2.0)
+    assert TestConfig(tolerance=1).tolerance == 1.0 and isinstance(TestConfig(tolerance=1).tolerance, float)
 
 
 def test_load_default_yaml():
     cfg = load_config(DEFAULT_YAML)
     assert cfg == ReconstructConfig()
     cfg = load_config(DEFAULT_YAML, {"max_level": 3, "seed": 7})
-    assert cfg.max_level == 3 and cfg.seed == 7 and cfg.tolerance == ReconstructConfig().tolerance
+    assert cfg.limits.max_level == 3 and cfg.run.seed == 7 and cfg.test.tolerance == ReconstructConfig().test.tolerance
 
 
 # ----------------------------------------------------------------------------- errors name the key
@@ -63,7 +96,7 @@ def test_wrong_type(tmp_path):
         _load(tmp_path, "max_level: true\n")                 # a bool is not an int here
     with pytest.raises(ConfigError, match="'dtype'.*float32, float64"):
         _load(tmp_path, "dtype: float16\n")
-    assert _load(tmp_path, "tolerance: 1\n").tolerance == 1.0   # an int is fine for a float
+    assert _load(tmp_path, "tolerance: 1\n").test.tolerance == 1.0   # an int is fine for a float
 
 
 def test_negative_tolerance_and_zero_max_level(tmp_path):
@@ -72,9 +105,9 @@ def test_negative_tolerance_and_zero_max_level(tmp_path):
     with pytest.raises(ConfigError, match="'max_level'.*> 0"):
         _load(tmp_path, "max_level: 0\n")
     with pytest.raises(ConfigError, match="'min_quality'"):
-        ReconstructConfig(min_quality=1.0)
+        ReconstructConfig().replace(min_quality=1.0)
     with pytest.raises(ConfigError, match="'tolerance'.*finite"):
-        ReconstructConfig(tolerance=float("inf"))
+        ReconstructConfig().replace(tolerance=float("inf"))
 
 
 def test_error_names_the_file(tmp_path):
@@ -92,12 +125,12 @@ def test_error_names_the_file(tmp_path):
 
 def test_overrides_apply_after_the_file(tmp_path):
     cfg = _load(tmp_path, "max_level: 4\ntolerance: 0.01\n", {"max_level": 2})
-    assert cfg.max_level == 2 and cfg.tolerance == 0.01
+    assert cfg.limits.max_level == 2 and cfg.test.tolerance == 0.01
 
 
 def test_replace_and_to_dict():
     cfg = ReconstructConfig().replace(seed=3)
-    assert cfg.seed == 3 and cfg.to_dict()["seed"] == 3
+    assert cfg.run.seed == 3 and cfg.to_dict()["run"]["seed"] == 3 and cfg.to_flat_dict()["seed"] == 3
     with pytest.raises(ConfigError, match="'seed'"):
         ReconstructConfig().replace(seed=-1)
 

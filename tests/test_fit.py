@@ -15,16 +15,18 @@ import torch
 
 from torch_isc import locate_children, locate_grid
 from torch_isc.core.curve import ImplicitCurve
-from torch_isc.pipeline.values import (GeometryObjective, delta1_per_triangle, fit_geometry, point_residuals,
+from torch_isc.pipeline.values import (GeometryConfig, GeometryObjective, delta1_per_triangle, fit_geometry, point_residuals,
                                    vertex_data_distance, vertex_data_distance_near)
 from torch_isc.pipeline.optim import batched_lbfgs
-from torch_isc.pipeline.relax import mesh_energy, relax_mesh
+from torch_isc.pipeline.relax import RelaxConfig, mesh_energy, relax_mesh
 from torch_isc.pipeline.subdivide import subdivide
-from torch_isc.pipeline.tolerance import (curve_coverage_excess, estimate_noise, mark_triangles, point_curve_distance2,
+from torch_isc.pipeline.noise import NoiseConfig, estimate_noise, noise_and_frames
+from torch_isc.pipeline.tolerance import (TestConfig, curve_coverage_excess, mark_triangles, point_curve_distance2,
                                           triangle_errors)
 from torch_isc.core.segments import hash_uniform, segment_median
-from torch_isc.pipeline.signs import (anneal, edge_weights, ising_energy, line_fits, pooled_moments,
-                                    remove_small_islands, sign_islands, triangle_moments, vertex_coloring)
+from torch_isc.pipeline.evidence import line_fits, pooled_moments, triangle_moments
+from torch_isc.pipeline.signs import (TopologyConfig, anneal, edge_weights, ising_energy, remove_small_islands,
+                                      sign_islands, vertex_coloring)
 from torch_isc.core.locate import barycentric
 from torch_isc.core.mesh import MeshBatch, hexagon_mesh, square_mesh
 
@@ -397,7 +399,7 @@ def test_anneal_finds_exact_minimum(case, hseed, device):
     init = torch.where(torch.rand(V, generator=g) < 0.5, -1.0, 1.0).to(device=device, dtype=torch.float64)
     # 16 replicas: with the default 4, a replica can freeze into a near-degenerate local minimum
     # of these frustrated (spin-glass) problems
-    s = anneal(mesh, H, init, fixed, sweeps=150, t_start=3.0, t_end=0.02, replicas=16, seed=7)
+    s = anneal(mesh, H, init, fixed, TopologyConfig(anneal_sweeps=150, anneal_replicas=16), seed=7)
     assert set(s.unique().cpu().tolist()) <= {-1.0, 1.0}
     assert torch.equal(s[fixed], init[fixed])
     E = ising_energy(mesh, H, s)
@@ -418,17 +420,17 @@ def test_anneal_fixed_determinism_and_ferromagnet(device):
     H = (torch.rand(mesh.edges.shape[0], generator=g) * 2 - 1).to(device)
     fixed = mesh.is_boundary_vert | (torch.rand(V, generator=g) < 0.2).to(device)
     init = torch.where(torch.rand(V, generator=g) < 0.5, -1.0, 1.0).to(device)
-    a = anneal(mesh, H, init, fixed, 60, 3.0, 0.02, replicas=3, seed=5)
-    b = anneal(mesh, H, init, fixed, 60, 3.0, 0.02, replicas=3, seed=5)
+    a = anneal(mesh, H, init, fixed, TopologyConfig(anneal_sweeps=60, anneal_replicas=3), seed=5)
+    b = anneal(mesh, H, init, fixed, TopologyConfig(anneal_sweeps=60, anneal_replicas=3), seed=5)
     assert torch.equal(a, b)
     assert torch.equal(a[fixed], init[fixed])
     # warm start keeps fixed values too
-    c = anneal(mesh, H, init, fixed, 60, 3.0, 0.02, replicas=3, seed=5, warm_t_start=0.3)
+    c = anneal(mesh, H, init, fixed, TopologyConfig(anneal_sweeps=60, anneal_replicas=3), seed=5, warm=True)
     assert torch.equal(c[fixed], init[fixed])
     # ferromagnet, boundary held at +1: the unique ground state is all +1 (from a random start)
     Hf = -(0.1 + torch.rand(mesh.edges.shape[0], generator=g)).to(device)
     init2 = torch.where(mesh.is_boundary_vert, 1.0, init)
-    s = anneal(mesh, Hf, init2, mesh.is_boundary_vert, 60, 3.0, 0.02, replicas=2, seed=1)
+    s = anneal(mesh, Hf, init2, mesh.is_boundary_vert, TopologyConfig(anneal_sweeps=60, anneal_replicas=2), seed=1)
     assert torch.equal(s, torch.ones_like(s))
 
 
@@ -442,8 +444,8 @@ def test_anneal_batch_independent(device):
     v0, nv = int(batch.verts_per_item[0]), int(batch.verts_per_item[1])
     init = torch.ones(batch.verts.shape[0], dtype=torch.float64, device=device)
     fixed = batch.is_boundary_vert
-    s_b = anneal(batch, H, init, fixed, 40, 3.0, 0.02, replicas=3, seed=2)
-    s_1 = anneal(one, H[e0:e0 + ne], init[v0:v0 + nv], fixed[v0:v0 + nv], 40, 3.0, 0.02, replicas=3, seed=2)
+    s_b = anneal(batch, H, init, fixed, TopologyConfig(anneal_sweeps=40, anneal_replicas=3), seed=2)
+    s_1 = anneal(one, H[e0:e0 + ne], init[v0:v0 + nv], fixed[v0:v0 + nv], TopologyConfig(anneal_sweeps=40, anneal_replicas=3), seed=2)
     assert torch.equal(s_b[v0:v0 + nv], s_1)
 
 
@@ -796,8 +798,8 @@ def two_circle_objective(device, smoothness, crossing_weight):
     mom = triangle_moments(mesh, pts, face, bary)
     near = vertex_data_distance_near(mesh, pts, face)
     tol = torch.tensor([0.01, 0.02], dtype=dtype, device=device)
-    obj = GeometryObjective(mesh, mom, torch.cat([s1, s2]), torch.cat([i1, i2]), tol, 0.02, smoothness,
-                            near, 0.5 * tol, crossing_weight)
+    obj = GeometryObjective(mesh, mom, torch.cat([s1, s2]), torch.cat([i1, i2]), tol,
+                            GeometryConfig(smoothness=smoothness, crossing_weight=crossing_weight), near, 0.5 * tol)
     return obj, mesh, pts, face, tol
 
 
@@ -875,9 +877,9 @@ def test_fit_geometry_crossing_term_keeps_signs_and_crossings_near_data(device):
         ex = torch.where(torch.isfinite(near[e]), near[e] - a, torch.zeros_like(a))
         return float(ex.max())
 
-    F0, _ = fit_geometry(mesh, mom, signs, init, tol, 60, 8, 0.02, 1e-2)
-    F1, _ = fit_geometry(mesh, mom, signs, init, tol, 60, 8, 0.02, 1e-2, data_dist=near, slack=slack,
-                         crossing_weight=1.0)
+    F0, _ = fit_geometry(mesh, mom, signs, init, tol, GeometryConfig(crossing_weight=0.0))
+    F1, _ = fit_geometry(mesh, mom, signs, init, tol, GeometryConfig(crossing_weight=1.0), data_dist=near,
+                         slack=slack)
     assert torch.equal(F1 < 0, signs < 0)
     assert worst_crossing(F1) <= max(worst_crossing(F0), 2 * float(slack)) + 1e-9
 
@@ -910,8 +912,8 @@ def test_fit_geometry_lowers_delta1_keeps_signs_and_fits_circle(smoothness, devi
     mesh, pts, face, bary, mom, signs, init = circle_setup(device, dtype, R=R)
     tol = torch.tensor([0.004], device=device, dtype=dtype)
     d1_start = delta1_from_points(mesh, signs * init, pts, face)
-    F, d1 = fit_geometry(mesh, mom, signs, init, tol, iterations=60, history=8, magnitude_floor=0.02,
-                         smoothness=smoothness)
+    F, d1 = fit_geometry(mesh, mom, signs, init, tol, GeometryConfig(smoothness=smoothness,
+                                                                     crossing_weight=0.0))
     assert F.dtype == dtype and F.shape == signs.shape
     assert torch.isfinite(F).all()
     assert ((F * signs) > 0).all() and not (F == 0).any()
@@ -936,13 +938,14 @@ def test_fit_geometry_batch_independent(device):
     m1, p1, f1, b1, mom1, s1, i1 = circle_setup(device, dtype, n=150, R=0.5, res=6)
     m2, p2, f2, b2, mom2, s2, i2 = circle_setup(device, dtype, n=90, R=0.3, res=4)
     tol = torch.tensor([0.004], device=device, dtype=dtype)
-    F1, d1 = fit_geometry(m1, mom1, s1, i1, tol, 40, 8, 0.02, 1e-2)
+    F1, d1 = fit_geometry(m1, mom1, s1, i1, tol, GeometryConfig(lbfgs_iterations=40, crossing_weight=0.0))
     mesh = MeshBatch.cat([m2, m1])
     pts = torch.cat([p2, p1])
     item = torch.cat([torch.zeros(90, dtype=torch.long), torch.ones(150, dtype=torch.long)]).to(device)
     face, bary = locate_grid(mesh, pts, item)
     mom = triangle_moments(mesh, pts, face, bary)
-    F, d = fit_geometry(mesh, mom, torch.cat([s2, s1]), torch.cat([i2, i1]), torch.cat([tol, tol]), 40, 8, 0.02, 1e-2)
+    F, d = fit_geometry(mesh, mom, torch.cat([s2, s1]), torch.cat([i2, i1]), torch.cat([tol, tol]),
+                        GeometryConfig(lbfgs_iterations=40, crossing_weight=0.0))
     nv2 = m2.verts.shape[0]
     torch.testing.assert_close(F[nv2:], F1, rtol=1e-10, atol=1e-12)
     torch.testing.assert_close(d[1], d1[0], rtol=1e-10, atol=1e-15)
@@ -1194,7 +1197,7 @@ def test_relax_mesh_invariants(device, dtype):
     npts = torch.bincount(item, minlength=mesh.num_items).to(dtype)
     md = 1e-4 * rho
     U0 = mesh_energy(mesh, mesh.verts, pts, face, 1.0, 0.25, rho, npts, md)
-    out, f2, b2 = relax_mesh(mesh, pts, item, face, iterations=15, kappa_data=1.0, kappa_edge=0.25, min_quality=min_q)
+    out, f2, b2 = relax_mesh(mesh, pts, item, face, RelaxConfig(relax_iterations=15, min_quality=min_q))
     v0, v1 = mesh.verts, out.verts
     assert torch.equal(out.faces, mesh.faces)
     assert float((v1 - v0).abs().max()) > 1e-3                 # it did move something
@@ -1233,7 +1236,7 @@ def test_relax_mesh_energy_monotone_per_iteration(max_move, device):
     npts = torch.bincount(item, minlength=mesh.num_items).to(dtype)
     prev = mesh_energy(mesh, mesh.verts, pts, face, 1.0, 0.25, rho, npts, 1e-4 * rho)
     for it in range(1, 7):
-        out, f2, _ = relax_mesh(mesh, pts, item, face, it, 1.0, 0.25, 0.15, max_move=max_move)
+        out, f2, _ = relax_mesh(mesh, pts, item, face, RelaxConfig(relax_iterations=it, relax_max_move=max_move))
         U = mesh_energy(out, out.verts, pts, f2, 1.0, 0.25, rho, npts, 1e-4 * rho)
         assert (U <= prev).all(), (it, U, prev)
         prev = U
@@ -1253,7 +1256,7 @@ def test_relax_mesh_quality_floor_with_slivers(device):
     pts = (0.6 * torch.stack([t.cos(), t.sin()], 1)).to(device)
     item, face, _ = locate_single(mesh, pts)
     q0 = mesh.quality()
-    out, f2, _ = relax_mesh(mesh, pts, item, face, iterations=20, kappa_data=1.0, kappa_edge=0.25, min_quality=0.9)
+    out, f2, _ = relax_mesh(mesh, pts, item, face, RelaxConfig(relax_iterations=20, min_quality=0.9))
     assert (out.signed_areas() > 0).all()
     assert (out.quality() >= torch.minimum(q0, torch.full_like(q0, 0.9)) - 1e-12).all()
 
@@ -1261,12 +1264,12 @@ def test_relax_mesh_quality_floor_with_slivers(device):
 def test_relax_mesh_batch_independent(device):
     dtype = torch.float64
     mesh, pts, item, face = relax_setup(device, dtype, n_items=2)
-    out, f2, _ = relax_mesh(mesh, pts, item, face, 10, 1.0, 0.25, 0.15)
+    out, f2, _ = relax_mesh(mesh, pts, item, face, RelaxConfig(relax_iterations=10))
     m1 = mesh[1]
     sel = item == 1
     f1 = face[sel] - int(mesh.faces_first_idx[1])
     o1, g1, _ = relax_mesh(m1, pts[sel], torch.zeros(int(sel.sum()), dtype=torch.long, device=device), f1,
-                           10, 1.0, 0.25, 0.15)
+                           RelaxConfig(relax_iterations=10))
     v0 = int(mesh.verts_first_idx[1])
     torch.testing.assert_close(out.verts[v0:], o1.verts, rtol=1e-12, atol=1e-12)
 
@@ -1301,7 +1304,7 @@ def test_estimate_noise_dense_noisy_line(device):
     est = estimate_noise(pts, item, 1)
     assert abs(float(est[0]) - sigma) < 0.25 * sigma
     # the single-scale fit is the biased one (so the subsets are what fixes it)
-    assert float(estimate_noise(pts, item, 1, min_points=10 ** 9)[0]) < 0.5 * sigma
+    assert float(estimate_noise(pts, item, 1, NoiseConfig(noise_min_subset=10 ** 9))[0]) < 0.5 * sigma
     # with a sparse item before it in the batch, the same estimate
     other = noisy_line(300, 0.01, 2).to(device)
     both = estimate_noise(torch.cat([other, pts]), torch.cat([item[:300], item + 1]), 2)
@@ -1508,7 +1511,8 @@ def test_estimate_noise_frames_follow_the_curve(device):
     n = 200
     t = torch.arange(n, dtype=torch.float64) * (2 * math.pi / n)
     p = 0.35 * torch.stack([t.cos(), t.sin()], 1)
-    noise, fr = estimate_noise(p.to(device), torch.zeros(n, dtype=torch.long, device=device), 1, return_frames=True)
+    est = noise_and_frames(p.to(device), torch.zeros(n, dtype=torch.long, device=device), 1)
+    noise, fr = est.level, est.frames
     fr = fr.cpu()
     tangent = torch.stack([-t.sin(), t.cos()], 1)
     assert float((fr[:, :2] * tangent).sum(1).abs().min()) > 0.999
@@ -1574,9 +1578,10 @@ def _mark(mesh, pts, values, device, dtype, tol=0.004, noise=0.0, line_eps=None,
     count = torch.bincount(face, minlength=mesh.faces.shape[0]).to(dtype)
     if line_eps is None:
         line_eps = torch.zeros(mesh.faces.shape[0], device=device, dtype=dtype)
+    cfg = TestConfig(test_statistic=statistic, noise_factor=noise_factor, min_points_split=min_points_split,
+                     thin_feature_factor=thin_factor, min_split_size=min_split_size)
     return mark_triangles(mesh, res, face, count, line_eps, torch.tensor([tol], device=device, dtype=dtype),
-                          torch.tensor([noise], device=device, dtype=dtype), statistic, noise_factor,
-                          min_points_split, min_points_fit, thin_factor, min_split_size), face
+                          torch.tensor([noise], device=device, dtype=dtype), cfg, min_points_fit), face
 
 
 def test_mark_triangles_coverage_rule(device, dtype):
@@ -1590,12 +1595,13 @@ def test_mark_triangles_coverage_rule(device, dtype):
     excess = torch.tensor([0.1, 0.001, float("inf"), -float("inf"), 0.1, 0.1], device=device, dtype=dtype)
     reach = torch.tensor([0.1, 0.1, 0.1, 0.1, 0.6, 0.1], device=device, dtype=dtype)
     args = (mesh, torch.zeros(0, device=device, dtype=dtype), face, z, z, torch.tensor([0.004], device=device,
-            dtype=dtype), torch.tensor([0.0], device=device, dtype=dtype), "max", 3.0, 6, 3, 3.0)
-    marked, _, _ = mark_triangles(*args, coverage=(excess, reach))
+            dtype=dtype), torch.tensor([0.0], device=device, dtype=dtype))
+    cfg = TestConfig(min_split_size=0.0)
+    marked, _, _ = mark_triangles(*args, cfg, 3, coverage=(excess, reach))
     # every edge of the unit hexagon's triangles is 1 long: 1 > 2 x 0.6 fails for the fifth
     assert marked.tolist() == [True, False, False, False, False, True]
-    assert not mark_triangles(*args)[0].any()
-    assert not mark_triangles(*args, min_split_size=300.0, coverage=(excess, reach))[0].any()
+    assert not mark_triangles(*args, cfg, 3)[0].any()
+    assert not mark_triangles(*args, TestConfig(min_split_size=300.0), 3, coverage=(excess, reach))[0].any()
 
 
 def cluster(x0, y, n, device, dtype, dx=0.04):

@@ -15,6 +15,7 @@ from torch_isc.io import (EXPORTERS, CurveFileError, PointFileError, atomic_writ
                           read_points, render_png, save_npz, write_json, write_png, write_svg)
 from torch_isc.core.mesh import MeshBatch, hexagon_mesh
 from torch_isc.pipeline.result import ReconstructionResult
+from torch_isc.pipeline.stats import LevelStats
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -38,8 +39,9 @@ def _annulus_curve(dtype=torch.float64, resolution=6):
 
 
 def _result(curve, points=None, name="item", open_chain=False):
-    stats = [{"level": 0, "triangles": int(curve.mesh.faces.shape[0]), "points": 60, "delta1": 1e-5,
-              "max_error": float("nan"), "tolerance": 0.004, "noise": 0.0, "marked": 0, "seconds": 0.123}]
+    stats = [LevelStats(level=0, triangles=int(curve.mesh.faces.shape[0]), points=60, delta1=1e-5,
+                        max_error=float("nan"), tolerance=0.004, noise=0.0, marked=0, points_beyond_tolerance=0,
+                        seconds=0.123)]
     return ReconstructionResult(curve=curve, points=_circle_points() if points is None else points, stats=stats,
                                 config=ReconstructConfig(), converged=True, limit=None, name=name)
 

@@ -72,12 +72,12 @@ def check_result_basics(res, pts):
     face, _ = curve.locate(pts.to(curve.mesh.dtype))
     assert (face >= 0).all()
     assert res.converged and res.limit is None
-    levels = [s["level"] for s in res.stats]
+    levels = [s.level for s in res.stats]
     assert levels == list(range(len(levels)))
-    assert res.stats[-1]["marked"] == 0
+    assert res.stats[-1].marked == 0
     for s in res.stats:
-        assert DOCUMENTED_STAT_KEYS <= set(s)
-        assert s["points"] == pts.shape[0]
+        assert DOCUMENTED_STAT_KEYS <= set(s.to_dict())
+        assert s.points == pts.shape[0]
     # no two polylines cross, no polyline crosses itself
     assert find_intersections([(p["points"], p["closed"]) for p in res.polylines]) == []
 
@@ -156,7 +156,7 @@ def test_batch_independence(device):
         assert (rb.num_closed, rb.num_open) == (ra.num_closed, ra.num_open)
         assert hausdorff(rb.polylines, ra.polylines) < 1e-3 * bbox_diagonal(p.cpu())
         assert polys_equal(rb.polylines, ra.polylines), f"{n}: result depends on its batch"
-        assert [s["triangles"] for s in rb.stats] == [s["triangles"] for s in ra.stats]
+        assert [s.triangles for s in rb.stats] == [s.triangles for s in ra.stats]
         assert torch.equal(rb.points, p)
 
 
@@ -227,7 +227,7 @@ def test_distinct_points_packed_against_a_loop():
     """Exact repeats are merged per item, first occurrences kept in input order (-0.0 equals
     0.0; integer and float32 inputs compared exactly in float64); a set left with fewer than 3
     distinct points is named in the error."""
-    from torch_isc.pipeline.loop import _distinct
+    from torch_isc.core.points import distinct_points as _distinct
     g = torch.Generator().manual_seed(0)
     a = torch.randint(0, 4, (50, 2), generator=g)
     b = torch.tensor([[0.0, 1.0], [-0.0, 1.0], [2.0, 2.0], [3.0, 1.0], [2.0, 2.0]])
@@ -288,7 +288,7 @@ def test_glyph_with_acute_counter_has_no_pinched_off_loop(thickness):
     assert (res.num_closed, res.num_open) == (2, 0)
     truth = [(torch.as_tensor(resample_closed(o, 4000, 0.0)), True) for o in outlines]
     assert hausdorff(res.polylines, truth) < 0.02 * bbox_diagonal(pts)
-    off = reconstruct(pts, ReconstructConfig(min_island_vertices=0))
+    off = reconstruct(pts, ReconstructConfig().replace(min_island_vertices=0))
     assert off.num_closed == 3                          # the rule is what removes the third loop
 
 
@@ -330,7 +330,7 @@ def test_large_offset_keeps_precision():
 def test_large_offset_float64_config():
     pts, ref = solved("annulus")
     off = torch.tensor([1e7, -1e7], dtype=torch.float64)
-    res = reconstruct(pts + off, ReconstructConfig(dtype="float64"))
+    res = reconstruct(pts + off, ReconstructConfig().replace(dtype="float64"))
     assert (res.num_closed, res.num_open) == (ref.num_closed, ref.num_open)
     back = [{"closed": p["closed"], "points": p["points"].double() - off} for p in res.polylines]
     assert hausdorff(back, CASES["annulus"][1]) < 0.02 * 2.0
@@ -339,7 +339,7 @@ def test_large_offset_float64_config():
 @pytest.mark.parametrize("name", ["two", "annulus"])
 def test_float64_same_topology(name):
     pts, ref = solved(name)
-    res = reconstruct(pts, ReconstructConfig(dtype="float64"))
+    res = reconstruct(pts, ReconstructConfig().replace(dtype="float64"))
     assert res.curve.mesh.dtype == torch.float64
     assert (res.num_closed, res.num_open) == (ref.num_closed, ref.num_open)
     # the refinement may take another path; both are accurate
@@ -350,7 +350,7 @@ def test_float64_same_topology(name):
 def test_absolute_tolerance_matches_relative():
     pts, ref = solved("annulus")
     diag = bbox_diagonal(pts)
-    res = reconstruct(pts * 7.0, ReconstructConfig(tolerance_mode="absolute", tolerance=0.004 * diag * 7.0))
+    res = reconstruct(pts * 7.0, ReconstructConfig().replace(tolerance_mode="absolute", tolerance=0.004 * diag * 7.0))
     assert (res.num_closed, res.num_open) == (ref.num_closed, ref.num_open)
     back = [{"closed": p["closed"], "points": p["points"].double() / 7.0} for p in res.polylines]
     assert hausdorff(back, ref.polylines) < 1e-3 * diag
@@ -367,7 +367,7 @@ def test_determinism_and_seed():
     pts, ref = solved("annulus")
     again = reconstruct(pts)
     assert polys_equal(again.polylines, ref.polylines)
-    other = reconstruct(pts, ReconstructConfig(seed=12345))
+    other = reconstruct(pts, ReconstructConfig().replace(seed=12345))
     assert (other.num_closed, other.num_open) == (2, 0)
 
 
@@ -518,21 +518,21 @@ def test_noisy_circle(seed):
     assert (res.num_closed, res.num_open) == (1, 0)
     assert hausdorff(res.polylines, [truth_circle(1.0)]) < 0.03 * 2.0
     # the noise estimate (caller's units) is of the right size
-    assert 0.5 * 0.02 < res.stats[-1]["noise"] < 1.5 * 0.02
+    assert 0.5 * 0.02 < res.stats[-1].noise < 1.5 * 0.02
     assert polygon_signed_area(res.polylines[0]["points"]) > 0
 
 
 def test_level_and_triangle_limits():
     pts = CASES["two"][0]()
     # a coarse initial mesh, so the run takes several levels
-    cfg = ReconstructConfig(initial_resolution=2)
+    cfg = ReconstructConfig().replace(initial_resolution=2)
     full = reconstruct(pts, cfg)
     assert len(full.stats) >= 3
     res = reconstruct(pts, cfg.replace(max_level=1))
-    assert len(res.stats) == 2 and res.stats[-1]["marked"] > 0
+    assert len(res.stats) == 2 and res.stats[-1].marked > 0
     assert res.converged is False and res.limit == "max_level"
-    assert [s["triangles"] for s in res.stats] == [s["triangles"] for s in full.stats[:2]]
-    n0 = full.stats[0]["triangles"]
+    assert [s.triangles for s in res.stats] == [s.triangles for s in full.stats[:2]]
+    n0 = full.stats[0].triangles
     res2 = reconstruct(pts, cfg.replace(max_triangles=n0 + 1))
     assert len(res2.stats) == 1
     assert res2.converged is False and res2.limit == "max_triangles"
@@ -546,11 +546,11 @@ def test_outliers_are_counted_in_the_stats():
     out = torch.tensor([[0.1, 0.05], [-0.3, 0.2], [1.6, 1.5]], dtype=torch.float64)
     clean = reconstruct(pts)
     dirty = reconstruct(torch.cat([pts, out]))
-    assert clean.stats[-1]["points_beyond_tolerance"] == 0
+    assert clean.stats[-1].points_beyond_tolerance == 0
     assert (dirty.num_closed, dirty.num_open) == (1, 0)
     last = dirty.stats[-1]
-    assert last["points_beyond_tolerance"] == 3
+    assert last.points_beyond_tolerance == 3
     # the count is the independent distance to the extracted curve, thresholded by hand
     d = point_distances(torch.cat([pts, out]), dirty.polylines)
-    assert int((d > last["tolerance"]).sum()) == 3
+    assert int((d > last.tolerance).sum()) == 3
 

@@ -246,7 +246,7 @@ def test_many_copies_of_one_point():
         assert hausdorff(res.polylines, truth) < 0.01 * 2.0
         # every point counted, or every distinct point once (when repeats are merged)
         distinct = torch.unique(pts, dim=0).shape[0]
-        assert res.stats[0]["points"] in (pts.shape[0], distinct)
+        assert res.stats[0].points in (pts.shape[0], distinct)
 
 
 def test_duplicated_noisy_points():
@@ -276,11 +276,11 @@ def test_offset_1e7_and_scale_1e6():
                       (lambda p: (p + off) * 1e-6, lambda p: p / 1e-6 - off)]:
         res = reconstruct(fwd(pts))
         assert ncomp(res) == ncomp(base)
-        assert [s["triangles"] for s in res.stats] == [s["triangles"] for s in base.stats]
+        assert [s.triangles for s in res.stats] == [s.triangles for s in base.stats]
         # At 1e7 the float64 input itself is rounded to ~2e-9 of its spread; the fit (a fixed
         # number of L-BFGS steps) carries such perturbations up by ~1e5 (measured 3e-5..6e-4 of
         # the diagonal, float32 or float64 alike), still far inside the tolerance
-        assert hausdorff(mapped(res, back), base.polylines) < 0.25 * base.stats[-1]["tolerance"]
+        assert hausdorff(mapped(res, back), base.polylines) < 0.25 * base.stats[-1].tolerance
 
 
 def test_cli_offset_1e7(tmp_path, capsys):
@@ -343,7 +343,7 @@ def test_million_points():
     print(f"1e6 points: {seconds:.1f} s, peak RSS {peak_gib:.2f} GiB (before: {rss0 / 2 ** 20:.2f} GiB)")
     assert ncomp(res) == (1, 0) and res.converged
     assert hausdorff(res.polylines, truth) < 0.01 * bbox_diagonal(pts)
-    assert res.stats[-1]["points"] == n
+    assert res.stats[-1].points == n
     assert peak_gib < 6.0
     assert seconds < 900
 
@@ -475,7 +475,7 @@ def test_property_translation_scale(shape, log_scale, offset):
     assert ncomp(res) == ncomp(base)
     assert [x["triangles"] for x in res.stats] == [x["triangles"] for x in base.stats]
     h = hausdorff(mapped(res, lambda p: (p - off) / s), base.polylines)
-    assert h < 0.25 * base.stats[-1]["tolerance"], h / bbox_diagonal(pts)
+    assert h < 0.25 * base.stats[-1].tolerance, h / bbox_diagonal(pts)
 
 
 @PROPERTY
@@ -495,7 +495,7 @@ def test_property_rot90(shape, k):
     assert ncomp(base) == (n_true, 0), "the unrotated shape itself is reconstructed wrongly"
     res = reconstruct(rot90(pts, k))
     assert ncomp(res) == ncomp(base)
-    delta = max(base.stats[-1]["tolerance"], res.stats[-1]["tolerance"])
+    delta = max(base.stats[-1].tolerance, res.stats[-1].tolerance)
     h = hausdorff(mapped(res, lambda p: rot90(p, 4 - k)), base.polylines)
     assert h <= 2 * delta + gap, (h / diag, delta / diag, gap / diag)
 
@@ -508,7 +508,7 @@ def test_property_float32_float64_topology(shape):
     and it is the true one."""
     pts, _truth, _gap, n_true = shape
     r32 = reconstruct(pts.float())
-    r64 = reconstruct(pts, ReconstructConfig(dtype="float64"))
+    r64 = reconstruct(pts, ReconstructConfig().replace(dtype="float64"))
     assert r32.curve.values.dtype == torch.float32 and r64.curve.values.dtype == torch.float64
     assert ncomp(r32) == ncomp(r64) == (n_true, 0)
 
@@ -528,7 +528,7 @@ def test_json_bytes_identical_across_processes(tmp_path, capsys):
     a, b = (tmp_path / "a" / "s.json").read_bytes(), (tmp_path / "b" / "s.json").read_bytes()
     assert a == b
     # and the API gives the same text as the file
-    res = reconstruct(torch.from_numpy(np.loadtxt(f)), ReconstructConfig(max_level=3, seed=7), name="s")
+    res = reconstruct(torch.from_numpy(np.loadtxt(f)), ReconstructConfig().replace(max_level=3, seed=7), name="s")
     assert json_dumps(result_json_dict(res)).encode() == a
 
 
@@ -539,12 +539,12 @@ def test_triangle_cap_bounds_a_pathological_input():
     g = torch.Generator().manual_seed(0)
     pts = torch.rand(20_000, 2, generator=g, dtype=torch.float64)
     for cap in (400, 1500):
-        res = reconstruct(pts, ReconstructConfig(max_triangles=cap, max_level=50))
+        res = reconstruct(pts, ReconstructConfig().replace(max_triangles=cap, max_level=50))
         assert all(s["triangles"] <= cap for s in res.stats)
         assert res.curve.mesh.faces.shape[0] <= cap
         assert res.converged is False and res.limit in ("max_triangles", "no_curve")
         if res.limit == "max_triangles":
-            assert res.stats[-1]["marked"] > 0
+            assert res.stats[-1].marked > 0
         d = res.to_json_dict()["stats"]
         assert d["converged"] is False and d["limit"] == res.limit
 
@@ -555,12 +555,12 @@ def test_level_cap_reports_unmet_tolerance():
     pts, _truth, _ = star(300, ((5, 0.2, 0.0),), seed=1)
     full = reconstruct(pts)
     assert full.converged and len(full.stats) >= 3
-    assert full.stats[-1]["max_error"] <= full.stats[-1]["tolerance"]
-    res = reconstruct(pts, ReconstructConfig(max_level=1))
+    assert full.stats[-1].max_error <= full.stats[-1].tolerance
+    res = reconstruct(pts, ReconstructConfig().replace(max_level=1))
     assert len(res.stats) == 2
     assert res.converged is False and res.limit == "max_level"
     last = res.stats[-1]
-    assert last["marked"] > 0 and last["max_error"] > last["tolerance"]
+    assert last.marked > 0 and last.max_error > last.tolerance
     stats = json.loads(json_dumps(result_json_dict(res)))["stats"]
     assert stats["limit"] == "max_level" and stats["converged"] is False
     assert stats["levels"][-1]["max_error"] > stats["levels"][-1]["tolerance"]

@@ -8,7 +8,8 @@ from torch_isc.core.extract import Polylines, extract_zero_set
 from torch_isc.core.locate import barycentric, locate_children, locate_grid, locate_walk
 from torch_isc.core.mesh import InvalidMeshError, MeshBatch, hexagon_mesh, square_mesh
 from torch_isc.pipeline.result import ReconstructionResult
-from torch_isc.pipeline.loop import PointSetError, reconstruct, reconstruct_batch
+from torch_isc.core.points import PointSetError
+from torch_isc.pipeline.loop import reconstruct, reconstruct_batch
 
 __version__ = "0.1.0"
 

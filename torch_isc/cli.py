@@ -218,7 +218,7 @@ def _bar(done: int, total: int, t0: float, width: int = 24) -> str:
 def _summary(job: _Job, result, seconds: float) -> str:
     levels = len(result.stats or [])
     state = "converged" if result.converged else f"not converged ({result.limit or 'tolerance not met'})"
-    beyond = int((result.stats or [{}])[-1].get("points_beyond_tolerance", 0))
+    beyond = result.stats[-1].points_beyond_tolerance if result.stats else 0
     if beyond:
         state += f", {beyond} point(s) beyond tolerance"
     return (f"{job.stem}: {result.num_closed} closed, {result.num_open} open, {levels} levels, "

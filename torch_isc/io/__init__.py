@@ -405,8 +405,8 @@ def write_npz(path: PathLike, result) -> Path:
         "limit": result.limit,
         "num_closed": result.num_closed,
         "num_open": result.num_open,
-        "config": result.config.to_dict() if hasattr(result.config, "to_dict") else None,
-        "stats": result.stats,
+        "config": result.config.to_dict(),
+        "stats": [lv.to_dict() for lv in result.stats],
     }
     return save_npz(path, result.curve, meta)
 

@@ -1,141 +1,167 @@
-"""Reconstruction settings: one dataclass, loaded from YAML, unknown keys rejected.
+"""Reconstruction settings: one section per stage, loaded from YAML, unknown keys rejected.
 
-Every field is documented in ``configs/default.yaml``; the two must agree (a test checks).
+Each stage owns its section (``TestConfig`` beside the test, ``RelaxConfig`` beside the
+relaxation, ...) and receives it whole. A YAML file names sections::
+
+    test:
+      tolerance: 0.006
+    relaxation:
+      relax_iterations: 10
+
+or, as older files do, the flat keys alone (``tolerance: 0.006``): every field name is unique
+across the sections, so a flat key says where it belongs. Every field is documented in
+``configs/default.yaml``; the two must agree (a test checks).
 """
 from __future__ import annotations
 
 import dataclasses
-import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Any, Dict, Iterable, Mapping, Optional, Union
+from typing import Any, Dict, Iterable, List, Mapping, Optional, Union
 
-__all__ = ["ReconstructConfig", "ConfigError", "load_config", "parse_overrides"]
+from torch_isc.pipeline.evidence import EvidenceConfig
+from torch_isc.pipeline.knobs import ConfigError, check_section, knob
+from torch_isc.pipeline.noise import NoiseConfig
+from torch_isc.pipeline.relax import RelaxConfig
+from torch_isc.pipeline.signs import TopologyConfig
+from torch_isc.pipeline.tolerance import TestConfig
+from torch_isc.pipeline.values import GeometryConfig
+
+__all__ = ["ReconstructConfig", "ConfigError", "MeshConfig", "LimitsConfig", "RunConfig", "NoiseConfig",
+           "EvidenceConfig", "TopologyConfig", "GeometryConfig", "TestConfig", "RelaxConfig", "load_config",
+           "parse_overrides", "from_dict", "flat_keys"]
 
 
-class ConfigError(ValueError):
-    """A configuration key or value that cannot be used."""
+@dataclass
+class MeshConfig:
+    """InitializeMesh (Fig. 3)."""
+    initial_mesh: str = knob("hexagon", choices=("hexagon", "square"))
+    #: triangles along each side of the initial hexagon (cells per side of the square)
+    initial_resolution: int = knob(4, gt=0)
+    #: how far the initial mesh extends beyond the data, relative to the data's size
+    margin: float = knob(0.15, ge=0)
+
+    def __post_init__(self):
+        check_section(self)
 
 
-_CHOICES = {
-    "initial_mesh": ("hexagon", "square"),
-    "tolerance_mode": ("relative", "absolute"),
-    "test_statistic": ("max", "rms"),
-    "dtype": ("float32", "float64"),
-}
+@dataclass
+class LimitsConfig:
+    """What bounds the loop."""
+    max_level: int = knob(10, gt=0)
+    max_triangles: int = knob(200_000, gt=0)
+
+    def __post_init__(self):
+        check_section(self)
+
+
+@dataclass
+class RunConfig:
+    """Seed and working precision."""
+    seed: int = knob(0, ge=0)
+    dtype: str = knob("float32", choices=("float32", "float64"))
+
+    def __post_init__(self):
+        check_section(self)
 
 
 @dataclass
 class ReconstructConfig:
-    # mesh
-    initial_mesh: str = "hexagon"
-    initial_resolution: int = 4
-    margin: float = 0.15
-    # loop and limits
-    max_level: int = 10
-    max_triangles: int = 200_000
-    # testing
-    tolerance: float = 0.004
-    tolerance_mode: str = "relative"
-    test_statistic: str = "max"
-    noise_factor: float = 3.0
-    min_points_split: int = 6
-    thin_feature_factor: float = 3.0
-    min_split_size: float = 4.0
-    coverage_test: bool = True
-    # topology
-    min_points_fit: int = 3
-    empty_weight: float = 1.0
-    anneal_sweeps: int = 120
-    anneal_t_start: float = 3.0
-    anneal_t_end: float = 0.02
-    anneal_warm_t_start: float = 0.3
-    anneal_replicas: int = 4
-    min_island_vertices: int = 2
-    # geometry
-    lbfgs_iterations: int = 60
-    lbfgs_history: int = 8
-    magnitude_floor: float = 0.02
-    smoothness: float = 1e-2
-    crossing_weight: float = 1.0
-    # relaxation
-    relax_iterations: int = 25
-    kappa_data: float = 1.0
-    kappa_edge: float = 0.25
-    min_quality: float = 0.15
-    # run
-    seed: int = 0
-    dtype: str = "float32"
+    """Every setting of a reconstruction, by stage.
+
+    Example:
+        >>> cfg = ReconstructConfig().replace(max_level=3, relaxation={"relax_iterations": 5})
+        >>> cfg.limits.max_level, cfg.relaxation.relax_iterations, cfg.test.tolerance
+        (3, 5, 0.004)
+    """
+    mesh: MeshConfig = field(default_factory=MeshConfig)
+    limits: LimitsConfig = field(default_factory=LimitsConfig)
+    noise: NoiseConfig = field(default_factory=NoiseConfig)
+    evidence: EvidenceConfig = field(default_factory=EvidenceConfig)
+    topology: TopologyConfig = field(default_factory=TopologyConfig)
+    geometry: GeometryConfig = field(default_factory=GeometryConfig)
+    test: TestConfig = field(default_factory=TestConfig)
+    relaxation: RelaxConfig = field(default_factory=RelaxConfig)
+    run: RunConfig = field(default_factory=RunConfig)
 
     def __post_init__(self):
-        self.validate()
-
-    def validate(self) -> None:
         for f in fields(self):
-            v = getattr(self, f.name)
-            want = f.type if isinstance(f.type, type) else {"int": int, "float": float, "str": str, "bool": bool}[f.type]
-            if want is float and isinstance(v, str):
-                try:
-                    v = float(v)
-                    object.__setattr__(self, f.name, v)
-                except ValueError:
-                    pass
-            if want is float and isinstance(v, int) and not isinstance(v, bool):
-                v = float(v)
-                object.__setattr__(self, f.name, v)
-            if not isinstance(v, want) or (want is int and isinstance(v, bool)):
-                raise ConfigError(f"config key '{f.name}': expected {want.__name__}, got {type(v).__name__} {v!r}")
-            if want is float and not math.isfinite(v):
-                raise ConfigError(f"config key '{f.name}': must be finite, got {v!r}")
-            if f.name in _CHOICES and v not in _CHOICES[f.name]:
-                raise ConfigError(f"config key '{f.name}': must be one of {', '.join(_CHOICES[f.name])}, got {v!r}")
-        positive = ["initial_resolution", "max_level", "max_triangles", "tolerance", "anneal_sweeps", "anneal_t_start",
-                    "anneal_t_end", "anneal_warm_t_start", "anneal_replicas", "lbfgs_history", "min_points_fit",
-                    "kappa_edge", "kappa_data"]
-        for k in positive:
-            if getattr(self, k) <= 0:
-                raise ConfigError(f"config key '{k}': must be > 0, got {getattr(self, k)!r}")
-        nonneg = ["margin", "noise_factor", "min_points_split", "thin_feature_factor", "min_split_size", "empty_weight",
-                  "lbfgs_iterations", "magnitude_floor", "smoothness", "crossing_weight", "relax_iterations", "seed"]
-        for k in nonneg:
-            if getattr(self, k) < 0:
-                raise ConfigError(f"config key '{k}': must be >= 0, got {getattr(self, k)!r}")
-        if not 0 <= self.min_quality < 1:
-            raise ConfigError(f"config key 'min_quality': must be in [0, 1), got {self.min_quality!r}")
-        if self.magnitude_floor >= 1:
-            raise ConfigError(f"config key 'magnitude_floor': must be < 1, got {self.magnitude_floor!r}")
+            if not isinstance(getattr(self, f.name), _SECTION_TYPES[f.name]):
+                raise ConfigError(f"config section '{f.name}': expected {_SECTION_TYPES[f.name].__name__}")
 
-    def replace(self, **changes) -> "ReconstructConfig":
-        return from_dict({**dataclasses.asdict(self), **changes})
+    def __getattr__(self, name: str) -> Any:
+        # TEMPORARY flat read access (cfg.tolerance) while the adapters move to sections
+        sec = FLAT.get(name)
+        if sec is None:
+            raise AttributeError(name)
+        return getattr(getattr(self, sec), name)
 
-    def to_dict(self) -> Dict[str, Any]:
-        return dataclasses.asdict(self)
+    def replace(self, **changes: Any) -> "ReconstructConfig":
+        """A copy with ``changes``: flat keys (``tolerance=0.01``) or sections as mappings
+        (``test={"tolerance": 0.01}``), checked like a file."""
+        return from_dict(changes, base=self)
+
+    def to_dict(self) -> Dict[str, Dict[str, Any]]:
+        """``{section: {key: value}}``, the layout of ``configs/default.yaml``."""
+        return {f.name: dataclasses.asdict(getattr(self, f.name)) for f in fields(self)}
+
+    def to_flat_dict(self) -> Dict[str, Any]:
+        """``{key: value}`` over all sections (the flat keys of older files)."""
+        return {k: v for sec in self.to_dict().values() for k, v in sec.items()}
 
 
-def from_dict(d: Mapping[str, Any], source: str = "config") -> ReconstructConfig:
+_SECTION_TYPES = {f.name: f.default_factory for f in fields(ReconstructConfig)}      # type: ignore[misc]
+#: flat key -> its section
+FLAT = {k.name: sec for sec, cls in _SECTION_TYPES.items() for k in fields(cls)}
+assert len(FLAT) == sum(len(fields(c)) for c in _SECTION_TYPES.values()), "flat keys must be unique"
+
+
+def flat_keys(d: Mapping[str, Any]) -> List[str]:
+    """The flat keys a config mapping (flat or by section) sets, e.g. to know which settings a
+    user named."""
+    out: List[str] = []
+    for k, v in d.items():
+        if k in _SECTION_TYPES and isinstance(v, Mapping):
+            out.extend(str(x) for x in v)
+        else:
+            out.append(str(k))
+    return out
+
+
+def from_dict(d: Mapping[str, Any], source: str = "config", base: Optional[ReconstructConfig] = None
+              ) -> ReconstructConfig:
+    """Build a config from ``d`` (sections and/or flat keys) over ``base`` (defaults when None)."""
     if not isinstance(d, Mapping):
         raise ConfigError(f"{source}: expected a mapping of keys to values, got {type(d).__name__}")
-    names = {f.name for f in fields(ReconstructConfig)}
-    unknown = sorted(set(d) - names)
-    if unknown:
-        raise ConfigError(f"{source}: unknown config key '{unknown[0]}'")
+    cur = (base or ReconstructConfig()).to_dict()
+    for k, v in d.items():
+        if not isinstance(k, str):
+            raise ConfigError(f"{source}: config keys must be strings, got {type(k).__name__}")
+        if k in _SECTION_TYPES:
+            if not isinstance(v, Mapping):
+                raise ConfigError(f"{source}: config section '{k}' must be a mapping of keys to values")
+            for kk, vv in v.items():
+                if FLAT.get(kk) != k:
+                    raise ConfigError(f"{source}: unknown config key '{k}.{kk}'")
+                cur[k][kk] = vv
+        elif k in FLAT:
+            cur[FLAT[k]][k] = v
+        else:
+            raise ConfigError(f"{source}: unknown config key '{k}'")
     try:
-        return ReconstructConfig(**d)
+        return ReconstructConfig(**{sec: _SECTION_TYPES[sec](**vals) for sec, vals in cur.items()})
     except ConfigError as e:
         if source == "config":
             raise
         raise ConfigError(f"{source}: {e}") from None
 
 
-ReconstructConfig.from_dict = staticmethod(from_dict)  # type: ignore[attr-defined]
-
-
 def load_config(path: Optional[Union[str, Path]] = None, overrides: Optional[Mapping[str, Any]] = None) -> ReconstructConfig:
-    """Load a YAML file (keys of :class:`ReconstructConfig`), then apply ``overrides``."""
+    """Load a YAML file (sections or flat keys of :class:`ReconstructConfig`), then apply ``overrides``."""
     import yaml
 
-    d: Dict[str, Any] = {}
     src = "config"
+    cfg = ReconstructConfig()
     if path is not None:
         src = str(path)
         try:
@@ -150,10 +176,10 @@ def load_config(path: Optional[Union[str, Path]] = None, overrides: Optional[Map
             loaded = {}
         if not isinstance(loaded, dict):
             raise ConfigError(f"{path}: expected a mapping of keys to values")
-        d.update(loaded)
+        cfg = from_dict(loaded, src)
     if overrides:
-        d.update(overrides)
-    return from_dict(d, src)
+        cfg = from_dict(overrides, src, base=cfg)
+    return cfg
 
 
 def parse_overrides(items: Iterable[str]) -> Dict[str, Any]:

@@ -10,14 +10,37 @@ Dimension-free except for the quality measure and point location it calls.
 """
 from __future__ import annotations
 
-from typing import Optional, Tuple
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Optional, Tuple
 
 import torch
 
 from torch_isc.core.locate import barycentric, locate_walk
 from torch_isc.core.mesh import MeshBatch
+from torch_isc.pipeline.knobs import check_section, knob
 
-__all__ = ["mesh_energy", "degree_weights", "relax_mesh"]
+if TYPE_CHECKING:
+    from torch_isc.pipeline.workset import WorkingSet
+
+__all__ = ["RelaxConfig", "relax_stage", "mesh_energy", "degree_weights", "relax_mesh"]
+
+
+@dataclass
+class RelaxConfig:
+    """RelaxMesh (flat keys of configs/default.yaml)."""
+    #: gradient steps per level; 0 disables
+    relax_iterations: int = knob(25, ge=0)
+    kappa_data: float = knob(1.0, gt=0)
+    kappa_edge: float = knob(0.25, gt=0)
+    #: no step may bring a triangle's quality below this (no slivers)
+    min_quality: float = knob(0.15, ge=0, lt=1)
+    #: the largest vertex move of a step, in units of the vertex's shortest edge
+    relax_max_move: float = knob(0.3, gt=0, le=1)
+    #: step halvings tried before an item's step is given up
+    relax_max_backtracks: int = knob(6, gt=0)
+
+    def __post_init__(self):
+        check_section(self)
 
 
 def mesh_energy(mesh: MeshBatch, verts: torch.Tensor, points: torch.Tensor, face: torch.Tensor,
@@ -64,12 +87,15 @@ def degree_weights(mesh: MeshBatch) -> torch.Tensor:
 
 
 def relax_mesh(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor, face: torch.Tensor,
-               iterations: int, kappa_data: float, kappa_edge: float, min_quality: float,
-               max_move: float = 0.3, max_backtracks: int = 6) -> Tuple[MeshBatch, torch.Tensor, torch.Tensor]:
-    """Relax the interior of every item's mesh.
+               cfg: Optional[RelaxConfig] = None) -> Tuple[MeshBatch, torch.Tensor, torch.Tensor]:
+    """Relax the interior of every item's mesh: ``cfg.relax_iterations`` steps.
 
     Returns the relaxed mesh, the points' new triangles ``(P,)`` and barycentrics ``(P, 3)``.
     """
+    cfg = RelaxConfig() if cfg is None else cfg
+    iterations, kappa_data, kappa_edge, min_quality = (cfg.relax_iterations, cfg.kappa_data, cfg.kappa_edge,
+                                                       cfg.min_quality)
+    max_move, max_backtracks = cfg.relax_max_move, cfg.relax_max_backtracks
     B = mesh.num_items
     dev, dt = mesh.device, mesh.dtype
     with torch.no_grad():
@@ -143,3 +169,11 @@ def relax_mesh(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor, 
         out = mesh.with_verts(v)
         bary = barycentric(v, mesh.faces, face, points.to(dt))
     return out, face, bary
+
+
+def relax_stage(ws: "WorkingSet", cfg: RelaxConfig) -> "WorkingSet":
+    """The relaxation stage: the working set on the relaxed mesh, points re-located."""
+    if cfg.relax_iterations <= 0:
+        return ws
+    mesh, face, bary = relax_mesh(ws.mesh, ws.points, ws.point_item, ws.face, cfg)
+    return ws.replace(mesh=mesh, face=face, bary=bary)

@@ -2,14 +2,19 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Dict, List, Optional
+from typing import TYPE_CHECKING, Any, Dict, Iterator, List, Optional, Sequence, Tuple
 
 import torch
 
-from torch_isc.pipeline.config import ReconstructConfig
 from torch_isc.core.curve import ImplicitCurve
+from torch_isc.pipeline.config import ReconstructConfig
+from torch_isc.pipeline.stats import LevelStats
 
-__all__ = ["ReconstructionResult"]
+if TYPE_CHECKING:
+    from torch_isc.core.points import PointBatch
+    from torch_isc.pipeline.workset import WorkingSet
+
+__all__ = ["ReconstructionResult", "finish_items"]
 
 
 @dataclass
@@ -19,8 +24,7 @@ class ReconstructionResult:
     Attributes:
         curve: :class:`ImplicitCurve`, a batch of one, in the caller's coordinates.
         points: ``(N, 2)`` the input points (caller's coordinates, caller's dtype/device).
-        stats: one dict per level: ``level, triangles, points, delta1, max_error,
-            tolerance, noise, marked, points_beyond_tolerance, seconds`` (distances in the
+        stats: one :class:`~torch_isc.pipeline.stats.LevelStats` per level (distances in the
             caller's units). ``points_beyond_tolerance`` counts the points farther from the
             curve than the tolerance: outliers, which the test excuses in triangles holding
             too few points to split, show there even when ``converged`` is True.
@@ -34,7 +38,7 @@ class ReconstructionResult:
     """
     curve: ImplicitCurve
     points: torch.Tensor
-    stats: List[Dict[str, Any]]
+    stats: List[LevelStats]
     config: ReconstructConfig
     converged: bool
     limit: Optional[str] = None
@@ -81,6 +85,42 @@ class ReconstructionResult:
             "bbox": self.bbox(),
         }
         if with_stats:
-            d["stats"] = {"levels": self.stats, "converged": self.converged, "limit": self.limit,
+            d["stats"] = {"levels": [lv.to_dict() for lv in self.stats], "converged": self.converged, "limit": self.limit,
                           "num_closed": self.num_closed, "num_open": self.num_open}
         return d
+
+
+def finish_items(ws: "WorkingSet", fin: torch.Tensor, n_marked: torch.Tensor, over: torch.Tensor,
+                 batch: "PointBatch", cfg: ReconstructConfig, stats: Sequence[List[LevelStats]],
+                 names: Sequence[Optional[str]]) -> Iterator[Tuple[int, ReconstructionResult]]:
+    """``(caller's item, result)`` for the working items ``fin``: each curve back in the
+    caller's frame in float64 (an offset of 1e7 must not be rounded away), then in the caller's
+    precision, at least the working one."""
+    with torch.no_grad():
+        dtype = ws.dtype
+        sub, vk, _ = ws.mesh.select_items(fin)
+        ob = ws.items[fin]
+        vitem = sub.vert_item
+        flat = ws.flat[fin]
+        vals = torch.where(flat[vitem], ws.values[vk].abs(), ws.values[vk])        # all outside: no curve
+        inside = torch.zeros(fin.shape[0], dtype=torch.bool, device=ws.device).index_fill_(0, vitem[vals < 0], True)
+        scale, center = ws.scale[fin], ws.center[fin]
+        verts64 = sub.verts.double() * scale[vitem, None] + center[vitem]
+        vals64 = vals.double() * scale[vitem]
+        first = sub.verts_first_idx.tolist() + [sub.verts.shape[0]]
+        rows = zip(ob.tolist(), n_marked[fin].tolist(), over[fin].tolist(), inside.tolist(), flat.tolist())
+        for jj, (b, mk, ov, has_in, fl) in enumerate(rows):
+            limit = None
+            if mk > 0:
+                limit = "max_triangles" if ov else "max_level"
+            raw = batch.raw[b]
+            odt = torch.promote_types(raw.dtype if raw.dtype.is_floating_point else dtype, dtype)
+            v0, v1 = first[jj], first[jj + 1]
+            curve = ImplicitCurve(sub[jj].with_verts(verts64[v0:v1].to(odt)), vals64[v0:v1].to(odt), validate=False)
+            converged = mk == 0
+            if fl or (not has_in and limit is None):
+                # no inside vertex, so no curve: the data did not define one (too few points, or
+                # all of them on one line); a run cut short by a limit keeps that limit as its reason
+                converged, limit = False, "no_curve"
+            yield b, ReconstructionResult(curve=curve, points=raw, stats=stats[b], config=cfg, converged=converged,
+                                          limit=limit, name=names[b])

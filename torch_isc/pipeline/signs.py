@@ -1,112 +1,49 @@
-"""EstimateTopology (Section 3.2): local line fits, edge weights, Ising model, annealing.
+"""EstimateTopology (Section 3.2): the vertex signs, from the Ising model of the line
+evidence (edge weights of eq. 3.6, simulated annealing), or from an inside/outside oracle.
 
-The 2×2 line fit is the only dimension-specific part; the Ising model on the mesh
-graph, the colouring and the annealer work on any simplicial mesh's edge list.
+Dimension-free: the edge weights read the line fits through the mesh's kernel, and the
+Ising model, the colouring and the annealer work on any simplicial mesh's edge list.
 """
 from __future__ import annotations
 
 import warnings
 
 from dataclasses import dataclass
-from typing import Optional
+from typing import TYPE_CHECKING, Callable, Optional, Protocol, Sequence, Union
 
 import torch
 
 from torch_isc.core.mesh import MeshBatch
-from torch_isc.core.segments import hash_keys, hash_to_unit, mix32
+from torch_isc.core.points import PointSetError
+from torch_isc.core.segments import first_index, hash_keys, hash_to_unit, mix32
+from torch_isc.pipeline.knobs import check_section, knob
 
-__all__ = ["TriangleMoments", "triangle_moments", "pooled_moments", "line_fits", "crossing_reach", "edge_weights", "vertex_coloring",
-           "anneal", "ising_energy", "sign_islands", "remove_small_islands"]
+if TYPE_CHECKING:
+    from torch_isc.pipeline.evidence import Evidence, EvidenceConfig
+    from torch_isc.pipeline.workset import WorkingSet
+
+__all__ = ["TopologyConfig", "edge_weights", "vertex_coloring", "anneal", "ising_energy", "sign_islands",
+           "remove_small_islands", "SignSource", "IsingSigns", "OracleSigns", "SignOracleError"]
 
 
 @dataclass
-class TriangleMoments:
-    """Per-triangle sums over the points inside it (eq. 3.2 and the line fit).
+class TopologyConfig:
+    """The Ising estimate of the signs (flat keys of configs/default.yaml)."""
+    #: confidence of an empty triangle, L = (1, 1, 1): "no curve crosses here"
+    empty_weight: float = knob(1.0, ge=0)
+    anneal_sweeps: int = knob(120, gt=0)
+    anneal_t_start: float = knob(3.0, gt=0)
+    anneal_t_end: float = knob(0.02, gt=0)
+    #: start temperature at finer levels, warm-started from the previous signs
+    anneal_warm_t_start: float = knob(0.3, gt=0)
+    anneal_replicas: int = knob(4, gt=0)
+    #: zero-temperature sweeps after the schedule
+    anneal_greedy_sweeps: int = knob(4, ge=0)
+    #: sign regions of fewer vertices (and no boundary vertex) are flipped; 0 or 1 disables
+    min_island_vertices: int = knob(2, ge=0)
 
-    Attributes:
-        count: ``(T,)`` number of points. M: ``(T, 3, 3)`` mean of ``X_t(p) X_t(p)ᵀ``.
-        centroid: ``(T, 2)`` mean point (triangle centroid where empty).
-        scatter: ``(T, 2, 2)`` covariance of the points.
-    """
-    count: torch.Tensor
-    M: torch.Tensor
-    centroid: torch.Tensor
-    scatter: torch.Tensor
-
-
-def triangle_moments(mesh: MeshBatch, points: torch.Tensor, face: torch.Tensor, bary: torch.Tensor) -> TriangleMoments:
-    """Scatter-add the moments of ``points (P, 2)`` located in ``face (P,)`` with ``bary (P, 3)``.
-
-    Cost O(P); afterwards Δ1 costs O(T) per evaluation. Points with ``face < 0`` are ignored.
-    """
-    T = mesh.faces.shape[0]
-    dt = mesh.dtype
-    ok = face >= 0
-    f, X = face[ok], bary[ok].to(dt)
-    p = points[ok].to(dt)
-    count = torch.zeros(T, dtype=dt, device=mesh.device).index_add_(0, f, torch.ones_like(f, dtype=dt))
-    M = torch.zeros(T, 9, dtype=dt, device=mesh.device).index_add_(0, f, (X[:, :, None] * X[:, None, :]).reshape(-1, 9))
-    # moments about the triangle centroid keep float32 accurate on small triangles
-    tc = mesh.verts.detach()[mesh.faces].mean(1)
-    q = p - tc[f]
-    s1 = torch.zeros(T, 2, dtype=dt, device=mesh.device).index_add_(0, f, q)
-    s2 = torch.zeros(T, 4, dtype=dt, device=mesh.device).index_add_(0, f, (q[:, :, None] * q[:, None, :]).reshape(-1, 4))
-    n = count.clamp_min(1)
-    mean = s1 / n[:, None]
-    cov = s2.view(T, 2, 2) / n[:, None, None] - mean[:, :, None] * mean[:, None, :]
-    return TriangleMoments(count, M.view(T, 3, 3) / n[:, None, None], tc + mean, cov)
-
-
-def pooled_moments(mesh: MeshBatch, mom: TriangleMoments) -> TriangleMoments:
-    """Moments of the points of each triangle and its (up to) three edge-neighbours.
-
-    Combined exactly (parallel-axis rule on the per-triangle means and covariances), so
-    small triangles keep their precision. ``M`` is not pooled (it is per-triangle)."""
-    nb = mesh.face_neighbors
-    T = nb.shape[0]
-    idx = torch.cat([torch.arange(T, device=nb.device)[:, None], nb], 1)      # (T,4)
-    ok = idx >= 0
-    j = idx.clamp_min(0)
-    n = torch.where(ok, mom.count[j], torch.zeros_like(mom.count[j]))      # (T,4)
-    N = n.sum(1)
-    m = mom.centroid[j]                                                     # (T,4,2)
-    # offsets from the own centroid keep the sums small
-    d = m - mom.centroid[:, None, :]
-    mean_d = (n[..., None] * d).sum(1) / N.clamp_min(1)[:, None]
-    dd = d - mean_d[:, None, :]
-    C = (n[..., None, None] * (mom.scatter[j] + dd[..., :, None] * dd[..., None, :])).sum(1) / N.clamp_min(1)[:, None, None]
-    return TriangleMoments(N, mom.M, mom.centroid + mean_d, C)
-
-
-def line_fits(mesh: MeshBatch, mom: TriangleMoments):
-    """Closed-form least-squares line in every triangle.
-
-    Returns:
-        L ``(T, 3)``: signed distances of the triangle's vertices to its line (the
-        minimizer of ``Lᵀ M L / Lᵀ N L`` up to scale); eps ``(T,)``: mean squared distance
-        of the points to the line (the local error of fit ``ε_t``); normal ``(T, 2)``.
-    """
-    lam, normal = mesh.kernel.hyperplane_fit(mom.scatter)
-    tri = mesh.verts.detach()[mesh.faces]                    # (T,3,2)
-    L = ((tri - mom.centroid[:, None, :]) * normal[:, None, :]).sum(-1)
-    return L, lam, normal
-
-
-def crossing_reach(mesh: MeshBatch, mom: TriangleMoments, L: torch.Tensor, normal: torch.Tensor,
-                   slack: float = 1.0) -> torch.Tensor:
-    """``(T, 3)`` bool: where the fitted line crosses edge ``k`` (corners k+1, k+2), is the
-    crossing within the extent of the triangle's points along the line?
-
-    Points spread along a segment of half-length ``h`` have variance ``h²/3`` along it, so
-    the extent is ``h = √(3 λ_max)`` (plus ``slack ×`` the residual spread ``√ε``)."""
-    lam_max, lam_min = mesh.kernel.principal_spread(mom.scatter)
-    h = torch.sqrt(3.0 * lam_max)
-    # the curve runs on about half a sample spacing (h / (n-1)) past the last point
-    half = h * (1.0 + 1.0 / (mom.count - 1).clamp_min(1)) + slack * torch.sqrt(lam_min)
-    tang = torch.stack([-normal[:, 1], normal[:, 0]], 1)
-    x, _ = mesh.kernel.edge_crossings(mesh.verts.detach()[mesh.faces], L)     # (T,3,2)
-    u = ((x - mom.centroid[:, None, :]) * tang[:, None, :]).sum(-1)
-    return u.abs() <= half[:, None]
+    def __post_init__(self):
+        check_section(self)
 
 
 def edge_weights(mesh: MeshBatch, L: torch.Tensor, eps: torch.Tensor, count: torch.Tensor,
@@ -207,17 +144,17 @@ def ising_energy(mesh: MeshBatch, H: torch.Tensor, signs: torch.Tensor) -> torch
     return out if signs.dim() == 2 else out[:, 0]
 
 
-def anneal(mesh: MeshBatch, H: torch.Tensor, init: torch.Tensor, fixed: torch.Tensor, sweeps: int,
-           t_start: float, t_end: float, replicas: int = 4, seed: int = 0, greedy_sweeps: int = 4,
-           warm_t_start: Optional[float] = None) -> torch.Tensor:
+def anneal(mesh: MeshBatch, H: torch.Tensor, init: torch.Tensor, fixed: torch.Tensor,
+           cfg: Optional[TopologyConfig] = None, seed: int = 0, warm: bool = False) -> torch.Tensor:
     """Minimize the Ising energy ``Σ_e H_e F_i F_j`` over ``F ∈ {−1, 1}`` by simulated annealing.
 
     Vertices of one colour are never adjacent, so each colour class is updated in parallel
-    (Metropolis) for the whole batch and all ``replicas`` at once. Temperatures fall
-    geometrically from ``t_start`` to ``t_end``; a few zero-temperature sweeps finish, and the
-    replica of lowest energy is kept per item (ties to the lowest replica).
+    (Metropolis) for the whole batch and all ``cfg.anneal_replicas`` at once. Temperatures fall
+    geometrically from ``anneal_t_start`` to ``anneal_t_end`` over ``anneal_sweeps``; a few
+    zero-temperature sweeps finish, and the replica of lowest energy is kept per item (ties to
+    the lowest replica).
 
-    With ``warm_t_start``, replica 0 starts from ``init`` at that (low) temperature, keeping
+    With ``warm``, replica 0 starts from ``init`` at ``anneal_warm_t_start``, keeping
     what earlier levels found, while the other replicas start from +1 at ``t_start``: a
     cluster of wrong signs that single flips at low temperature cannot undo is redone.
 
@@ -226,10 +163,14 @@ def anneal(mesh: MeshBatch, H: torch.Tensor, init: torch.Tensor, fixed: torch.Te
     Returns:
         ``(V,)`` ±1 signs (dtype of ``H``).
     """
+    cfg = TopologyConfig() if cfg is None else cfg
+    sweeps, t_start, t_end = cfg.anneal_sweeps, cfg.anneal_t_start, cfg.anneal_t_end
+    greedy_sweeps = cfg.anneal_greedy_sweeps
+    warm_t_start = cfg.anneal_warm_t_start if warm else None
     with torch.no_grad():
         dev, dt = H.device, H.dtype
         V = mesh.verts.shape[0]
-        R = max(int(replicas), 1)
+        R = max(int(cfg.anneal_replicas), 1)
         color = vertex_coloring(mesh, ~fixed)
         ncol = int(color.max()) + 1 if V and (color >= 0).any() else 0
         groups = [(color == c).nonzero().squeeze(1) for c in range(ncol)]
@@ -311,3 +252,109 @@ def remove_small_islands(mesh: MeshBatch, signs: torch.Tensor, keep: torch.Tenso
         pinned = torch.zeros_like(size, dtype=torch.bool).index_fill_(0, lab[keep], True)
         flip = (size[lab] < min_vertices) & ~pinned[lab]
         return torch.where(flip, -signs, signs)
+
+
+# ------------------------------------------------------------------- where signs come from
+class SignSource(Protocol):
+    """Where the vertex signs of a level come from (Section 3.2): estimated from the data
+    (:class:`IsingSigns`) or read from an inside/outside oracle (:class:`OracleSigns`)."""
+
+    def signs(self, ws: "WorkingSet", ev: "Evidence", level: int) -> torch.Tensor:
+        """``(V,)`` ±1 signs of the working set's vertices."""
+        ...
+
+    def marks(self, ws: "WorkingSet", values: torch.Tensor, min_len: torch.Tensor) -> Optional[torch.Tensor]:
+        """``(T,)`` bool, triangles the source wants split beyond the test (or None)."""
+        ...
+
+
+class IsingSigns:
+    """Signs that minimize the Ising energy of the line evidence (eqs. 3.5-3.6), annealed;
+    sign regions below the mesh's resolution are then flipped.
+
+    Args:
+        topology: the annealing and island settings. evidence: the line-fit settings. seed:
+            the annealing's random seed.
+    """
+
+    def __init__(self, topology: TopologyConfig, evidence: "EvidenceConfig", seed: int = 0):
+        self.cfg, self.evidence, self.seed = topology, evidence, seed
+
+    def signs(self, ws: "WorkingSet", ev: "Evidence", level: int) -> torch.Tensor:
+        from torch_isc.pipeline.evidence import local_fits
+        with torch.no_grad():
+            mesh = ws.mesh
+            fits = local_fits(mesh, ev.moments, ev.fits, self.evidence)
+            H = edge_weights(mesh, fits.L, fits.eps, ev.moments.count, self.evidence.min_points_fit,
+                             self.cfg.empty_weight, pooled_count=fits.support, reach=fits.reach,
+                             noise2=ws.noise ** 2)
+            fixed = mesh.is_boundary_vert
+            init = torch.where(fixed, torch.ones_like(ws.signs), ws.signs)
+            s = anneal(mesh, H, init, fixed, self.cfg, self.seed, warm=level > 0)
+            return remove_small_islands(mesh, s, fixed, self.cfg.min_island_vertices)
+
+    def marks(self, ws: "WorkingSet", values: torch.Tensor, min_len: torch.Tensor) -> Optional[torch.Tensor]:
+        return None
+
+
+class OracleSigns:
+    """Signs read from inside/outside oracles, asked in the caller's coordinates; boundary
+    vertices are outside. The oracle also marks triangles next to an interior edge (longer
+    than ``min_len`` of its item) at whose midpoint it and the piecewise-linear function
+    disagree: vertex signs alone cannot see a thin stroke or a gap passing between vertices.
+
+    Args:
+        oracles: one callable per caller's item, ``oracle(points (M, 2)) -> (M,)`` bool (True
+            inside), or one batched callable ``oracle(points (M, 2), item (M,)) -> (M,)``.
+    """
+
+    def __init__(self, oracles: Union[Callable, Sequence[Optional[Callable]]]):
+        self.oracles = oracles
+
+    def inside(self, ws: "WorkingSet", x: torch.Tensor, item: torch.Tensor) -> torch.Tensor:
+        """``(M,)`` bool at normalized points ``x (M, 2)`` of working items ``item (M,)``
+        (non-decreasing)."""
+        b = ws.items[item]
+        xc = ws.caller_points(x, item)
+        if callable(self.oracles):                                  # batched: one call for all items
+            inside = torch.as_tensor(self.oracles(xc, b), device=x.device).bool().reshape(-1)
+            if inside.shape[0] != xc.shape[0]:
+                raise SignOracleError(f"sign oracle returned {inside.shape[0]} values for {xc.shape[0]} points")
+            return inside
+        out = torch.zeros(x.shape[0], dtype=torch.bool, device=x.device)
+        counts = torch.bincount(item, minlength=ws.num_items)
+        starts = first_index(counts).tolist()
+        for ob, s0, n in zip(ws.items.tolist(), starts, counts.tolist()):   # one call per item
+            o = self.oracles[ob]
+            if o is None:
+                raise SignOracleError(f"item {ob}: sign oracles must be given for every item or none")
+            if n:
+                got = torch.as_tensor(o(xc[s0:s0 + n]), device=x.device).bool().reshape(-1)
+                if got.shape[0] != n:
+                    raise SignOracleError(f"item {ob}: sign oracle returned {got.shape[0]} values for {n} points")
+                out[s0:s0 + n] = got
+        return out
+
+    def signs(self, ws: "WorkingSet", ev: "Evidence", level: int) -> torch.Tensor:
+        mesh = ws.mesh
+        inside = self.inside(ws, mesh.verts, mesh.vert_item)
+        out = torch.where(inside, -1.0, 1.0).to(ws.dtype)
+        out[mesh.is_boundary_vert] = 1.0
+        return out
+
+    def marks(self, ws: "WorkingSet", values: torch.Tensor, min_len: torch.Tensor) -> Optional[torch.Tensor]:
+        mesh = ws.mesh
+        e = mesh.edges
+        v = mesh.verts.detach()
+        inside = self.inside(ws, 0.5 * (v[e[:, 0]] + v[e[:, 1]]), mesh.edge_item)
+        pl_inside = (values[e[:, 0]] + values[e[:, 1]]) < 0
+        long = (v[e[:, 0]] - v[e[:, 1]]).norm(dim=1) > min_len[mesh.edge_item]
+        bad = (inside != pl_inside) & long & ~mesh.is_boundary_edge
+        out = torch.zeros(mesh.faces.shape[0], dtype=torch.bool, device=v.device)
+        ef = mesh.edge_faces[bad].reshape(-1)
+        out[ef[ef >= 0]] = True
+        return out
+
+
+class SignOracleError(PointSetError):
+    """A sign oracle that answered with the wrong number of values, or was missing."""

@@ -7,16 +7,38 @@ once per partition, so an evaluation costs O(triangles), independent of the poin
 """
 from __future__ import annotations
 
-from typing import Optional, Tuple
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Optional, Tuple
 
 import torch
 
 from torch_isc.core.mesh import MeshBatch
 from torch_isc.pipeline.optim import batched_lbfgs
-from torch_isc.pipeline.signs import TriangleMoments
+from torch_isc.pipeline.evidence import TriangleMoments
+from torch_isc.pipeline.knobs import check_section, knob
 
-__all__ = ["GeometryObjective", "delta1_per_triangle", "vertex_data_distance", "vertex_data_distance_near", "fit_geometry",
+if TYPE_CHECKING:
+    from torch_isc.pipeline.evidence import Evidence
+    from torch_isc.pipeline.workset import WorkingSet
+
+__all__ = ["GeometryConfig", "GeometryObjective", "delta1_per_triangle", "vertex_data_distance", "vertex_data_distance_near", "fit_geometry", "estimate_values",
            "point_residuals"]
+
+
+@dataclass
+class GeometryConfig:
+    """EstimateGeometry (flat keys of configs/default.yaml)."""
+    lbfgs_iterations: int = knob(60, ge=0)
+    lbfgs_history: int = knob(8, gt=0)
+    #: magnitudes stay above this fraction of the item's mean magnitude
+    magnitude_floor: float = knob(0.02, ge=0, lt=1)
+    #: weight of the penalty on jumps of grad f across interior edges; 0 disables
+    smoothness: float = knob(1e-2, ge=0)
+    #: weight of the dead-zoned curve-to-data term at the zero set's edge crossings; 0 disables
+    crossing_weight: float = knob(1.0, ge=0)
+
+    def __post_init__(self):
+        check_section(self)
 
 
 def _grad_norm2(mesh: MeshBatch, values: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
@@ -118,9 +140,9 @@ class GeometryObjective:
     """
 
     def __init__(self, mesh: MeshBatch, mom: TriangleMoments, signs: torch.Tensor, init_mag: torch.Tensor,
-                 tol: torch.Tensor, magnitude_floor: float, smoothness: float,
-                 data_dist: Optional[torch.Tensor] = None, slack: Optional[torch.Tensor] = None,
-                 crossing_weight: float = 0.0):
+                 tol: torch.Tensor, cfg: GeometryConfig, data_dist: Optional[torch.Tensor] = None,
+                 slack: Optional[torch.Tensor] = None):
+        magnitude_floor, smoothness, crossing_weight = cfg.magnitude_floor, cfg.smoothness, cfg.crossing_weight
         B = mesh.num_items
         vi, fi = mesh.vert_item, mesh.face_item
         dt = mesh.dtype
@@ -260,10 +282,8 @@ class GeometryObjective:
 
 
 def fit_geometry(mesh: MeshBatch, mom: TriangleMoments, signs: torch.Tensor, init_mag: torch.Tensor,
-                 tol: torch.Tensor, iterations: int, history: int, magnitude_floor: float,
-                 smoothness: float, data_dist: Optional[torch.Tensor] = None,
-                 slack: Optional[torch.Tensor] = None, crossing_weight: float = 0.0
-                 ) -> Tuple[torch.Tensor, torch.Tensor]:
+                 tol: torch.Tensor, cfg: GeometryConfig, data_dist: Optional[torch.Tensor] = None,
+                 slack: Optional[torch.Tensor] = None) -> Tuple[torch.Tensor, torch.Tensor]:
     """Fit the magnitudes of every item, each with its own L-BFGS (batch-independent).
 
     The per-item objective is ``Δ1 / tol² + smoothness · J`` where ``J`` (dimensionless) is the
@@ -290,12 +310,23 @@ def fit_geometry(mesh: MeshBatch, mom: TriangleMoments, signs: torch.Tensor, ini
     Returns:
         values ``(V,)`` and Δ1 per item ``(B,)``.
     """
-    obj = GeometryObjective(mesh, mom, signs, init_mag, tol, magnitude_floor, smoothness, data_dist, slack,
-                            crossing_weight)
-    s, _, _ = batched_lbfgs(obj.value_and_grad, obj.s0, mesh.vert_item, mesh.num_items, iterations=iterations,
-                            history=history, masked=True, with_grad=True)
+    obj = GeometryObjective(mesh, mom, signs, init_mag, tol, cfg, data_dist, slack)
+    s, _, _ = batched_lbfgs(obj.value_and_grad, obj.s0, mesh.vert_item, mesh.num_items,
+                            iterations=cfg.lbfgs_iterations, history=cfg.lbfgs_history, masked=True, with_grad=True)
     with torch.no_grad():
         F = obj.values(s)
         d1 = torch.zeros(mesh.num_items, dtype=mesh.dtype, device=mesh.device).index_add_(
             0, obj.fi, obj.wt_raw * delta1_per_triangle(mesh, mom.M, F, obj.G, obj.guard))
     return F, d1
+
+
+def estimate_values(ws: "WorkingSet", ev: "Evidence", cfg: GeometryConfig, slack: torch.Tensor
+                    ) -> Tuple[torch.Tensor, torch.Tensor]:
+    """The geometry stage: magnitudes fitted to the working set's points with its signs fixed,
+    started at each vertex's distance to the data. ``slack (B,)``: the crossing term's dead
+    zone (the tolerance each item is tested at). Returns values ``(V,)`` and Δ1 ``(B,)``."""
+    with torch.no_grad():
+        init_mag = vertex_data_distance(ws.mesh, ws.points, ws.face)
+        near = vertex_data_distance_near(ws.mesh, ws.points, ws.face) if cfg.crossing_weight > 0 else None
+    values, d1 = fit_geometry(ws.mesh, ev.moments, ws.signs, init_mag, ws.tol, cfg, data_dist=near, slack=slack)
+    return values.detach(), d1

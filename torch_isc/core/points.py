@@ -1,0 +1,175 @@
+"""Packed batches of 2D point sets: the input of the pipeline.
+
+A :class:`PointBatch` holds ``B`` point sets the way :class:`~torch_isc.core.mesh.MeshBatch`
+holds meshes: all points in one ``(P, 2)`` tensor, item by item, with a per-point item index
+and per-item counts. :func:`prepare_points` turns the caller's point sets into the batch the
+loop works on: checked, exact repeats merged, and each item normalized (bounding box centred,
+diagonal 1) in float64 so that results do not depend on translation or scale.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import List, Optional, Sequence, Union
+
+import numpy as np
+import torch
+
+from torch_isc.core.segments import first_index, segment_max, segment_min
+
+__all__ = ["PointsLike", "PointSetError", "PointBatch", "check_points", "distinct_points", "collinear_items",
+           "prepare_points"]
+
+
+PointsLike = Union[torch.Tensor, np.ndarray, Sequence[Sequence[float]]]
+
+
+class PointSetError(ValueError):
+    """A point set that cannot be reconstructed (too few points, NaN, wrong shape...)."""
+
+
+def check_points(x: PointsLike, label: str) -> torch.Tensor:
+    if not isinstance(x, torch.Tensor):
+        try:
+            x = torch.as_tensor(np.asarray(x, dtype=np.float64))
+        except (TypeError, ValueError) as e:
+            raise PointSetError(f"{label}: not an array of numbers ({e})") from None
+    if x.dim() != 2 or x.shape[1] != 2:
+        raise PointSetError(f"{label}: expected points of shape (N, 2), got {tuple(x.shape)}")
+    if not (x.dtype.is_floating_point or x.dtype in (torch.int16, torch.int32, torch.int64, torch.uint8, torch.int8)):
+        raise PointSetError(f"{label}: expected real coordinates, got dtype {x.dtype}")
+    if x.shape[0] == 0:
+        raise PointSetError(f"{label}: no points")
+    bad = ~torch.isfinite(x.double()).all(1)
+    if bad.any():
+        raise PointSetError(f"{label}: {int(bad.sum())} point(s) have NaN or Inf coordinates")
+    return x
+
+
+def distinct_points(sets: Sequence[torch.Tensor], labels: Sequence[str]):
+    """The point *sets*: every item's points without exact repeats, in the order of first
+    occurrence, packed in float64 (exact for the inputs' float32/float64/integer values).
+    Repeats say nothing about the curve, but they would fool the noise estimate (a point's
+    nearest neighbours would be its own copies: noise 0, tolerance floor gone) and the
+    point-count guards of the test, and noisy data would be refined into spurious loops.
+
+    Returns ``(points (P, 2) float64, point_item (P,), counts (B,))``, for the whole batch at
+    once: rows ``(item, x, y)`` sorted by three stable sorts (``unique(dim=0)`` is several
+    times slower), equal neighbours grouped."""
+    dev = sets[0].device
+    B = len(sets)
+    n = torch.tensor([p.shape[0] for p in sets], device=dev)
+    item = torch.repeat_interleave(torch.arange(B, device=dev), n)
+    x = torch.cat([p.to(torch.float64) for p in sets])
+    o = torch.argsort(x[:, 1], stable=True)
+    o = o[torch.argsort(x[o, 0], stable=True)]
+    o = o[torch.argsort(item[o], stable=True)]
+    xs, its = x[o], item[o]
+    new = torch.ones(o.shape[0], dtype=torch.bool, device=dev)
+    new[1:] = (its[1:] != its[:-1]) | (xs[1:] != xs[:-1]).any(1)
+    gid = torch.cumsum(new.long(), 0) - 1
+    G = int(gid[-1]) + 1
+    counts = torch.bincount(its[new], minlength=B)
+    few = (counts < 3).nonzero().squeeze(1)
+    if few.numel():
+        b = int(few[0])
+        raise PointSetError(f"{labels[b]}: needs at least 3 distinct points, got {int(counts[b])}")
+    if G == x.shape[0]:
+        return x, item, counts
+    first = torch.full((G,), x.shape[0], dtype=torch.long, device=dev).scatter_reduce_(0, gid, o, "amin")
+    keep = first.sort().values                       # item-major, first occurrence within an item
+    return x[keep], item[keep], counts
+
+
+def collinear_items(pts64: torch.Tensor, point_item: torch.Tensor, B: int, slack: torch.Tensor) -> torch.Tensor:
+    """``(B,)`` bool: every point of the item lies within ``slack`` of one line (float64,
+    normalized coordinates). Measured as the largest distance to the principal axis, so no
+    cancellation in an eigenvalue limits the precision."""
+    n = torch.bincount(point_item, minlength=B).to(pts64.dtype)
+    mean = torch.zeros(B, 2, dtype=pts64.dtype, device=pts64.device).index_add_(0, point_item, pts64) / n[:, None]
+    d = pts64 - mean[point_item]
+    cov = torch.zeros(B, 3, dtype=pts64.dtype, device=pts64.device).index_add_(
+        0, point_item, torch.stack([d[:, 0] * d[:, 0], d[:, 0] * d[:, 1], d[:, 1] * d[:, 1]], 1))
+    theta = 0.5 * torch.atan2(2 * cov[:, 1], cov[:, 0] - cov[:, 2])        # principal direction
+    normal = torch.stack([-theta.sin(), theta.cos()], 1)
+    off = (d * normal[point_item]).sum(1).abs()
+    worst = torch.zeros(B, dtype=pts64.dtype, device=pts64.device).scatter_reduce_(0, point_item, off, "amax")
+    return worst <= slack
+
+
+
+
+@dataclass
+class PointBatch:
+    """Packed point sets with their normalization.
+
+    Attributes:
+        points: ``(P, 2)`` normalized points (working dtype), item by item.
+        point_item: ``(P,)`` long, each point's item.
+        counts: ``(B,)`` long, points per item.
+        center: ``(B, 2)`` float64 and scale: ``(B,)`` float64, the frame of each item: a caller's
+            point ``x`` is ``points * scale + center``.
+        flat: ``(B,)`` bool, items whose points lie on one line (no region to enclose).
+        raw: the caller's point sets as given (checked tensors).
+        labels: a name per item for messages.
+    """
+    points: torch.Tensor
+    point_item: torch.Tensor
+    counts: torch.Tensor
+    center: torch.Tensor
+    scale: torch.Tensor
+    flat: torch.Tensor
+    raw: List[torch.Tensor]
+    labels: List[str]
+
+    @property
+    def num_items(self) -> int:
+        return int(self.counts.shape[0])
+
+    @property
+    def first_idx(self) -> torch.Tensor:
+        """``(B,)`` the first point of each item."""
+        return first_index(self.counts)
+
+    def points_list(self) -> List[torch.Tensor]:
+        """The normalized points of each item."""
+        return list(torch.split(self.points, self.counts.tolist()))
+
+
+def prepare_points(point_sets: Sequence[PointsLike], names: Optional[Sequence[Optional[str]]] = None,
+                   dtype: torch.dtype = torch.float32) -> PointBatch:
+    """Check, merge repeats, pack and normalize ``point_sets`` (each ``(N_b, 2)``).
+
+    Raises :class:`PointSetError` naming the first bad set.
+
+    Example:
+        >>> pb = prepare_points([torch.tensor([[0., 0.], [2., 0.], [0., 2.], [0., 0.]])])
+        >>> pb.counts.tolist(), pb.scale.tolist(), pb.center.tolist()
+        ([3], [2.8284271247461903], [[1.0, 1.0]])
+    """
+    names = list(names) if names is not None else [None] * len(point_sets)
+    if len(names) != len(point_sets):
+        raise PointSetError(f"names: {len(names)} name(s) for {len(point_sets)} point set(s)")
+    labels = [n if n is not None else f"point set {i}" for i, n in enumerate(names)]
+    raw = [check_points(p, lab) for p, lab in zip(point_sets, labels)]
+    device = raw[0].device
+    for p, lab in zip(raw, labels):
+        if p.device != device:
+            raise PointSetError(f"{lab}: on {p.device}, but the batch is on {device}")
+    B = len(raw)
+    with torch.no_grad():
+        pts64, point_item, counts = distinct_points(raw, labels)
+        # normalize in float64, then cast: large offsets (1e7) must not cost precision
+        big = torch.finfo(torch.float64).max
+        idx2 = point_item[:, None].expand(-1, 2)
+        lo = torch.full((B, 2), big, dtype=torch.float64, device=device).scatter_reduce(0, idx2, pts64, "amin")
+        hi = torch.full((B, 2), -big, dtype=torch.float64, device=device).scatter_reduce(0, idx2, pts64, "amax")
+        center64 = 0.5 * (lo + hi)
+        scale64 = (hi - lo).norm(dim=1)
+        norm64 = (pts64 - center64[point_item]) / scale64[point_item, None]
+        # points on one line (up to the rounding of the input) enclose no region: such an item
+        # stops at level 0 with no curve (limit "no_curve"), not with a loop the data cannot support
+        ulp = torch.tensor([torch.finfo(p.dtype).eps if p.dtype.is_floating_point else 0.0 for p in raw],
+                           dtype=torch.float64, device=device)
+        reach = torch.maximum(lo.abs(), hi.abs()).amax(1)
+        flat = collinear_items(norm64, point_item, B, 1e-12 + 8 * ulp * reach / scale64)
+        return PointBatch(norm64.to(dtype), point_item, counts, center64, scale64, flat, raw, labels)

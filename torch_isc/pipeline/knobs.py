@@ -1,0 +1,61 @@
+"""Config sections as plain dataclasses whose fields declare their bounds.
+
+A stage owns its section (``TestConfig`` lives beside the test); :func:`knob` puts the bounds
+in the field's metadata and :func:`check_section` enforces them with the key named, so a
+section checks itself when it is built. Nothing more: YAML loading, unknown keys and the flat
+keys of older files are handled by :mod:`torch_isc.pipeline.config`.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any, Optional, Sequence
+
+__all__ = ["ConfigError", "knob", "check_section"]
+
+
+class ConfigError(ValueError):
+    """A configuration key or value that cannot be used."""
+
+
+_TYPES = {"int": int, "float": float, "str": str, "bool": bool}
+
+
+def knob(default: Any, *, gt: Optional[float] = None, ge: Optional[float] = None, lt: Optional[float] = None,
+         le: Optional[float] = None, choices: Optional[Sequence[str]] = None) -> Any:
+    """A config field with its bounds (``gt``: > , ``ge``: >=, ``lt``: <, ``le``: <=) or its
+    allowed ``choices``."""
+    return dataclasses.field(default=default, metadata={"gt": gt, "ge": ge, "lt": lt, "le": le, "choices": choices})
+
+
+def _short(v: Any) -> str:
+    r = repr(v)
+    return r if len(r) <= 60 else r[:57] + "..."
+
+
+def check_section(obj: Any) -> None:
+    """Coerce (an int or a numeric string for a float) and check every field of the section
+    ``obj``; a :class:`ConfigError` names the key."""
+    for f in dataclasses.fields(obj):
+        v = getattr(obj, f.name)
+        want = f.type if isinstance(f.type, type) else _TYPES[f.type]
+        if want is float and isinstance(v, str):          # YAML 1.1 reads 1e-3 as a string
+            try:
+                v = float(v)
+            except ValueError:
+                pass
+        if want is float and isinstance(v, int) and not isinstance(v, bool):
+            v = float(v)
+        if not isinstance(v, want) or (want in (int, float) and isinstance(v, bool)):
+            raise ConfigError(f"config key '{f.name}': expected {want.__name__}, got {type(v).__name__} {_short(v)}")
+        object.__setattr__(obj, f.name, v)
+        if want is float and not math.isfinite(v):
+            raise ConfigError(f"config key '{f.name}': must be finite, got {v!r}")
+        m = f.metadata
+        if m.get("choices") and v not in m["choices"]:
+            raise ConfigError(f"config key '{f.name}': must be one of {', '.join(m['choices'])}, got {_short(v)}")
+        for op, bad, word in (("gt", lambda x, b: x <= b, ">"), ("ge", lambda x, b: x < b, ">="),
+                              ("lt", lambda x, b: x >= b, "<"), ("le", lambda x, b: x > b, "<=")):
+            b = m.get(op)
+            if b is not None and bad(v, b):
+                raise ConfigError(f"config key '{f.name}': must be {word} {b:g}, got {v!r}")

@@ -1,0 +1,95 @@
+"""Per-level statistics as typed records, written by one recorder.
+
+A :class:`LevelStats` is what one level did to one item (distances in the caller's units).
+The :class:`StatsRecorder` times the stages (shared by the items of a level), writes one
+record per working item and level, reading each quantity from the device once per level.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+from typing import Any, Dict, List
+
+import torch
+
+__all__ = ["LevelStats", "StatsRecorder", "STAGES"]
+
+#: the timed stages of a level, in the order of Fig. 3
+STAGES = ("topology", "geometry", "test", "subdivide", "locate", "relax")
+
+
+@dataclass
+class LevelStats:
+    """What one level of the loop did to one item.
+
+    Attributes:
+        level: the level (0 is the initial mesh). triangles, points: its sizes.
+        delta1: Δ1 after the geometry fit (squared distance). max_error: the tested statistic's
+            largest value (a distance). tolerance: the effective tolerance it was tested at.
+        noise: the item's estimated noise. marked: triangles that failed the test.
+        points_beyond_tolerance: points farther from the curve than the tolerance (outliers,
+            which the test excuses in sparse triangles, or an unresolved feature).
+        seconds: wall time of the level (shared by the items solved in it), stage_seconds: by stage.
+    """
+    level: int
+    triangles: int
+    points: int
+    delta1: float
+    max_error: float
+    tolerance: float
+    noise: float
+    marked: int
+    points_beyond_tolerance: int
+    seconds: float = 0.0
+    stage_seconds: Dict[str, float] = field(default_factory=dict)
+
+    def to_dict(self, timings: bool = True) -> Dict[str, Any]:
+        d = asdict(self)
+        if not timings:
+            d.pop("seconds")
+            d.pop("stage_seconds")
+        return d
+
+
+class StatsRecorder:
+    """Times the stages of each level (on CUDA it synchronizes, so the times are real) and
+    writes a :class:`LevelStats` per working item and level into ``per_item[b]`` (``b`` the
+    caller's item)."""
+
+    def __init__(self, device, num_items: int):
+        self.cuda = torch.device(device).type == "cuda"
+        self.t = self._now()
+        self.acc = {k: 0.0 for k in STAGES}
+        self.per_item: List[List[LevelStats]] = [[] for _ in range(num_items)]
+        self._level: List[LevelStats] = []
+
+    def _now(self) -> float:
+        if self.cuda:
+            torch.cuda.synchronize()
+        return time.perf_counter()
+
+    def tick(self, stage: str) -> None:
+        """Charge the time since the last tick to ``stage``."""
+        now = self._now()
+        self.acc[stage] += now - self.t
+        self.t = now
+
+    def record(self, level: int, items: torch.Tensor, columns: Dict[str, torch.Tensor]) -> None:
+        """One record per working item: ``items (B,)`` their caller's indices and ``columns``
+        the :class:`LevelStats` fields other than ``level`` and the timings, each ``(B,)``."""
+        names = list(columns)
+        cols = [items.tolist()] + [columns[k].tolist() for k in names]      # one transfer per quantity
+        for row in zip(*cols):
+            rec = LevelStats(level=level, **dict(zip(names, row[1:])))
+            self._level.append(rec)
+            self.per_item[row[0]].append(rec)
+
+    def close_level(self) -> None:
+        """Write this level's stage times (the initial location counts to level 0) into its records."""
+        st = {k: round(v, 6) for k, v in self.acc.items()}
+        total = round(sum(self.acc.values()), 6)
+        for d in self._level:
+            d.seconds = total
+            d.stage_seconds = dict(st)
+        self.acc = {k: 0.0 for k in STAGES}
+        self._level = []

@@ -1,0 +1,128 @@
+"""The working set of the loop: what the stages read and write for the unfinished items.
+
+It owns the packed mesh, the nodal values and signs, the packed points with their triangle,
+barycentrics and local frames, and per item the map to the caller's item, the frame
+(centre, scale) and the priors (tolerance, noise). Fields are declared per kind (per item,
+vertex, triangle, point), so dropping finished items and following a subdivision touch every
+field of a kind the same way: a new per-point tensor is one more name in :attr:`POINT_FIELDS`.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Optional
+
+import torch
+
+from torch_isc.core.locate import locate_children
+from torch_isc.core.mesh import MeshBatch
+from torch_isc.pipeline.subdivide import Subdivision
+
+__all__ = ["WorkingSet"]
+
+
+@dataclass
+class WorkingSet:
+    """The unfinished items between two stages (``B`` items, ``V`` vertices, ``T`` triangles,
+    ``P`` points, all packed item by item).
+
+    Attributes:
+        mesh: the :class:`MeshBatch` of the items (normalized coordinates).
+        values: ``(V,)`` nodal values. signs: ``(V,)`` ±1.
+        marked: ``(T,)`` bool, the triangles the last test marked.
+        points: ``(P, 2)`` normalized points. point_item: ``(P,)`` their working item.
+        face: ``(P,)`` their triangle. bary: ``(P, 3)`` their barycentric coordinates.
+        frames: ``(P, 3)`` their local tangent and neighbourhood reach (noise estimate).
+        items: ``(B,)`` the caller's index of each working item.
+        center: ``(B, 2)`` float64, scale: ``(B,)`` float64: the frame (caller = normalized *
+            scale + center). tol: ``(B,)`` tolerance, noise: ``(B,)`` noise (normalized units).
+        flat: ``(B,)`` bool, items whose points lie on one line.
+    """
+    mesh: MeshBatch
+    values: torch.Tensor
+    signs: torch.Tensor
+    marked: torch.Tensor
+    points: torch.Tensor
+    point_item: torch.Tensor
+    face: torch.Tensor
+    bary: torch.Tensor
+    frames: torch.Tensor
+    items: torch.Tensor
+    center: torch.Tensor
+    scale: torch.Tensor
+    tol: torch.Tensor
+    noise: torch.Tensor
+    flat: torch.Tensor
+
+    ITEM_FIELDS = ("items", "center", "scale", "tol", "noise", "flat")
+    VERT_FIELDS = ("values", "signs")
+    FACE_FIELDS = ("marked",)
+    POINT_FIELDS = ("points", "face", "bary", "frames")      # point_item and face are remapped
+
+    @property
+    def num_items(self) -> int:
+        return self.mesh.num_items
+
+    @property
+    def device(self) -> torch.device:
+        return self.mesh.device
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.mesh.dtype
+
+    def replace(self, **changes) -> "WorkingSet":
+        return dataclasses.replace(self, **changes)
+
+    def select(self, keep: torch.Tensor) -> "WorkingSet":
+        """The working set of the items ``keep (K,)`` (ascending working indices): every
+        per-item, per-vertex, per-triangle and per-point field restricted to them, point
+        triangles and items renumbered."""
+        with torch.no_grad():
+            B, T = self.num_items, self.mesh.faces.shape[0]
+            dev = self.device
+            mesh, vk, fk = self.mesh.select_items(keep)
+            sel = torch.zeros(B, dtype=torch.bool, device=dev).index_fill_(0, keep, True)
+            keep_p = sel[self.point_item]
+            remap_f = torch.full((T,), -1, dtype=torch.long, device=dev)
+            remap_f[fk] = torch.arange(fk.shape[0], device=dev)
+            new_item = torch.full((B,), -1, dtype=torch.long, device=dev)
+            new_item[keep] = torch.arange(keep.shape[0], device=dev)
+            out = {k: getattr(self, k)[keep] for k in self.ITEM_FIELDS}
+            out.update({k: getattr(self, k)[vk] for k in self.VERT_FIELDS})
+            out.update({k: getattr(self, k)[fk] for k in self.FACE_FIELDS})
+            out.update({k: getattr(self, k)[keep_p] for k in self.POINT_FIELDS})
+            f = out["face"]
+            out["face"] = torch.where(f >= 0, remap_f[f.clamp_min(0)], f)
+            out["point_item"] = new_item[self.point_item[keep_p]]
+        return WorkingSet(mesh=mesh, **out)
+
+    def follow(self, sd: Subdivision) -> "WorkingSet":
+        """The working set on the subdivided mesh ``sd.mesh`` (of this set's mesh): values
+        carried over (new vertices take their edge's mean), signs read from them, points
+        handed from each parent triangle to the child that holds it. ``marked`` is cleared."""
+        values = sd.interpolate(self.values, self.mesh.edges)
+        signs = torch.where(values < 0, -1.0, 1.0).to(self.dtype)
+        face, bary = locate_children(sd.mesh, self.points, self.face, sd.children)
+        marked = torch.zeros(sd.mesh.faces.shape[0], dtype=torch.bool, device=self.device)
+        return self.replace(mesh=sd.mesh, values=values, signs=signs, marked=marked, face=face, bary=bary)
+
+    def caller_points(self, x: torch.Tensor, item: torch.Tensor) -> torch.Tensor:
+        """``(M, 2)`` float64: normalized points ``x`` of working items ``item`` in the caller's
+        coordinates."""
+        return x.detach().double() * self.scale[item, None] + self.center[item]
+
+    @staticmethod
+    def start(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor, face: torch.Tensor,
+              bary: torch.Tensor, frames: torch.Tensor, center: torch.Tensor, scale: torch.Tensor,
+              tol: torch.Tensor, noise: torch.Tensor, flat: torch.Tensor,
+              items: Optional[torch.Tensor] = None) -> "WorkingSet":
+        """The working set at level 0: all items, signs +1, values unset (+1)."""
+        dev, dt = mesh.device, mesh.dtype
+        B = mesh.num_items
+        ones = torch.ones(mesh.verts.shape[0], dtype=dt, device=dev)
+        return WorkingSet(mesh=mesh, values=ones, signs=ones.clone(),
+                          marked=torch.zeros(mesh.faces.shape[0], dtype=torch.bool, device=dev), points=points,
+                          point_item=point_item, face=face, bary=bary, frames=frames,
+                          items=torch.arange(B, device=dev) if items is None else items, center=center,
+                          scale=scale, tol=tol, noise=noise, flat=flat)

@@ -42,7 +42,7 @@ import torch_isc
 
 from torch_isc.pipeline.config import ConfigError, load_config, parse_overrides
 from torch_isc.images import IMAGE_SUFFIXES
-from torch_isc.io import EXPORTERS, PointFileError, export, read_points
+from torch_isc.io import PointFileError, chosen_formats, export, read_points
 
 #: Suffixes of point files picked up from a folder INPUT (any file given by name is tried).
 POINT_SUFFIXES = (".xy", ".txt", ".csv", ".npy")
@@ -102,7 +102,7 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--batch-size", type=int, default=64, metavar="N",
                      help="point sets reconstructed together (default: 64)")
     rec.add_argument("--formats", default=None, metavar="LIST",
-                     help=f"comma-separated output formats among {', '.join(EXPORTERS)} (default: {DEFAULT_FORMATS}; "
+                     help=f"comma-separated output formats among {', '.join(chosen_formats())} (default: {DEFAULT_FORMATS}; "
                           f"for images {DEFAULT_IMAGE_FORMATS}, and always overlay.png)")
     img = rec.add_argument_group("images")
     img.add_argument("--mode", choices=("mask", "edges"), default="mask",
@@ -147,9 +147,10 @@ def _parse_formats(text: str) -> List[str]:
     formats = [f.strip().lower().lstrip(".") for f in text.split(",") if f.strip()]
     if not formats:
         raise UsageError("--formats: no format given")
-    unknown = [f for f in formats if f not in EXPORTERS]
+    known = chosen_formats()
+    unknown = [f for f in formats if f not in known]
     if unknown:
-        raise UsageError(f"--formats: unknown format '{unknown[0]}' (known: {', '.join(EXPORTERS)})")
+        raise UsageError(f"--formats: unknown format '{unknown[0]}' (known: {', '.join(known)})")
     return list(dict.fromkeys(formats))          # drop repeats, keep order
 
 
@@ -381,7 +382,7 @@ def _process_batch(batch: List[_Job], opts: _Options, out_dir: Path, total: int,
             job.outputs = export(res, out_dir / job.stem, [f for f in fmts if f != "overlay.png"],
                                  y_down=job.is_image)
             if job.is_image:
-                from torch_isc.images import write_overlay
+                from torch_isc.io import write_overlay
 
                 job.outputs.append(write_overlay(out_dir / f"{job.stem}.overlay.png", image, res))
         except OSError as e:

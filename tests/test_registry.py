@@ -71,3 +71,20 @@ def test_a_loader_per_suffix(tmp_path):
     np.save(tmp_path / "g.npy", pts)
     os.replace(tmp_path / "g.npy", tmp_path / "g.dat")
     assert loader_for(tmp_path / "g.dat").kind == "points" and np.array_equal(read_points(tmp_path / "g.dat"), pts)
+
+
+@pytest.mark.parametrize("module,forbidden", [
+    ("torch_isc.images", ("torch_isc.io", "torch_isc.runner", "torch_isc.cli")),
+    ("torch_isc.io", ("torch_isc.runner", "torch_isc.cli")),
+    ("torch_isc.runner", ("torch_isc.cli",)),
+    ("torch_isc", ("torch_isc.images", "torch_isc.io", "torch_isc.runner", "torch_isc.cli")),
+])
+def test_layers_import_only_below(module, forbidden):
+    """core <- pipeline <- images <- io <- runner <- cli: no layer loads one above it."""
+    import subprocess
+    import sys
+
+    code = f"import sys, {module}; print(sorted(m for m in sys.modules if m.startswith('torch_isc')))"
+    loaded = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                            cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__)))).stdout
+    assert not [m for m in forbidden if f"'{m}'" in loaded or f"'{m}." in loaded], loaded

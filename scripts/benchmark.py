@@ -368,11 +368,8 @@ def part_b(args, config, shapes) -> Dict[int, Dict[str, Any]]:
 
 def part_c(args, shapes, isc_rows) -> Dict[str, Dict[str, Any]]:
     print("## c. Peers on the same shapes\n")
-    try:
-        from evaluate_cases import PEERS
-    except ImportError as e:
-        print(f"peers not importable from scripts/evaluate_cases.py: {e}\n")
-        return {}
+    from evaluate_cases import PEERS
+
     B = min(args.peer_batch, len(shapes))
     sub = shapes[:B]
     rows: Dict[str, Dict[str, Any]] = {}

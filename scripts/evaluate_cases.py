@@ -308,18 +308,14 @@ def print_comparison(summaries: Dict[str, Dict[str, Any]], levels: List[str]) ->
 
 def write_outputs(out: Path, cases, rows) -> None:
     out.mkdir(parents=True, exist_ok=True)
-    try:
-        from torch_isc.io import write_png
-    except ImportError:
-        write_png = None
-        print("note: torch_isc.io.write_png is not importable: no PNG written", file=sys.stderr)
+    from torch_isc.io import write_png
+
     for c, r in zip(cases, rows):
         res = r["result"]
         try:
             d = {"case": c["name"], "score": r["score"], **res.to_json_dict()}
             (out / f"{c['name']}.json").write_text(json_text(d))
-            if write_png is not None:
-                write_png(out / f"{c['name']}.png", res)
+            write_png(out / f"{c['name']}.png", res)
         except Exception as e:  # an output problem must not stop the measurement
             print(f"{c['name']}: could not write outputs: {type(e).__name__}: {e}", file=sys.stderr)
 
@@ -349,18 +345,14 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 
     summaries: Dict[str, Dict[str, Any]] = {}
     status = 0
-    if hasattr(torch_isc, "reconstruct_batch"):
-        rows, total = run_isc(cases, config, args.one_by_one, args.device)
-        score_rows(cases, rows)
-        mode = "one by one" if args.one_by_one else "one batch"
-        note = ("seconds: wall time of each call" if args.one_by_one else
-                "seconds: sum of the times of the batch levels the case took part in (levels are shared)")
-        summaries["torch_isc"] = print_table(f"torch_isc ({mode})", cases, rows, total, note=note)
-        if args.out:
-            write_outputs(Path(args.out).resolve(), cases, rows)
-    else:
-        print("torch_isc.reconstruct_batch is not importable: no torch_isc table\n", file=sys.stderr)
-        status = 1
+    rows, total = run_isc(cases, config, args.one_by_one, args.device)
+    score_rows(cases, rows)
+    mode = "one by one" if args.one_by_one else "one batch"
+    note = ("seconds: wall time of each call" if args.one_by_one else
+            "seconds: sum of the times of the batch levels the case took part in (levels are shared)")
+    summaries["torch_isc"] = print_table(f"torch_isc ({mode})", cases, rows, total, note=note)
+    if args.out:
+        write_outputs(Path(args.out).resolve(), cases, rows)
     if args.peers:
         for name, fn in PEERS.items():
             try:

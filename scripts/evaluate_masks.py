@@ -59,6 +59,7 @@ import cv2  # noqa: E402
 from _common import resolve_dir  # noqa: E402
 from torch_isc import images, metrics  # noqa: E402
 from torch_isc.pipeline.config import load_config, parse_overrides  # noqa: E402
+from torch_isc.io import write_overlay  # noqa: E402
 
 DEFAULT_CASES = REPO / ".." / "shared" / "cases"
 
@@ -187,7 +188,7 @@ def main(argv=None) -> int:
             out = Path(args.out)
             out.mkdir(parents=True, exist_ok=True)
             cv2.imwrite(str(out / f"{s['name']}.mask.png"), s["mask"])
-            images.write_overlay(out / f"{s['name']}.overlay.png", s["mask"] // 2 + 64, res, scale=4, points=True)
+            write_overlay(out / f"{s['name']}.overlay.png", s["mask"] // 2 + 64, res, scale=4, points=True)
 
     render_how = "one plain fillPoly" if args.direct else f"fillPoly at {args.supersample}x, majority per pixel"
     print(f"{len(rows)} masks {args.size}x{args.size} ({render_how}); torch_isc "

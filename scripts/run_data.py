@@ -81,11 +81,8 @@ def reconstruct(items: List[Dict[str, Any]], config, one_by_one: bool, device: s
 
 
 def write_outputs(out: Path, items: List[Dict[str, Any]]) -> None:
-    try:
-        from torch_isc.io import write_png
-    except ImportError:
-        write_png = None
-        print("note: torch_isc.io.write_png is not importable: no PNG written", file=sys.stderr)
+    from torch_isc.io import write_png
+
     for it in items:
         if "result" not in it:
             continue
@@ -94,8 +91,7 @@ def write_outputs(out: Path, items: List[Dict[str, Any]]) -> None:
             stem.parent.mkdir(parents=True, exist_ok=True)
             d = {"file": it["name"], "mean_distance_pct": it.get("mean_pct"), **it["result"].to_json_dict()}
             Path(f"{stem}.json").write_text(json_text(d))
-            if write_png is not None:
-                write_png(Path(f"{stem}.png"), it["result"])
+            write_png(Path(f"{stem}.png"), it["result"])
         except Exception as e:
             print(f"{it['name']}: could not write outputs: {one_line(e)}", file=sys.stderr)
 
@@ -118,10 +114,6 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         print(f"no *.txt / *.p2d / *.xy file under {root}" + (f" matching {args.filter!r}" if args.filter else ""),
               file=sys.stderr)
         return 2
-    if not hasattr(torch_isc, "reconstruct_batch"):
-        print("torch_isc.reconstruct_batch is not importable", file=sys.stderr)
-        return 1
-
     items: List[Dict[str, Any]] = []
     for f in files:
         name = f.relative_to(root).with_suffix("").as_posix()

@@ -13,7 +13,8 @@ import torch
 from torch_isc import images, metrics
 from torch_isc.images import (ImageError, MaskOracle, edge_points, find_contours, load_contours, mask_crack_contours,
                               mask_to_points, read_image, reconstruct_edges, reconstruct_masks, resample_closed,
-                              to_cv_contours, write_contours)
+                              to_cv_contours)
+from torch_isc.io import render_overlay, write_contours
 
 SHIFT = 8
 
@@ -78,7 +79,7 @@ def test_disc_annulus_two_discs_counts_nesting_and_radii():
             assert sorted(match.tolist()) == list(range(len(ours)))
             for k, a in enumerate(ours):
                 b, par, par_cv = theirs[match[k]], h[0, k, 3], h_cv[0, match[k], 3]
-                assert (par < 0 and par_cv < 0) or match[par] == par_cv
+                assert par_cv == (match[par] if par >= 0 else -1), (mode, k, par, par_cv)
                 assert np.sign(cv2.contourArea(a, True)) == np.sign(cv2.contourArea(b, True))   # orientation
 
 
@@ -260,21 +261,23 @@ def test_without_oracle_the_topology_is_estimated():
 def test_to_cv_contours_tree_and_ccomp_on_nested_squares():
     def sq(a, b):
         return np.array([[a, a], [b, a], [b, b], [a, b]], float)
-    polys = [sq(0, 20), sq(2, 18), sq(4, 16), sq(22, 30), sq(6, 8), sq(10, 12)]
+    squares = [sq(0, 20), sq(2, 18), sq(4, 16), sq(22, 30), sq(6, 8), sq(10, 12)]
+    polys = [{"closed": True, "points": q} for q in squares]
+    # outer 0 holds the ring hole 1, which holds the island 2, which holds the holes 4 and 5; 3 is apart
+    tree_parent = [-1, 0, 1, -1, 2, 2]
+    ccomp_parent = [-1, 0, -1, -1, 2, 2]          # two levels: the island is a component again
     m = np.zeros((32, 32), np.uint8)
-    cv2.fillPoly(m, [np.rint((p - 0.5)).astype(np.int32) for p in polys[:1] + polys[3:4]], 1)
-    c, h = to_cv_contours(polys, "tree")
-    parents = {tuple(cc[0, 0]): int(par) for cc, par in zip(c, h[0, :, 3])}
-    # depth: outer 0, ring hole 1, island 2, its two holes 3
-    depth = []
-    for k in range(len(c)):
-        d, p = 0, h[0, k, 3]
-        while p >= 0:
-            d, p = d + 1, h[0, p, 3]
-        depth.append(d)
-    assert sorted(depth) == [0, 0, 1, 2, 3, 3] and len(parents) == 6
+    cv2.fillPoly(m, [np.rint((p - 0.5)).astype(np.int32) for p in squares[:1] + squares[3:4]], 1)
+    for mode, want in (("tree", tree_parent), ("ccomp", ccomp_parent)):
+        c, h = to_cv_contours(polys, mode)
+        # each contour is one square shifted by -1/2 (OpenCV coordinates): find which by its lower corner
+        which = [next(i for i, q in enumerate(squares) if np.allclose(cc.reshape(-1, 2).min(0), q.min(0) - 0.5))
+                 for cc in c]
+        assert sorted(which) == list(range(6))
+        got = [which[p] if p >= 0 else -1 for p in h[0, :, 3]]
+        assert [got[which.index(i)] for i in range(6)] == want, mode
+    _, h = to_cv_contours(polys, "tree")
     _, hc = to_cv_contours(polys, "ccomp")
-    assert sorted((hc[0, :, 3] >= 0).tolist()) == [False, False, False, True, True, True]
     # next/prev are consistent sibling lists, first_child points to a child
     for hh in (h[0], hc[0]):
         for k, (nx, pv, ch, par) in enumerate(hh.tolist()):
@@ -308,7 +311,7 @@ def test_find_contours_drop_in_and_contour_file(tmp_path):
 
 def test_overlay_draws_in_the_pixel_convention():
     res = {"polylines": [{"closed": True, "points": np.array([[2.0, 2.0], [18.0, 2.0], [18.0, 18.0], [2.0, 18.0]])}]}
-    img = images.render_overlay(np.zeros((20, 20), np.uint8), res)
+    img = render_overlay(np.zeros((20, 20), np.uint8), res)
     g = img[:, :, 1]
     # the line x = 2 runs along the crack between columns 1 and 2: both get half of the ink
     assert g[10, 1] > 100 and g[10, 2] > 100 and g[10, 0] < 20 and g[10, 3] < 20 and g[10, 10] == 0

@@ -70,7 +70,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from torch_isc import ReconstructConfig, cli, reconstruct
-from torch_isc.io import EXPORTERS, atomic_write, json_dumps, result_json_dict
+from torch_isc.io import EXPORTERS, Exporter, atomic_write, json_dumps, result_json_dict
 from torch_isc.metrics import bbox_diagonal, hausdorff
 
 REPO = Path(__file__).resolve().parents[1]
@@ -417,13 +417,11 @@ def test_cli_interrupted_run_then_rerun(tmp_path, capsys, monkeypatch):
     o = tmp_path / "o"
     real_svg = EXPORTERS["svg"]
 
-    def interrupted_svg(path, result):
-        def half(fh):
-            fh.write(b"<?xml version=")
-            raise KeyboardInterrupt
-        return atomic_write(path, half)
+    def half(result, fh, context):
+        fh.write(b"<?xml version=")
+        raise KeyboardInterrupt
 
-    monkeypatch.setitem(EXPORTERS, "svg", interrupted_svg)
+    monkeypatch.setitem(EXPORTERS, "svg", Exporter(half))
     args = ["reconstruct", a, b, "--out", o, "--formats", "json,svg", "--batch-size", "1", *FAST]
     code, out, err = _run(capsys, *args)
     assert code == 130 and "interrupted" in err and "Traceback" not in err

@@ -31,8 +31,6 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-import traceback
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import List, Optional, Sequence, TextIO
 
@@ -40,12 +38,11 @@ import torch
 
 import torch_isc
 
-from torch_isc.pipeline.config import ConfigError, load_config, parse_overrides
-from torch_isc.images import IMAGE_SUFFIXES
-from torch_isc.io import EXPORTERS, PointFileError, export, read_points
+from torch_isc._helpers import one_line
+from torch_isc.io import chosen_formats
+from torch_isc.pipeline.config import ConfigError, flat_keys, load_config, parse_overrides
+from torch_isc.runner import ImageOptions, Record, RunError, expand_inputs, run_inputs
 
-#: Suffixes of point files picked up from a folder INPUT (any file given by name is tried).
-POINT_SUFFIXES = (".xy", ".txt", ".csv", ".npy")
 DEFAULT_IMAGE_FORMATS = "json,npz,svg,png,contours.npz"
 
 __all__ = ["main", "build_parser", "EXAMPLE_PATH"]
@@ -58,22 +55,6 @@ DEFAULT_FORMATS = "json,npz,svg,png"
 
 class UsageError(Exception):
     """A mistake in the command line or the config: exit status 2."""
-
-
-@dataclass
-class _Job:
-    source: str                      # the input as given (for messages)
-    stem: str                        # output name, unique within the run
-    points: Optional[torch.Tensor] = None
-    failed: bool = False
-    outputs: List[Path] = field(default_factory=list)
-    image: Optional[object] = None   # gray (H, W) float32 in [0, 1] for an image input, while in its batch
-    mask: Optional[torch.Tensor] = None
-    n_boundaries: Optional[int] = None
-
-    @property
-    def is_image(self) -> bool:
-        return Path(self.source).suffix.lower() in IMAGE_SUFFIXES
 
 
 # ============================================================================ parser
@@ -102,7 +83,7 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--batch-size", type=int, default=64, metavar="N",
                      help="point sets reconstructed together (default: 64)")
     rec.add_argument("--formats", default=None, metavar="LIST",
-                     help=f"comma-separated output formats among {', '.join(EXPORTERS)} (default: {DEFAULT_FORMATS}; "
+                     help=f"comma-separated output formats among {', '.join(chosen_formats())} (default: {DEFAULT_FORMATS}; "
                           f"for images {DEFAULT_IMAGE_FORMATS}, and always overlay.png)")
     img = rec.add_argument_group("images")
     img.add_argument("--mode", choices=("mask", "edges"), default="mask",
@@ -138,59 +119,15 @@ def _note(msg: str) -> None:
     print(f"{PROG}: {msg}", file=sys.stderr, flush=True)
 
 
-def _one_line(e: BaseException) -> str:
-    lines = str(e).strip().splitlines()
-    return lines[0] if lines else type(e).__name__
-
-
 def _parse_formats(text: str) -> List[str]:
     formats = [f.strip().lower().lstrip(".") for f in text.split(",") if f.strip()]
     if not formats:
         raise UsageError("--formats: no format given")
-    unknown = [f for f in formats if f not in EXPORTERS]
+    known = chosen_formats()
+    unknown = [f for f in formats if f not in known]
     if unknown:
-        raise UsageError(f"--formats: unknown format '{unknown[0]}' (known: {', '.join(EXPORTERS)})")
+        raise UsageError(f"--formats: unknown format '{unknown[0]}' (known: {', '.join(known)})")
     return list(dict.fromkeys(formats))          # drop repeats, keep order
-
-
-def _unique_stems(sources: Sequence[str]) -> List[str]:
-    """Output stems: the file stem, with ``_2``, ``_3``... appended to a repeated one (also
-    avoiding the plain stems of other inputs). Deterministic for the same input order, so a
-    rerun finds the same outputs."""
-    plain = [Path(s).stem or "input" for s in sources]
-    taken = set(plain)
-    used: set = set()
-    out = []
-    for src, stem in zip(sources, plain):
-        name = stem
-        if name in used:
-            k = 2
-            while f"{stem}_{k}" in used or f"{stem}_{k}" in taken:
-                k += 1
-            name = f"{stem}_{k}"
-            _note(f"note: another input is also named '{stem}': {src} is written as '{name}'")
-        used.add(name)
-        out.append(name)
-    return out
-
-
-def _expand_inputs(sources: Sequence[str]) -> List[str]:
-    """A folder stands for its point and image files (by suffix, sorted by name, not recursive);
-    anything else is kept as given (a missing file is reported when it is read). An empty
-    folder is a usage error."""
-    out: List[str] = []
-    for src in sources:
-        p = Path(src)
-        if p.is_dir():
-            files = sorted(str(f) for f in p.iterdir()
-                           if f.is_file() and f.suffix.lower() in POINT_SUFFIXES + IMAGE_SUFFIXES)
-            if not files:
-                raise UsageError(f"{src}: folder has no point or image file "
-                                 f"({', '.join(POINT_SUFFIXES + IMAGE_SUFFIXES)})")
-            out.extend(files)
-        else:
-            out.append(str(src))
-    return out
 
 
 def _config_keys(path: Optional[str]) -> List[str]:
@@ -203,7 +140,7 @@ def _config_keys(path: Optional[str]) -> List[str]:
         d = yaml.safe_load(Path(path).read_text())
     except Exception:
         return []
-    return list(d) if isinstance(d, dict) else []
+    return flat_keys(d) if isinstance(d, dict) else []
 
 
 def _bar(done: int, total: int, t0: float, width: int = 24) -> str:
@@ -215,19 +152,14 @@ def _bar(done: int, total: int, t0: float, width: int = 24) -> str:
     return f"|{'#' * fill}{'.' * (width - fill)}| {100 * frac:3.0f}% {rate:.1f}/s ETA {eta_s}"
 
 
-def _summary(job: _Job, result, seconds: float) -> str:
-    levels = len(result.stats or [])
-    state = "converged" if result.converged else f"not converged ({result.limit or 'tolerance not met'})"
-    beyond = result.stats[-1].points_beyond_tolerance if result.stats else 0
-    if beyond:
-        state += f", {beyond} point(s) beyond tolerance"
-    return (f"{job.stem}: {result.num_closed} closed, {result.num_open} open, {levels} levels, "
-            f"{state}, {seconds:.2f} s")
-
-
-def _point_set_errors() -> tuple:
-    pse = getattr(torch_isc, "PointSetError", None)
-    return (pse, ValueError) if isinstance(pse, type) else (ValueError,)
+def _summary(record: Record) -> str:
+    """The stdout line of a done input."""
+    r = record.summary
+    state = "converged" if r["converged"] else f"not converged ({r['limit'] or 'tolerance not met'})"
+    if r["points_beyond_tolerance"]:
+        state += f", {r['points_beyond_tolerance']} point(s) beyond tolerance"
+    return (f"{record.stem}: {r['num_closed']} closed, {r['num_open']} open, {r['levels']} levels, "
+            f"{state}, {r['seconds']:.2f} s")
 
 
 # ============================================================================ command
@@ -257,8 +189,11 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
         device = torch.device(args.device)
         torch.empty(0, device=device)
     except (RuntimeError, AssertionError) as e:
-        raise UsageError(f"--device {args.device}: {_one_line(e)}") from None
-    sources = _expand_inputs([str(s) for s in args.inputs])
+        raise UsageError(f"--device {args.device}: {one_line(e, type(e).__name__)}") from None
+    try:
+        sources = expand_inputs([str(s) for s in args.inputs])
+    except RunError as e:
+        raise UsageError(str(e)) from None
     if args.example:
         sources.append(str(EXAMPLE_PATH))
     if not sources:
@@ -270,192 +205,41 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
         raise UsageError(f"--out {out_dir}: cannot create the output folder ({e.strerror or e})") from None
     if not out_dir.is_dir():
         raise UsageError(f"--out {out_dir}: not a folder")
-
-    jobs = [_Job(src, stem) for src, stem in zip(sources, _unique_stems(sources))]
-    opts = _Options(args, formats, image_formats, config, low, high)
-
-    # ---- skip finished inputs
-    todo: List[_Job] = []
-    for job in jobs:
-        if not args.overwrite and all((out_dir / f"{job.stem}.{f}").exists() for f in opts.formats_of(job)):
-            print(f"{job.stem}: skipped, outputs exist in {out_dir} (use --overwrite to redo)", flush=True)
-        else:
-            todo.append(job)
-
-    # ---- read inputs as batches fill up (bounded memory), reconstruct, export at once
-    state = {"failed": 0, "done": 0, "batches": 0, "t0": time.perf_counter()}
-    batch: List[_Job] = []
-    for i, job in enumerate(todo):
-        try:
-            _read(job, opts, device)
-            batch.append(job)
-        except _input_errors() as e:
-            _err(_one_line(e))             # the message already starts with the file name
-            state["failed"] += 1
-            state["done"] += 1
-        if len(batch) == args.batch_size or (i == len(todo) - 1 and batch):
-            _process_batch(batch, opts, out_dir, len(todo), state, args.debug)
-            batch = []
-    failed = state["failed"]
-    if state["batches"] > 1 or failed:
-        _note(f"done: {len(jobs) - failed} of {len(jobs)} input(s) ok, {failed} failed")
-    return 1 if failed else 0
-
-
-class _Options:
-    """What the command line asks for, resolved once."""
-
-    def __init__(self, args, formats, image_formats, config, low, high):
-        from torch_isc import images
-
-        self.args = args
-        self.formats = formats
-        self.image_formats = image_formats
-        self.config = config
-        # pixel defaults for images, except where the user set a key
-        keep = set(_config_keys(args.config)) | {k for k in parse_overrides(args.overrides)}
-        self.image_config = images.image_config(config, keep=sorted(keep), mode=args.mode)
-        self.canny = (low, high)
-
-    def formats_of(self, job: _Job) -> List[str]:
-        return self.image_formats + ["overlay.png"] if job.is_image else self.formats
-
-
-def _input_errors() -> tuple:
-    from torch_isc.images import ImageError
-
-    return (PointFileError, ImageError)
-
-
-def _read(job: _Job, opts: _Options, device) -> None:
-    """Read one input into its job: points, and for an image the gray image (and the mask)."""
-    if not job.is_image:
-        job.points = torch.from_numpy(read_points(job.source)).to(device)
-        return
+    # pixel defaults for images, except where the user set a key
     from torch_isc import images
 
-    gray = images.read_image(job.source)
-    job.image = gray
-    if opts.args.mode == "mask":
-        thr = opts.args.threshold if opts.args.threshold is not None else images.auto_threshold(gray)
-        mask = torch.from_numpy(gray > thr).to(device)
-        if not bool(mask.any()):
-            raise images.ImageError(f"{job.source}: empty mask: no pixel above threshold {thr:.3g} (all black)")
-        if bool(mask.all()):
-            _note(f"note: {job.source}: the whole image is foreground (all white at threshold {thr:.3g}): "
-                  f"its curve is the image frame")
-        job.points, job.n_boundaries = images.mask_points(mask, opts.args.spacing, None, name=job.source)
-        job.points = job.points.double()
-        job.mask = mask
-    else:
-        pts = images.edge_points([torch.from_numpy(gray).to(device)], opts.canny[0], opts.canny[1],
-                                 sigma=opts.args.sigma, spacing=opts.args.spacing)[0]
-        if pts.shape[0] < 3:
-            raise images.ImageError(f"{job.source}: no edges found ({pts.shape[0]} edge pixel(s) at Canny thresholds "
-                                    f"{opts.canny[0]:g},{opts.canny[1]:g}; flat image?)")
-        job.points = pts.double()
+    keep = set(_config_keys(args.config)) | {k for k in parse_overrides(args.overrides)}
+    image_config = images.image_config(config, keep=sorted(keep), mode=args.mode)
+    image_options = ImageOptions(mode=args.mode, threshold=args.threshold, spacing=args.spacing,
+                                 use_oracle=not args.no_oracle, canny=(low, high), sigma=args.sigma)
 
+    t0 = time.perf_counter()
 
-def _process_batch(batch: List[_Job], opts: _Options, out_dir: Path, total: int, state: dict,
-                   debug: bool) -> None:
-    state["batches"] += 1
-    if total > 1:
-        _note(f"[{state['done']}/{total}] batch {state['batches']}: reconstructing {len(batch)} input(s) "
-              f"{_bar(state['done'], total, state['t0'])}")
-    masks = [j for j in batch if j.is_image and j.mask is not None and not opts.args.no_oracle]
-    others = [j for j in batch if j not in masks]
-    solved = {}
-    for group, kind in ((others, "plain"), (masks, "mask")):
-        if group:
-            solved.update(zip(map(id, group), _run_batch(group, opts, debug, kind)))
-    for job in batch:
-        res, seconds = solved[id(job)]
-        state["done"] += 1
-        image = job.image
-        job.points = job.image = job.mask = None             # free the batch's inputs
-        if res is None:
-            state["failed"] += 1
-            continue
-        try:
-            fmts = opts.formats_of(job)
-            job.outputs = export(res, out_dir / job.stem, [f for f in fmts if f != "overlay.png"],
-                                 y_down=job.is_image)
-            if job.is_image:
-                from torch_isc.images import write_overlay
+    def progress(record: Record) -> None:
+        if record.status == "skipped":
+            print(f"{record.stem}: skipped, outputs exist in {out_dir} (use --overwrite to redo)", flush=True)
+        elif record.status == "failed":
+            _err(record.error)            # the message already starts with the file name
+            if args.debug and record.traceback:
+                print(record.traceback, end="", file=sys.stderr, flush=True)
+        else:
+            print(_summary(record), flush=True)
 
-                job.outputs.append(write_overlay(out_dir / f"{job.stem}.overlay.png", image, res))
-        except OSError as e:
-            _err(f"{job.source}: cannot write outputs in {out_dir} ({e.strerror or _one_line(e)})")
-            state["failed"] += 1
-            continue
-        except Exception as e:  # an exporter bug: report it as one line, keep going
-            _err(f"{job.source}: writing outputs failed ({type(e).__name__}: {_one_line(e)})")
-            if debug:
-                traceback.print_exc()
-            state["failed"] += 1
-            continue
-        print(_summary(job, res, seconds), flush=True)
-    if total > 1 and state["done"] == total:
-        _note(f"[{state['done']}/{total}] {_bar(state['done'], total, state['t0'])}")
+    def on_batch(stage: str, batch: int, size: int, done: int, total: int) -> None:
+        if total <= 1:
+            return
+        if stage == "start":
+            _note(f"[{done}/{total}] batch {batch}: reconstructing {size} input(s) {_bar(done, total, t0)}")
+        elif done == total:
+            _note(f"[{done}/{total}] {_bar(done, total, t0)}")
 
-
-def _solve(jobs: List[_Job], opts: _Options, kind: str) -> list:
-    """One batched solve: point files with the user's config, images with the pixel config,
-    masks with the mask as sign oracle (and the count check of :func:`images.solve_masks`)."""
-    names = [j.stem for j in jobs]
-    points = [j.points for j in jobs]
-    if kind == "mask":
-        from torch_isc.images import solve_masks
-
-        return solve_masks(points, [j.mask for j in jobs], [j.n_boundaries for j in jobs], opts.image_config,
-                           names)
-    if all(not j.is_image for j in jobs):
-        if len(jobs) == 1:
-            return [torch_isc.reconstruct(points[0], opts.config, name=names[0])]
-        return torch_isc.reconstruct_batch(points, opts.config, names=names)
-    cfgs = [opts.image_config if j.is_image else opts.config for j in jobs]
-    if any(c is not cfgs[0] for c in cfgs):         # images and point files: one solve per config
-        out = [None] * len(jobs)
-        for cfg in (opts.config, opts.image_config):
-            idx = [i for i, c in enumerate(cfgs) if c is cfg]
-            if idx:
-                for i, r in zip(idx, torch_isc.reconstruct_batch([points[i] for i in idx], cfg,
-                                                                 names=[names[i] for i in idx])):
-                    out[i] = r
-        return out
-    return torch_isc.reconstruct_batch(points, cfgs[0], names=names)
-
-
-def _run_batch(batch: List[_Job], opts: _Options, debug: bool, kind: str = "plain") -> list:
-    """``(result, seconds)`` per item of one batch; ``(None, seconds)`` for an item that failed
-    (its error printed). Items solved together share the batch's wall time evenly."""
-    if len(batch) > 1:
-        t0 = time.perf_counter()
-        try:
-            results = _solve(batch, opts, kind)
-            if len(results) == len(batch):
-                share = (time.perf_counter() - t0) / len(batch)
-                return [(r, share) for r in results]
-        except Exception:
-            pass  # find the item(s) at fault by running them one by one
-    bad_input = _point_set_errors() + _input_errors()
-    out = []
-    for job in batch:
-        t0 = time.perf_counter()
-        res = None
-        try:
-            res = _solve([job], opts, kind)[0]
-        except bad_input as e:
-            msg = _one_line(e)
-            if msg.startswith(f"{job.stem}: "):     # a PointSetError names the item by its stem
-                msg = msg[len(job.stem) + 2:]
-            _err(f"{job.source}: {msg}")
-        except Exception as e:
-            _err(f"{job.source}: reconstruction failed ({type(e).__name__}: {_one_line(e)})")
-            if debug:
-                traceback.print_exc()
-        out.append((res, time.perf_counter() - t0))
-    return out
+    report = run_inputs(sources, config, out_dir, formats, image_formats, overwrite=args.overwrite,
+                        batch_size=args.batch_size, image_options=image_options, image_config=image_config,
+                        device=device, progress=progress, on_batch=on_batch, on_note=_note)
+    failed, n = report.failed, len(report.records)
+    if report.batches > 1 or failed:
+        _note(f"done: {n - failed} of {n} input(s) ok, {failed} failed")
+    return 1 if failed else 0
 
 
 # ============================================================================ entry point
@@ -471,7 +255,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             return _reconstruct_command(args)
         parser.error(f"unknown command {args.command!r}")  # pragma: no cover
     except (UsageError, ConfigError) as e:
-        _err(_one_line(e))
+        _err(one_line(e, type(e).__name__))
         return 2
     except KeyboardInterrupt:
         _err("interrupted")

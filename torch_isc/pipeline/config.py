@@ -89,13 +89,6 @@ class ReconstructConfig:
             if not isinstance(getattr(self, f.name), _SECTION_TYPES[f.name]):
                 raise ConfigError(f"config section '{f.name}': expected {_SECTION_TYPES[f.name].__name__}")
 
-    def __getattr__(self, name: str) -> Any:
-        # TEMPORARY flat read access (cfg.tolerance) while the adapters move to sections
-        sec = FLAT.get(name)
-        if sec is None:
-            raise AttributeError(name)
-        return getattr(getattr(self, sec), name)
-
     def replace(self, **changes: Any) -> "ReconstructConfig":
         """A copy with ``changes``: flat keys (``tolerance=0.01``) or sections as mappings
         (``test={"tolerance": 0.01}``), checked like a file."""

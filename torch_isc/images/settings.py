@@ -1,0 +1,34 @@
+"""The reconstruction settings for images, in pixels."""
+from __future__ import annotations
+
+from typing import Any, Dict, Optional, Sequence
+
+from torch_isc.pipeline.config import ReconstructConfig, load_config
+
+__all__ = ["MASK_CONFIG", "EDGE_CONFIG", "IMAGE_CONFIG", "image_config"]
+
+#: Reconstruction settings for masks, in pixels (applied by :func:`image_config`): the test
+#: tolerance is half a pixel (the quantization step of a mask's boundary), absolute; and no
+#: noise-based widening of it (``noise_factor: 0``): a mask's boundary has no noise beyond the
+#: quantization, and the noise estimate (line fits at each point's neighbours) would read the
+#: two sides of a stroke a few pixels wide as noise and stop refining before the stroke is resolved.
+MASK_CONFIG: Dict[str, Any] = {"tolerance": 0.5, "tolerance_mode": "absolute", "noise_factor": 0.0}
+#: Settings for Canny edge points: half a pixel, absolute; the noise estimate stays on (edge
+#: points do jitter).
+EDGE_CONFIG: Dict[str, Any] = {"tolerance": 0.5, "tolerance_mode": "absolute"}
+IMAGE_CONFIG = {"mask": MASK_CONFIG, "edges": EDGE_CONFIG}
+
+
+def image_config(base: Optional[ReconstructConfig] = None, keep: Sequence[str] = (),
+                 mode: str = "mask") -> ReconstructConfig:
+    """``base`` (default config when None) with the pixel settings of :data:`MASK_CONFIG`
+    (``mode="mask"``) or :data:`EDGE_CONFIG` (``mode="edges"``), except the keys in ``keep``
+    (e.g. those a user set explicitly).
+
+    >>> cfg = image_config()
+    >>> cfg.test.tolerance, cfg.test.tolerance_mode, cfg.test.noise_factor
+    (0.5, 'absolute', 0.0)
+    """
+    base = base if base is not None else load_config()
+    return base.replace(**{k: v for k, v in IMAGE_CONFIG[mode].items() if k not in set(keep)})
+

@@ -1,0 +1,47 @@
+"""Point sets as ``.npy`` arrays of shape ``(N, 2)`` (any integer or float dtype, no pickles)."""
+from __future__ import annotations
+
+import io as _io
+from pathlib import Path
+from typing import Optional, Tuple
+
+import numpy as np
+
+from torch_isc._helpers import one_line
+from torch_isc.io.errors import PointFileError
+
+__all__ = ["SUFFIXES", "MAGIC", "is_npy", "decode_points"]
+
+SUFFIXES = (".npy",)
+#: The first bytes of every ``.npy`` file: such a file is read as ``.npy`` whatever its suffix.
+MAGIC = b"\x93NUMPY"
+
+
+def is_npy(raw: bytes) -> bool:
+    return raw.startswith(MAGIC)
+
+
+def decode_points(p: Path, raw: bytes) -> Tuple[np.ndarray, Optional[np.ndarray]]:
+    """``.npy`` bytes -> ``(points (N, 2) float64, None)`` (no line numbers); ``p`` names the
+    file in messages.
+
+    >>> b = _io.BytesIO(); np.save(b, np.zeros((3, 2), np.int32))
+    >>> decode_points(Path("a.npy"), b.getvalue())[0].shape
+    (3, 2)
+    """
+    if not is_npy(raw):
+        raise PointFileError(f"{p}: not a valid .npy file (no NumPy header)")
+    try:
+        arr = np.load(_io.BytesIO(raw), allow_pickle=False)
+    except (ValueError, EOFError, OSError) as e:
+        # object arrays, truncated data and corrupt headers all end up here
+        raise PointFileError(f"{p}: unreadable .npy file ({one_line(e) or type(e).__name__})") from None
+    if not isinstance(arr, np.ndarray):  # pragma: no cover - np.load of a .npy gives an array
+        raise PointFileError(f"{p}: not a .npy array")
+    if not (np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)):
+        raise PointFileError(f"{p}: expected a numeric (integer or float) array, got dtype {arr.dtype}")
+    if arr.ndim != 2 or arr.shape[1] != 2:
+        raise PointFileError(f"{p}: expected an array of shape (N, 2), got shape {tuple(arr.shape)}")
+    if arr.shape[0] == 0:
+        raise PointFileError(f"{p}: no points (empty array)")
+    return arr.astype(np.float64), None

@@ -1,0 +1,417 @@
+"""The batch runner: many input files -> reconstructions -> output files, as library code.
+
+:func:`run_inputs` takes point files, images and folders, a config and an output folder, and for
+every input writes ``<out>/<stem>.<format>``. It
+
+- expands folders (their point and image files, sorted by name) and gives every input a unique
+  output stem (:func:`expand_inputs`, :func:`unique_stems`);
+- skips inputs whose outputs all exist (unless ``overwrite``);
+- reads inputs lazily, only when their batch fills, so memory stays bounded for a folder of
+  any size, and solves each batch with :func:`torch_isc.reconstruct_batch`: point files with
+  ``config``, images with the pixel config, masks with the mask as sign oracle and the count
+  retry of :func:`torch_isc.images.solve_masks`;
+- isolates failures: an input that cannot be read, solved or written gets a failed record with
+  a one-line error naming it, and the others go on (a batch that raises is solved again item by
+  item to find the one at fault);
+- calls ``progress(record)`` as soon as each input is final (skipped, failed or done) and
+  returns the records in input order.
+
+Example:
+    >>> import tempfile, pathlib, numpy as np
+    >>> d = pathlib.Path(tempfile.mkdtemp())
+    >>> t = np.linspace(0, 2 * np.pi, 60, endpoint=False)
+    >>> np.savetxt(d / "ring.xy", np.c_[np.cos(t), np.sin(t)])
+    >>> _ = (d / "bad.xy").write_text("1 x\\n")
+    >>> from torch_isc import load_config
+    >>> report = run_inputs([d / "ring.xy", d / "bad.xy"], load_config(), d / "out", formats=["json"])
+    >>> [(r.stem, r.status) for r in report.records]
+    [('ring', 'done'), ('bad', 'failed')]
+    >>> report.records[1].error.endswith("bad.xy: line 1: non-numeric value 'x'")
+    True
+"""
+from __future__ import annotations
+
+import os
+import time
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Dict, Iterable, List, Optional, Sequence, Tuple, Union
+
+import torch
+
+import torch_isc
+from torch_isc import images
+from torch_isc._helpers import one_line
+from torch_isc.io import ExportContext, PointFileError, chosen_formats, export, formats_needing, loader_for
+from torch_isc.io.registry import LOADERS
+from torch_isc.pipeline.config import ReconstructConfig
+from torch_isc.pipeline.loop import PointSetError
+
+__all__ = ["RunError", "ImageOptions", "Record", "RunReport", "DEFAULT_FORMATS", "DEFAULT_IMAGE_FORMATS",
+           "expand_inputs", "unique_stems", "run_inputs"]
+
+#: Outputs of a point file, and of an image (which also gets every format that needs the image:
+#: the overlay).
+DEFAULT_FORMATS = ("json", "npz", "svg", "png")
+DEFAULT_IMAGE_FORMATS = ("json", "npz", "svg", "png", "contours.npz")
+
+PathLike = Union[str, os.PathLike]
+
+
+class RunError(ValueError):
+    """Arguments a run cannot start with (nothing was read or written); one line."""
+
+
+@dataclass(frozen=True)
+class ImageOptions:
+    """How image inputs become points.
+
+    Attributes:
+        mode: ``"mask"`` (boundary points on the pixel cracks, vertex signs from the mask) or
+            ``"edges"`` (kornia Canny edge points of the gray image, topology estimated).
+        threshold: mask mode: foreground is gray > threshold (None: midway between the two
+            levels of a two-level image, else 0.5; :func:`torch_isc.images.auto_threshold`).
+        spacing: pixels between points along a contour.
+        use_oracle: mask mode: read the vertex signs from the mask.
+        canny: edges mode: ``(low, high)`` hysteresis thresholds on the gradient of the image in [0, 1].
+        sigma: edges mode: Gaussian smoothing in pixels.
+    """
+    mode: str = "mask"
+    threshold: Optional[float] = None
+    spacing: float = 1.0
+    use_oracle: bool = True
+    canny: Tuple[float, float] = (0.1, 0.2)
+    sigma: float = 1.0
+
+
+@dataclass
+class Record:
+    """What happened to one input.
+
+    Attributes:
+        source: the input as given. stem: its output name, unique within the run.
+        status: ``"done"``, ``"skipped"`` (outputs exist) or ``"failed"``.
+        error: for a failed input, one line naming it (``"<file>: <problem>"``).
+        traceback: the traceback text of an unexpected (internal) error, else None.
+        summary: for a done input: ``num_closed, num_open, levels, converged, limit,
+            points_beyond_tolerance, seconds`` (inputs solved in one batch share its wall time).
+        outputs: the files written, in the order of the formats.
+    """
+    source: str
+    stem: str
+    status: str = "pending"
+    error: Optional[str] = None
+    traceback: Optional[str] = None
+    summary: Optional[Dict[str, Any]] = None
+    outputs: List[Path] = field(default_factory=list)
+
+
+@dataclass
+class RunReport:
+    """The records of a run, in input order, and how many batches were solved."""
+    records: List[Record]
+    batches: int = 0
+
+    @property
+    def failed(self) -> int:
+        return sum(r.status == "failed" for r in self.records)
+
+
+# ============================================================================ inputs
+def _is_image(source: str) -> bool:
+    return loader_for(source).kind == "image"
+
+
+def expand_inputs(sources: Iterable[PathLike]) -> List[str]:
+    """A folder stands for its point and image files (by :data:`~torch_isc.io.LOADERS` suffix,
+    sorted by name, not recursive); anything else is kept as given (a missing file is reported
+    when it is read).
+
+    Raises:
+        RunError: a folder without any such file.
+    """
+    out: List[str] = []
+    for src in sources:
+        p = Path(src)
+        if p.is_dir():
+            files = sorted(str(f) for f in p.iterdir() if f.is_file() and f.suffix.lower() in LOADERS)
+            if not files:
+                raise RunError(f"{src}: folder has no point or image file ({', '.join(LOADERS)})")
+            out.extend(files)
+        else:
+            out.append(str(src))
+    return out
+
+
+def unique_stems(sources: Sequence[str], note: Optional[Callable[[str], None]] = None) -> List[str]:
+    """Output stems: the file stem, with ``_2``, ``_3``... appended to a repeated one (also
+    avoiding the plain stems of other inputs); ``note`` is told about each renaming.
+    Deterministic for the same input order, so a rerun finds the same outputs.
+
+    >>> unique_stems(["a/x.xy", "b/x.xy", "x_2.xy"])
+    ['x', 'x_3', 'x_2']
+    """
+    plain = [Path(s).stem or "input" for s in sources]
+    taken = set(plain)
+    used: set = set()
+    out = []
+    for src, stem in zip(sources, plain):
+        name = stem
+        if name in used:
+            k = 2
+            while f"{stem}_{k}" in used or f"{stem}_{k}" in taken:
+                k += 1
+            name = f"{stem}_{k}"
+            if note is not None:
+                note(f"note: another input is also named '{stem}': {src} is written as '{name}'")
+        used.add(name)
+        out.append(name)
+    return out
+
+
+# ============================================================================ the run
+@dataclass
+class _Job:
+    record: Record
+    is_image: bool
+    points: Optional[torch.Tensor] = None
+    image: Optional[object] = None   # gray (H, W) float32 in [0, 1] for an image input, while in its batch
+    mask: Optional[torch.Tensor] = None
+    n_boundaries: Optional[int] = None
+
+    @property
+    def source(self) -> str:
+        return self.record.source
+
+    @property
+    def stem(self) -> str:
+        return self.record.stem
+
+
+class _Run:
+    """One call of :func:`run_inputs`: the resolved options and the callbacks."""
+
+    def __init__(self, config, image_config, out_dir, formats, image_formats, batch_size, image_opts, device,
+                 progress, on_batch, on_note):
+        self.config = config
+        self.image_config = image_config
+        self.out_dir = out_dir
+        self.formats = formats
+        # an image also gets every format that needs the image (the overlay)
+        self.image_formats = image_formats + formats_needing({"image"})
+        self.batch_size = batch_size
+        self.opts = image_opts
+        self.device = device
+        self.progress = progress or (lambda record: None)
+        self.on_batch = on_batch or (lambda *a: None)
+        self.note = on_note or (lambda msg: None)
+        self.done = 0
+        self.total = 0
+        self.batches = 0
+
+    def formats_of(self, job: _Job) -> List[str]:
+        return self.image_formats if job.is_image else self.formats
+
+    def finish(self, job: _Job, status: str, error: Optional[str] = None, tb: Optional[str] = None) -> None:
+        job.record.status, job.record.error, job.record.traceback = status, error, tb
+        self.progress(job.record)
+
+    # ---------------------------------------------------------------- reading
+    def read(self, job: _Job) -> None:
+        """Read one input into its job: points, and for an image the gray image (and the mask)."""
+        if not job.is_image:
+            job.points = torch.from_numpy(loader_for(job.source).load(job.source)).to(self.device)
+            return
+        gray = loader_for(job.source).load(job.source)
+        job.image = gray
+        o = self.opts
+        if o.mode == "mask":
+            thr = o.threshold if o.threshold is not None else images.auto_threshold(gray)
+            mask = torch.from_numpy(gray > thr).to(self.device)
+            if not bool(mask.any()):
+                raise images.ImageError(f"{job.source}: empty mask: no pixel above threshold {thr:.3g} (all black)")
+            if bool(mask.all()):
+                self.note(f"note: {job.source}: the whole image is foreground (all white at threshold {thr:.3g}): "
+                          f"its curve is the image frame")
+            job.points, job.n_boundaries = images.mask_points(mask, o.spacing, None, name=job.source)
+            job.points = job.points.double()
+            job.mask = mask
+        else:
+            low, high = o.canny
+            pts = images.edge_points([torch.from_numpy(gray).to(self.device)], low, high, sigma=o.sigma,
+                                     spacing=o.spacing)[0]
+            if pts.shape[0] < 3:
+                raise images.ImageError(f"{job.source}: no edges found ({pts.shape[0]} edge pixel(s) at Canny "
+                                        f"thresholds {low:g},{high:g}; flat image?)")
+            job.points = pts.double()
+
+    # ---------------------------------------------------------------- solving
+    def solve(self, jobs: List[_Job], kind: str) -> list:
+        """One batched solve: point files with the user's config, images with the pixel config,
+        masks with the mask as sign oracle (and the count check of :func:`images.solve_masks`)."""
+        # the solvers are looked up on the package at call time, so a caller can substitute them
+        reconstruct, reconstruct_batch = torch_isc.reconstruct, torch_isc.reconstruct_batch
+        names = [j.stem for j in jobs]
+        points = [j.points for j in jobs]
+        if kind == "mask":
+            return images.solve_masks(points, [j.mask for j in jobs], [j.n_boundaries for j in jobs],
+                                      self.image_config, names)
+        if all(not j.is_image for j in jobs):
+            if len(jobs) == 1:
+                return [reconstruct(points[0], self.config, name=names[0])]
+            return reconstruct_batch(points, self.config, names=names)
+        cfgs = [self.image_config if j.is_image else self.config for j in jobs]
+        if any(c is not cfgs[0] for c in cfgs):         # images and point files: one solve per config
+            out = [None] * len(jobs)
+            for cfg in (self.config, self.image_config):
+                idx = [i for i, c in enumerate(cfgs) if c is cfg]
+                if idx:
+                    for i, r in zip(idx, reconstruct_batch([points[i] for i in idx], cfg,
+                                                           names=[names[i] for i in idx])):
+                        out[i] = r
+            return out
+        return reconstruct_batch(points, cfgs[0], names=names)
+
+    def solve_isolated(self, batch: List[_Job], kind: str) -> list:
+        """``(result, seconds)`` per item of one batch; ``(None, seconds)`` for an item that
+        failed (its record final). Items solved together share the batch's wall time evenly."""
+        if len(batch) > 1:
+            t0 = time.perf_counter()
+            try:
+                results = self.solve(batch, kind)
+                if len(results) == len(batch):
+                    share = (time.perf_counter() - t0) / len(batch)
+                    return [(r, share) for r in results]
+            except Exception:
+                pass  # find the item(s) at fault by running them one by one
+        bad_input = (PointSetError, ValueError, PointFileError, images.ImageError)
+        out = []
+        for job in batch:
+            t0 = time.perf_counter()
+            res = None
+            try:
+                res = self.solve([job], kind)[0]
+            except bad_input as e:
+                msg = one_line(e, type(e).__name__)
+                if msg.startswith(f"{job.stem}: "):     # a PointSetError names the item by its stem
+                    msg = msg[len(job.stem) + 2:]
+                self.finish(job, "failed", f"{job.source}: {msg}")
+            except Exception as e:
+                self.finish(job, "failed", f"{job.source}: reconstruction failed ({type(e).__name__}: "
+                                           f"{one_line(e, type(e).__name__)})", traceback.format_exc())
+            out.append((res, time.perf_counter() - t0))
+        return out
+
+    def process(self, batch: List[_Job]) -> None:
+        self.batches += 1
+        self.on_batch("start", self.batches, len(batch), self.done, self.total)
+        masks = [j for j in batch if j.is_image and j.mask is not None and self.opts.use_oracle]
+        others = [j for j in batch if j not in masks]
+        solved = {}
+        for group, kind in ((others, "plain"), (masks, "mask")):
+            if group:
+                solved.update(zip(map(id, group), self.solve_isolated(group, kind)))
+        for job in batch:
+            res, seconds = solved[id(job)]
+            self.done += 1
+            image = job.image
+            job.points = job.image = job.mask = None             # free the batch's inputs
+            if res is None:
+                continue
+            try:
+                job.record.outputs = export(res, self.out_dir / job.stem, self.formats_of(job),
+                                            context=ExportContext(y_down=job.is_image, image=image))
+            except OSError as e:
+                self.finish(job, "failed", f"{job.source}: cannot write outputs in {self.out_dir} "
+                                           f"({e.strerror or one_line(e, type(e).__name__)})")
+                continue
+            except Exception as e:  # an exporter bug: report it as one line, keep going
+                self.finish(job, "failed", f"{job.source}: writing outputs failed ({type(e).__name__}: "
+                                           f"{one_line(e, type(e).__name__)})", traceback.format_exc())
+                continue
+            stats = res.stats or []
+            job.record.summary = {
+                "num_closed": res.num_closed, "num_open": res.num_open, "levels": len(stats),
+                "converged": bool(res.converged), "limit": res.limit,
+                "points_beyond_tolerance": (stats[-1].points_beyond_tolerance if stats else 0),
+                "seconds": seconds,
+            }
+            self.finish(job, "done")
+        self.on_batch("end", self.batches, len(batch), self.done, self.total)
+
+
+def run_inputs(inputs: Iterable[PathLike], config: ReconstructConfig, out_dir: PathLike,
+               formats: Sequence[str] = DEFAULT_FORMATS, image_formats: Sequence[str] = DEFAULT_IMAGE_FORMATS,
+               overwrite: bool = False, batch_size: int = 64, image_options: ImageOptions = ImageOptions(),
+               image_config: Optional[ReconstructConfig] = None, device: Union[str, torch.device] = "cpu",
+               progress: Optional[Callable[[Record], None]] = None,
+               on_batch: Optional[Callable[[str, int, int, int, int], None]] = None,
+               on_note: Optional[Callable[[str], None]] = None) -> RunReport:
+    """Reconstruct every input and write its outputs (see the module docstring).
+
+    Args:
+        inputs: point files, images, folders of them.
+        config: the config of point files.
+        out_dir: output folder, created if needed.
+        formats, image_formats: outputs of point files and of images, among
+            :func:`torch_isc.io.chosen_formats`; images also get the formats that need the
+            image (``overlay.png``).
+        overwrite: redo inputs whose outputs all exist (by default they are skipped).
+        batch_size: inputs read and solved together.
+        image_options: how images become points (:class:`ImageOptions`).
+        image_config: the config of images (default
+            ``images.image_config(config, mode=image_options.mode)``).
+        device: torch device of the reconstructions.
+        progress: ``progress(record)``, called once per input as soon as it is final.
+        on_batch: ``on_batch(stage, batch, size, done, total)`` with ``stage`` ``"start"``
+            before and ``"end"`` after each batch (``done`` of ``total`` inputs not skipped).
+        on_note: ``on_note(message)`` for remarks that are not errors (renamed outputs, an
+            all-foreground mask).
+
+    Returns:
+        a :class:`RunReport`: one :class:`Record` per input, in input order.
+
+    Raises:
+        RunError: bad arguments (an empty folder, a batch size below 1, an unknown format):
+            nothing was written.
+    """
+    if batch_size < 1:
+        raise RunError(f"batch size must be >= 1, got {batch_size}")
+    known = chosen_formats()
+    for f in list(formats) + list(image_formats):
+        if f not in known:
+            raise RunError(f"unknown output format '{f}' (known: {', '.join(known)})")
+    if image_options.mode not in ("mask", "edges"):
+        raise RunError(f"image mode must be 'mask' or 'edges', got {image_options.mode!r}")
+    sources = expand_inputs(inputs)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    if image_config is None:
+        image_config = images.image_config(config, mode=image_options.mode)
+    run = _Run(config, image_config, out, list(formats), list(image_formats), batch_size, image_options,
+               torch.device(device), progress, on_batch, on_note)
+    jobs = [_Job(Record(src, stem), _is_image(src)) for src, stem in zip(sources, unique_stems(sources, run.note))]
+
+    # ---- skip finished inputs
+    todo: List[_Job] = []
+    for job in jobs:
+        if not overwrite and all((out / f"{job.stem}.{f}").exists() for f in run.formats_of(job)):
+            run.finish(job, "skipped")
+        else:
+            todo.append(job)
+
+    # ---- read inputs as batches fill up (bounded memory), solve, export at once
+    run.total = len(todo)
+    batch: List[_Job] = []
+    for i, job in enumerate(todo):
+        try:
+            run.read(job)
+            batch.append(job)
+        except (PointFileError, images.ImageError) as e:
+            run.done += 1
+            run.finish(job, "failed", one_line(e, type(e).__name__))   # the message starts with the file name
+        if len(batch) == batch_size or (i == len(todo) - 1 and batch):
+            run.process(batch)
+            batch = []
+    return RunReport([j.record for j in jobs], run.batches)

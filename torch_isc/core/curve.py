@@ -8,7 +8,7 @@ inside, ``f > 0`` outside, and the outer boundary of each mesh is outside.
 from __future__ import annotations
 
 from functools import cached_property
-from typing import Optional, Tuple
+from typing import Optional, Sequence, Tuple
 
 import torch
 
@@ -16,17 +16,26 @@ from torch_isc.core.extract import Polylines, extract_zero_set
 from torch_isc.core.locate import barycentric, locate_grid
 from torch_isc.core.mesh import InvalidMeshError, MeshBatch
 
-__all__ = ["ImplicitCurve", "InvalidValuesError", "check_values"]
+__all__ = ["ImplicitCurve", "InvalidValuesError", "check_values", "max_orientation_fraction"]
 
 
 class InvalidValuesError(ValueError):
     """Nodal values that are 0, NaN or Inf, or of the wrong shape."""
 
 
-def check_values(values: torch.Tensor, num_verts: int, name: str = "values") -> None:
+def check_values(values: torch.Tensor, num_verts: int, name: str = "values", sync: bool = True) -> None:
+    """Raise :class:`InvalidValuesError` unless ``values`` is ``(num_verts,)``, finite and nonzero.
+
+    With ``sync=False`` the content checks are device-side asserts (``torch._assert_async``,
+    a ``RuntimeError`` naming the problem): no host synchronization on CUDA (on CPU they
+    raise at once). The shape check never syncs."""
     if values.dim() != 1 or values.shape[0] != num_verts:
         raise InvalidValuesError(f"{name} must have shape ({num_verts},), got {tuple(values.shape)}")
     v = values.detach()
+    if not sync:
+        torch._assert_async(torch.isfinite(v).all(), f"{name}: a value is NaN or Inf")
+        torch._assert_async((v != 0).all(), f"{name}: a value is exactly 0; nodal values must be nonzero")
+        return
     bad_nf = ~torch.isfinite(v)
     if bad_nf.any():
         raise InvalidValuesError(f"{name}: {int(bad_nf.sum())} value(s) are NaN or Inf (first at vertex {int(bad_nf.nonzero()[0])})")
@@ -42,7 +51,11 @@ class ImplicitCurve:
     Args:
         mesh: :class:`MeshBatch`, positively oriented.
         values: ``(V,)`` nonzero nodal values (may require grad).
-        validate: check the mesh and values (default True).
+        validate: ``True`` (default): check the mesh and the values with clear errors
+            (:class:`InvalidMeshError`, :class:`InvalidValuesError`); on CUDA, when the
+            values or positions require grad (the differentiable path), only the checks a
+            change of positions/values can break run, as device-side asserts with no host
+            sync. ``"async"``: always that. ``"sync"``: always the full checks. ``False``: none.
 
     Example:
         >>> from torch_isc.core.mesh import hexagon_mesh
@@ -55,10 +68,15 @@ class ImplicitCurve:
         [True, False]
     """
 
-    def __init__(self, mesh: MeshBatch, values: torch.Tensor, validate: bool = True):
+    def __init__(self, mesh: MeshBatch, values, validate=True):
         if validate:
-            mesh.validate()
-            check_values(values, mesh.verts.shape[0])
+            sync = validate == "sync" or (validate is True and not (
+                values.is_cuda and (values.requires_grad or mesh.verts.requires_grad)))
+            if sync:
+                mesh.validate()
+            else:
+                mesh.validate_async()
+            check_values(values, mesh.verts.shape[0], sync=sync)
         self.mesh = mesh
         self.values = values
 
@@ -85,6 +103,44 @@ class ImplicitCurve:
 
     def detach(self) -> "ImplicitCurve":
         return ImplicitCurve(self.mesh.detach(), self.values.detach(), validate=False)
+
+    @property
+    def device(self) -> torch.device:
+        return self.values.device
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.values.dtype
+
+    def to(self, device=None, dtype=None) -> "ImplicitCurve":
+        """The curve on another device and/or floating dtype (differentiable, like ``Tensor.to``).
+
+        Example:
+            >>> from torch_isc.core.mesh import hexagon_mesh
+            >>> m = hexagon_mesh(torch.zeros(1, 2), torch.ones(1), 2)
+            >>> ImplicitCurve(m, m.verts.norm(dim=1) - 0.6).to(dtype=torch.float64).values.dtype
+            torch.float64
+        """
+        mesh = self.mesh.with_verts(self.mesh.verts) if device is None else self.mesh.to(device)
+        mesh = mesh.with_verts(mesh.verts.to(dtype=dtype)) if dtype is not None else mesh
+        return ImplicitCurve(mesh, self.values.to(device=device, dtype=dtype), validate=False)
+
+    @staticmethod
+    def cat(curves: Sequence["ImplicitCurve"]) -> "ImplicitCurve":
+        """Pack the items of several curves (batches) into one batch, in order (differentiable).
+
+        Example:
+            >>> from torch_isc.core.mesh import hexagon_mesh
+            >>> m = hexagon_mesh(torch.zeros(1, 2), torch.ones(1), 2)
+            >>> a = ImplicitCurve(m, m.verts.norm(dim=1) - 0.6)
+            >>> ImplicitCurve.cat([a, a, a]).num_components().tolist()
+            [1, 1, 1]
+        """
+        curves = list(curves)
+        if not curves:
+            raise ValueError("cat needs at least one curve")
+        return ImplicitCurve(MeshBatch.cat([c.mesh for c in curves]), torch.cat([c.values for c in curves]),
+                             validate=False)
 
     # --------------------------------------------------------------- evaluation
     def face_gradients(self) -> torch.Tensor:
@@ -138,15 +194,40 @@ class ImplicitCurve:
         return self._zero_set_detached.per_item_counts()
 
     # --------------------------------------------------------------- deformation
-    def deform(self, verts: torch.Tensor, tol: Optional[float] = None) -> "ImplicitCurve":
-        """Move the mesh vertices, keeping the topology of every item.
+    def deform(self, verts: torch.Tensor, tol: Optional[float] = None, clamp: bool = False,
+               safety: float = 0.9):
+        """Move the mesh vertices to ``verts (V, 2)``, keeping the topology of every item.
 
-        Refused (:class:`InvalidMeshError`) if a triangle would lose its positive
-        orientation, a boundary corner would move, or another boundary vertex would
-        leave its boundary side.
+        ``clamp=False`` (strict): refused (:class:`InvalidMeshError`) if a triangle would
+        lose its positive orientation, a boundary corner would move, or another boundary
+        vertex would leave its boundary side (``tol``: allowed slack, relative to the item's
+        bounding-box diagonal). Returns the curve.
+
+        ``clamp=True`` (safe motion, never raises for a bad move): the displacement
+        ``d = verts - V`` is first made admissible (corners fixed, other boundary vertices
+        projected onto their boundary side's direction), then every item ``b`` moves by the
+        fraction ``t_b ∈ [0, 1]`` of it: ``t_b = min(1, safety · t*_b)``, ``t*_b`` the first
+        ``t > 0`` at which a triangle's determinant ``det(t) = c + b t + a t²`` (closed-form
+        roots) reaches 0. Since ``det > 0`` on ``[0, t*)`` every triangle stays positively
+        oriented (a fixed-shape re-check halves ``t_b`` where rounding says otherwise, no host
+        sync). An item whose displacement is not finite does not move. Differentiable in
+        ``verts`` (and the old positions); ``t_b`` is detached. Returns ``(curve, t (B,))``.
+
+        Example:
+            >>> from torch_isc.core.mesh import hexagon_mesh
+            >>> m = hexagon_mesh(torch.zeros(1, 2, dtype=torch.float64), torch.ones(1), 1)
+            >>> c = ImplicitCurve(m, m.verts.norm(dim=1) - 0.5)
+            >>> target = m.verts.clone(); target[3] = torch.tensor([2.0, 0.0])   # centre far out
+            >>> moved, t = c.deform(target, clamp=True)
+            >>> t                           # it would flatten triangles at x = 1 (t = 1/2): 0.9 of that
+            tensor([0.4500], dtype=torch.float64)
+            >>> bool((moved.mesh.signed_areas() > 0).all())
+            True
         """
         if verts.shape != self.mesh.verts.shape:
             raise InvalidMeshError(f"deform: verts must have shape {tuple(self.mesh.verts.shape)}, got {tuple(verts.shape)}")
+        if clamp:
+            return self._deform_clamped(verts, safety)
         new = self.mesh.with_verts(verts)
         with torch.no_grad():
             if not torch.isfinite(verts).all():
@@ -169,9 +250,188 @@ class ImplicitCurve:
                 raise InvalidMeshError("deform: a boundary vertex would leave the outer boundary")
         return ImplicitCurve(new, self.values, validate=False)
 
-    def rescale(self, magnitudes: torch.Tensor) -> "ImplicitCurve":
-        """New magnitudes ``(V,)`` (> 0), the signs kept: a constant-topology change of geometry."""
-        check_values(magnitudes, self.mesh.verts.shape[0], "magnitudes")
-        if (magnitudes.detach() < 0).any():
-            raise InvalidValuesError("magnitudes must be positive")
+    def admissible_displacement(self, disp: torch.Tensor) -> torch.Tensor:
+        """``(V, 2)`` the displacement ``disp`` with boundary corners held and the other
+        boundary vertices projected onto their boundary side (differentiable, linear)."""
+        m = self.mesh
+        d = m.boundary_edge_dir
+        side = (m.is_boundary_vert & ~m.is_corner_vert)[:, None]
+        along = (disp * d).sum(1, keepdim=True) * d
+        out = torch.where(side, along, disp)
+        return torch.where(m.is_corner_vert[:, None], torch.zeros_like(out), out)
+
+    def _deform_clamped(self, verts: torch.Tensor, safety: float):
+        m = self.mesh
+        old = m.verts
+        disp = self.admissible_displacement(verts - old)
+        B = m.num_items
+        with torch.no_grad():
+            dd = disp.detach()
+            bad = torch.zeros(B, dtype=torch.bool, device=m.device).index_put_(
+                (m.vert_item,), ~torch.isfinite(dd).all(1), accumulate=True)
+            finite = ~bad
+            dd = torch.where(finite[m.vert_item][:, None], dd, torch.zeros_like(dd))
+            t = max_orientation_fraction(m, dd, safety)
+            t = torch.where(finite, t, torch.zeros_like(t))
+            v0 = old.detach()
+            for _ in range(8):        # rounding guard, fixed shape: halve items that still fail
+                det = m.signed_areas(v0 + t[m.vert_item][:, None] * dd)
+                fail = torch.zeros(B, dtype=torch.bool, device=m.device).index_put_(
+                    (m.face_item,), det <= 0, accumulate=True)
+                t = torch.where(fail, 0.5 * t, t)
+            t = torch.where(fail, torch.zeros_like(t), t)
+        disp = torch.where(torch.isfinite(disp), disp, torch.zeros_like(disp))
+        new = m.with_verts(old + t[m.vert_item][:, None] * disp)
+        return ImplicitCurve(new, self.values, validate=False), t
+
+    def rescale(self, magnitudes: torch.Tensor, validate=True) -> "ImplicitCurve":
+        """New magnitudes ``(V,)`` (> 0), the signs kept: a constant-topology change of geometry.
+
+        ``validate``: as in the constructor (on CUDA with grad: device-side asserts, no sync)."""
+        if validate:
+            sync = validate == "sync" or (validate is True and not (magnitudes.is_cuda and magnitudes.requires_grad))
+            check_values(magnitudes, self.mesh.verts.shape[0], "magnitudes", sync=sync)
+            if sync:
+                if (magnitudes.detach() < 0).any():
+                    raise InvalidValuesError("magnitudes must be positive")
+            else:
+                torch._assert_async((magnitudes.detach() > 0).all(), "magnitudes must be positive")
         return ImplicitCurve(self.mesh, self.signs * magnitudes, validate=False)
+
+    # --------------------------------------------------------------- refinement / topology moves
+    def refine_band(self, rings: int = 0) -> "ImplicitCurve":
+        """Subdivide the triangles the zero set crosses (plus ``rings`` rings of neighbours).
+
+        Uses the paper's rule (Fig. 7, :func:`torch_isc.pipeline.subdivide.subdivide`); a new
+        vertex at an edge midpoint takes the mean of the edge's values, i.e. the value of the
+        piecewise-linear ``f`` there. Guarantees, at the moment of refinement: old vertices
+        keep their values (so their sign pattern); ``f`` is unchanged as a function, so the
+        zero set is unchanged as a set and the topology is the same (a midpoint whose mean
+        is exactly 0 gets a value of ``eps`` times its edge's magnitude, sign +, which moves
+        the zero set by a rounding-level amount). What it buys: the band now has vertices
+        near the curve whose positions and magnitudes shape it in finer detail (and whose
+        signs :meth:`flip_simple` can change). Differentiable in positions and values.
+
+        Example:
+            >>> from torch_isc.core.mesh import hexagon_mesh
+            >>> m = hexagon_mesh(torch.zeros(1, 2, dtype=torch.float64), torch.ones(1), 2)
+            >>> c = ImplicitCurve(m, m.verts.norm(dim=1) - 0.6)
+            >>> f = c.refine_band()
+            >>> f.mesh.faces.shape[0] > m.faces.shape[0], f.num_components().tolist()
+            (True, [1])
+        """
+        from torch_isc.pipeline.subdivide import subdivide       # pipeline sits above core: import late
+        m = self.mesh
+        with torch.no_grad():
+            fneg = self.values.detach()[m.faces] < 0
+            marked = fneg.any(1) & ~fneg.all(1)
+            for _ in range(int(rings)):
+                nb = m.face_neighbors
+                grow = (marked[nb.clamp_min(0)] & (nb >= 0)).any(1)
+                marked = marked | grow
+        sd = subdivide(m, marked)
+        vals = sd.interpolate(self.values, m.edges)
+        with torch.no_grad():
+            ends = m.edges[sd.new_vert_edge.clamp_min(0)]
+            scale = self.values.detach()[ends].abs().amax(1)
+            zero = (vals.detach() == 0) & (sd.new_vert_edge >= 0)
+        vals = torch.where(zero, torch.finfo(vals.dtype).eps * scale, vals)
+        return ImplicitCurve(sd.mesh, vals, validate=False)
+
+    def simple_vertices(self) -> torch.Tensor:
+        """``(V,)`` bool: interior vertices whose sign can flip without changing the topology.
+
+        A vertex is *simple* when the signs around its link (the cycle of its neighbours)
+        form exactly one run of each sign (two sign changes): flipping it then adds to (or
+        removes from) the inside region a disc glued along one arc, a homotopy-preserving
+        move (the PL form of digital topology's simple points). Boundary vertices are never
+        simple (the outer boundary stays outside)."""
+        m = self.mesh
+        with torch.no_grad():
+            neg = self.values.detach() < 0
+            f = m.faces
+            a, b = neg[f[:, [1, 2, 0]]], neg[f[:, [2, 0, 1]]]          # link edge opposite corner k
+            changes = torch.zeros(m.verts.shape[0], dtype=torch.long, device=m.device)
+            changes.index_add_(0, f.reshape(-1), (a != b).reshape(-1).long())
+            return (changes == 2) & ~m.is_boundary_vert
+
+    def flip_simple(self, candidates: Optional[torch.Tensor] = None, grow: bool = True, ratio: float = 1.0):
+        """Flip the signs of simple vertices, keeping every item's topology.
+
+        Args:
+            candidates: ``(V,)`` bool, the vertices that may flip (default: the vertices of
+                the sign-changing triangles). Only simple ones (:meth:`simple_vertices`) of
+                the right sign flip: positive ones when ``grow`` (the inside grows),
+                negative ones otherwise; among adjacent ones only the one of smallest
+                ``|f|`` (ties: lowest index), so the flipped set is independent and the
+                moves compose (a flip does not change another flipped vertex's link).
+            ratio: a flipped vertex's new value is ``-ratio · f_v`` (differentiable).
+
+        Returns ``(curve, flipped (V,) bool)``. The zero set jumps across the flipped
+        vertices (by less when their ``|f|`` is small), its topology is the same.
+
+        Example:
+            >>> from torch_isc.core.mesh import hexagon_mesh
+            >>> from torch_isc.core.measures import area
+            >>> m = hexagon_mesh(torch.zeros(1, 2, dtype=torch.float64), torch.ones(1), 3)
+            >>> c = ImplicitCurve(m, m.verts.norm(dim=1) - 0.2)
+            >>> g, flipped = c.flip_simple()
+            >>> int(flipped.sum()) > 0, bool(area(g) > area(c)), g.num_components().tolist()
+            (True, True, [1])
+        """
+        m = self.mesh
+        with torch.no_grad():
+            v = self.values.detach()
+            if candidates is None:
+                fneg = v[m.faces] < 0
+                mixed = fneg.any(1) & ~fneg.all(1)
+                candidates = torch.zeros(v.shape[0], dtype=torch.bool, device=m.device)
+                candidates[m.faces[mixed].reshape(-1)] = True
+            ok = candidates & self.simple_vertices() & ((v > 0) if grow else (v < 0))
+            # independent set: a vertex flips if no adjacent candidate has a smaller key
+            order = torch.argsort(v.abs(), stable=True)
+            key = torch.empty_like(order)
+            key[order] = torch.arange(order.shape[0], device=m.device)
+            big = torch.iinfo(torch.long).max
+            k = torch.where(ok, key, torch.full_like(key, big))
+            e = m.edges
+            nb_min = torch.full_like(k, big).scatter_reduce(0, torch.cat([e[:, 0], e[:, 1]]),
+                                                            torch.cat([k[e[:, 1]], k[e[:, 0]]]), "amin")
+            flip = ok & (k < nb_min)
+        vals = torch.where(flip, -ratio * self.values, self.values)
+        return ImplicitCurve(m, vals, validate=False), flip
+
+
+def max_orientation_fraction(mesh: MeshBatch, disp: torch.Tensor, safety: float = 0.9) -> torch.Tensor:
+    """``(B,)`` the largest ``t ∈ [0, 1]`` (times ``safety`` below the first root) such that
+    moving every vertex by ``t · disp`` keeps every triangle of the item positively oriented.
+
+    Per triangle ``det(t) = c + b t + a t²`` with ``c = det(0) > 0``; its first positive root
+    comes from the numerically stable quadratic formula (``q = -(b + sign(b)√Δ)/2``, roots
+    ``q/a`` and ``c/q``); no real positive root: no limit."""
+    with torch.no_grad():
+        v = mesh.verts.detach()
+        f = mesh.faces
+        p, d = v[f], disp[f]
+        u, w = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
+        du, dw = d[:, 1] - d[:, 0], d[:, 2] - d[:, 0]
+
+        def cr(x, y):
+            return x[:, 0] * y[:, 1] - x[:, 1] * y[:, 0]
+
+        c = cr(u, w)
+        b = cr(u, dw) + cr(du, w)
+        a = cr(du, dw)
+        disc = b * b - 4 * a * c
+        sq = torch.sqrt(disc.clamp_min(0))
+        sgn = torch.where(b >= 0, torch.ones_like(b), -torch.ones_like(b))
+        q = -0.5 * (b + sgn * sq)
+        inf = torch.full_like(c, float("inf"))
+        r1 = torch.where(a != 0, q / torch.where(a != 0, a, torch.ones_like(a)), inf)
+        r2 = torch.where(q != 0, c / torch.where(q != 0, q, torch.ones_like(q)), inf)
+        r1 = torch.where((r1 > 0) & (disc >= 0), r1, inf)
+        r2 = torch.where((r2 > 0) & (disc >= 0), r2, inf)
+        root = torch.minimum(r1, r2)
+        tmin = torch.full((mesh.num_items,), float("inf"), dtype=v.dtype, device=v.device)
+        tmin = tmin.scatter_reduce(0, mesh.face_item, root, "amin")
+        return (safety * tmin).clamp(max=1.0)

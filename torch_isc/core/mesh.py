@@ -354,6 +354,17 @@ class MeshBatch:
             if (slot_count > 1).any():
                 raise InvalidMeshError("two triangles traverse a shared edge in the same direction")
 
+    def validate_async(self, min_det: float = 0.0) -> None:
+        """The checks that a change of vertex positions can break (finite positions,
+        positive orientation), as device-side asserts (``torch._assert_async``): no host
+        synchronization on CUDA, where a failure surfaces at a later synchronizing call
+        (on CPU it raises at once). The combinatorial checks of :meth:`validate` are not
+        repeated (:meth:`with_verts` cannot break them)."""
+        with torch.no_grad():
+            torch._assert_async(torch.isfinite(self.verts).all(), "vertex positions contain NaN or Inf")
+            torch._assert_async((self.signed_areas() > min_det).all(),
+                                "a triangle is not positively oriented")
+
     def is_valid(self, min_det: float = 0.0) -> bool:
         try:
             self.validate(min_det)

@@ -31,7 +31,7 @@ def test_refit_converged_and_signs_kept():
     # stationarity of the objective at the returned values (independent autograd gradient)
     from torch_isc.pipeline.refit import RefitProblem
     from torch_isc.core.locate import locate_grid, barycentric
-    from torch_isc.pipeline.signs import triangle_moments
+    from torch_isc.pipeline.evidence import triangle_moments
     face, _ = locate_grid(c.mesh, pts, torch.zeros(30, dtype=torch.long))
     mom = triangle_moments(c.mesh, pts, face, barycentric(c.mesh.verts, c.mesh.faces, face, pts))
     pb = RefitProblem(c, mom.count, 1e-4, 1e-2)

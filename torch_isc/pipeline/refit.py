@@ -31,7 +31,7 @@ import torch
 
 from torch_isc.core.curve import ImplicitCurve
 from torch_isc.core.locate import barycentric, locate_grid
-from torch_isc.pipeline.signs import triangle_moments
+from torch_isc.pipeline.evidence import triangle_moments
 
 __all__ = ["refit", "attach_point_gradients", "RefitProblem"]
 

@@ -75,7 +75,7 @@ def distinct_points(sets: Sequence[torch.Tensor], labels: Sequence[str]):
         raise PointSetError(f"{labels[b]}: needs at least 3 distinct points, got {int(counts[b])}")
     if G == x.shape[0]:
         return x, item, counts
-    first = torch.full((G,), x.shape[0], dtype=torch.long, device=dev).scatter_reduce_(0, gid, o, "amin")
+    first = segment_min(o, gid, G, fill=x.shape[0])
     keep = first.sort().values                       # item-major, first occurrence within an item
     return x[keep], item[keep], counts
 
@@ -92,7 +92,7 @@ def collinear_items(pts64: torch.Tensor, point_item: torch.Tensor, B: int, slack
     theta = 0.5 * torch.atan2(2 * cov[:, 1], cov[:, 0] - cov[:, 2])        # principal direction
     normal = torch.stack([-theta.sin(), theta.cos()], 1)
     off = (d * normal[point_item]).sum(1).abs()
-    worst = torch.zeros(B, dtype=pts64.dtype, device=pts64.device).scatter_reduce_(0, point_item, off, "amax")
+    worst = segment_max(off, point_item, B, fill=0)
     return worst <= slack
 
 

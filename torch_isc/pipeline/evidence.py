@@ -9,6 +9,8 @@ from typing import TYPE_CHECKING
 
 import torch
 
+from torch_isc.core.segments import segment_sum
+
 from torch_isc.core.mesh import MeshBatch
 from torch_isc.pipeline.knobs import check_section, knob
 
@@ -56,7 +58,7 @@ def triangle_moments(mesh: MeshBatch, points: torch.Tensor, face: torch.Tensor, 
     ok = face >= 0
     f, X = face[ok], bary[ok].to(dt)
     p = points[ok].to(dt)
-    count = torch.zeros(T, dtype=dt, device=mesh.device).index_add_(0, f, torch.ones_like(f, dtype=dt))
+    count = segment_sum(torch.ones_like(f, dtype=dt), f, T)
     M = torch.zeros(T, 9, dtype=dt, device=mesh.device).index_add_(0, f, (X[:, :, None] * X[:, None, :]).reshape(-1, 9))
     # moments about the triangle centroid keep float32 accurate on small triangles
     tc = mesh.verts.detach()[mesh.faces].mean(1)

@@ -15,11 +15,13 @@ from typing import Callable, Optional, Tuple
 
 import torch
 
+from torch_isc.core.segments import segment_sum
+
 __all__ = ["batched_lbfgs"]
 
 
 def _segdot(a: torch.Tensor, b: torch.Tensor, seg: torch.Tensor, n: int) -> torch.Tensor:
-    return torch.zeros(n, dtype=a.dtype, device=a.device).index_add_(0, seg, a * b)
+    return segment_sum(a * b, seg, n)
 
 
 def _segmat(A: torch.Tensor, b: torch.Tensor, seg: torch.Tensor, n: int) -> torch.Tensor:

@@ -15,6 +15,8 @@ from typing import TYPE_CHECKING, Optional, Tuple
 
 import torch
 
+from torch_isc.core.segments import segment_max, segment_sum
+
 from torch_isc.core.locate import barycentric, locate_walk
 from torch_isc.core.mesh import MeshBatch
 from torch_isc.pipeline.knobs import check_section, knob
@@ -64,15 +66,15 @@ def mesh_energy(mesh: MeshBatch, verts: torch.Tensor, points: torch.Tensor, face
     it = mesh.face_item[f]
     dist = (verts[vid] - p[:, None, :]).norm(dim=2)
     inv = 1.0 / torch.maximum(dist, min_dist[it][:, None])
-    phi = torch.zeros(verts.shape[0], dtype=dt, device=verts.device).index_add_(0, vid.reshape(-1), inv.reshape(-1))
+    phi = segment_sum(inv.reshape(-1), vid.reshape(-1), verts.shape[0])
     phi = phi / n_points[mesh.vert_item].clamp_min(1)
     e, ei = mesh.edges, mesh.edge_item
     nu_e = degree_weights(mesh) if nu_e is None else nu_e
     if edge_sel is not None:
         e, ei, nu_e = e[edge_sel], ei[edge_sel], nu_e[edge_sel]
-    UD = torch.zeros(B, dtype=dt, device=verts.device).index_add_(0, ei, (phi[e[:, 0]] - phi[e[:, 1]]) ** 2) * rho ** 2
+    UD = segment_sum((phi[e[:, 0]] - phi[e[:, 1]]) ** 2, ei, B) * rho ** 2
     l2 = ((verts[e[:, 0]] - verts[e[:, 1]]) ** 2).sum(1)
-    UE = torch.zeros(B, dtype=dt, device=verts.device).index_add_(0, ei, nu_e.to(dt) * l2) / rho ** 2
+    UE = segment_sum(nu_e.to(dt) * l2, ei, B) / rho ** 2
     return kappa_data * UD + kappa_edge * UE
 
 
@@ -80,7 +82,7 @@ def degree_weights(mesh: MeshBatch) -> torch.Tensor:
     """``(E,)`` ``ν_i ν_j`` of eq. 3.9 per edge, ``ν`` a vertex's degree over its item's mean
     degree (topology only: a relaxation computes it once)."""
     deg = mesh.degrees.to(mesh.dtype)
-    mdeg = torch.zeros(mesh.num_items, dtype=deg.dtype, device=deg.device).index_add_(0, mesh.vert_item, deg) / \
+    mdeg = segment_sum(deg, mesh.vert_item, mesh.num_items) / \
         mesh.verts_per_item.to(deg.dtype).clamp_min(1)
     nu = deg / mdeg[mesh.vert_item]
     return nu[mesh.edges[:, 0]] * nu[mesh.edges[:, 1]]
@@ -131,7 +133,7 @@ def relax_mesh(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor, 
             d[~active[mesh.vert_item]] = 0
             # step so that the largest move is max_move of the vertex's shortest edge
             ratio = d.norm(dim=1) / short
-            worst = torch.zeros(B, dtype=dt, device=dev).scatter_reduce(0, mesh.vert_item, ratio, "amax")
+            worst = segment_max(ratio, mesh.vert_item, B, fill=0)
             step = torch.where(worst > 0, max_move / worst.clamp_min(torch.finfo(dt).tiny), torch.zeros_like(worst))
             accepted = ~active
             v_new, face_new = v.clone(), face.clone()

@@ -98,17 +98,17 @@ def finish_items(ws: "WorkingSet", fin: torch.Tensor, n_marked: torch.Tensor, ov
     precision, at least the working one."""
     with torch.no_grad():
         dtype = ws.dtype
-        sub, vk, _ = ws.mesh.select_items(fin)
-        ob = ws.items[fin]
+        sub, kept_verts, _ = ws.mesh.select_items(fin)
+        caller = ws.items[fin]
         vitem = sub.vert_item
         flat = ws.flat[fin]
-        vals = torch.where(flat[vitem], ws.values[vk].abs(), ws.values[vk])        # all outside: no curve
+        vals = torch.where(flat[vitem], ws.values[kept_verts].abs(), ws.values[kept_verts])        # all outside: no curve
         inside = torch.zeros(fin.shape[0], dtype=torch.bool, device=ws.device).index_fill_(0, vitem[vals < 0], True)
         scale, center = ws.scale[fin], ws.center[fin]
         verts64 = sub.verts.double() * scale[vitem, None] + center[vitem]
         vals64 = vals.double() * scale[vitem]
         first = sub.verts_first_idx.tolist() + [sub.verts.shape[0]]
-        rows = zip(ob.tolist(), n_marked[fin].tolist(), over[fin].tolist(), inside.tolist(), flat.tolist())
+        rows = zip(caller.tolist(), n_marked[fin].tolist(), over[fin].tolist(), inside.tolist(), flat.tolist())
         for jj, (b, mk, ov, has_in, fl) in enumerate(rows):
             limit = None
             if mk > 0:

@@ -15,7 +15,7 @@ import torch
 
 from torch_isc.core.mesh import MeshBatch
 from torch_isc.core.points import PointSetError
-from torch_isc.core.segments import first_index, hash_keys, hash_to_unit, mix32
+from torch_isc.core.segments import first_index, hash_keys, hash_to_unit, mix32, segment_max, segment_min
 from torch_isc.pipeline.knobs import check_section, knob
 
 if TYPE_CHECKING:
@@ -67,8 +67,8 @@ def edge_weights(mesh: MeshBatch, L: torch.Tensor, eps: torch.Tensor, count: tor
     empty = (count == 0) & ~fit
     fi = mesh.face_item
     big = torch.finfo(dt).max
-    emax = torch.full((B,), -big, dtype=dt, device=L.device).scatter_reduce(0, fi[fit], eps[fit], "amax")
-    emin = torch.full((B,), big, dtype=dt, device=L.device).scatter_reduce(0, fi[fit], eps[fit], "amin")
+    emax = segment_max(eps[fit], fi[fit], B, fill=-big)
+    emin = segment_min(eps[fit], fi[fit], B, fill=big)
     if noise2 is not None:
         # fits within the noise are all equally good: dense noisy data would otherwise spread
         # tiny differences of near-noise errors over the whole range [0, 1]
@@ -104,7 +104,7 @@ def vertex_coloring(mesh: MeshBatch, active: Optional[torch.Tensor] = None, max_
         dst = torch.cat([e[:, 1], e[:, 0]])
         while bool(todo.any()):
             pr = torch.where(todo, prio, torch.full_like(prio, -1))
-            nmax = torch.full((V,), -1, dtype=torch.long, device=dev).scatter_reduce(0, dst, pr[src], "amax")
+            nmax = segment_max(pr[src], dst, V, fill=-1)
             pick = todo & (prio > nmax)
             used = torch.zeros(V, max_colors + 1, dtype=torch.bool, device=dev)
             cs = color[src]
@@ -324,14 +324,14 @@ class OracleSigns:
         out = torch.zeros(x.shape[0], dtype=torch.bool, device=x.device)
         counts = torch.bincount(item, minlength=ws.num_items)
         starts = first_index(counts).tolist()
-        for ob, s0, n in zip(ws.items.tolist(), starts, counts.tolist()):   # one call per item
-            o = self.oracles[ob]
+        for b, s0, n in zip(ws.items.tolist(), starts, counts.tolist()):   # one call per item
+            o = self.oracles[b]
             if o is None:
-                raise SignOracleError(f"item {ob}: sign oracles must be given for every item or none")
+                raise SignOracleError(f"item {b}: sign oracles must be given for every item or none")
             if n:
                 got = torch.as_tensor(o(xc[s0:s0 + n]), device=x.device).bool().reshape(-1)
                 if got.shape[0] != n:
-                    raise SignOracleError(f"item {ob}: sign oracle returned {got.shape[0]} values for {n} points")
+                    raise SignOracleError(f"item {b}: sign oracle returned {got.shape[0]} values for {n} points")
                 out[s0:s0 + n] = got
         return out
 

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import torch
 
 from torch_isc.core.mesh import MeshBatch
-from torch_isc.core.segments import first_index
+from torch_isc.core.segments import first_index, segment_sum
 
 __all__ = ["Subdivision", "subdivide"]
 
@@ -76,7 +76,7 @@ def subdivide(mesh: MeshBatch, marked: torch.Tensor) -> Subdivision:
         new_vert_edge = new_vert_edge[perm]
         B = mesh.num_items
         vpi = mesh.verts_per_item + torch.bincount(mesh.edge_item[split_ids], minlength=B)
-        fpi = torch.zeros(B, dtype=torch.long, device=dev).index_add_(0, mesh.face_item, nchild)
+        fpi = segment_sum(nchild, mesh.face_item, B)
     mid_pos = 0.5 * (mesh.verts[e[split_ids, 0]] + mesh.verts[e[split_ids, 1]])
     verts = torch.cat([mesh.verts, mid_pos], 0)[perm]
     new_mesh = MeshBatch(verts, new_faces, vpi, fpi)

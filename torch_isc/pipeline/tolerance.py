@@ -15,6 +15,8 @@ from typing import TYPE_CHECKING, Optional, Tuple
 
 import torch
 
+from torch_isc.core.segments import segment_max, segment_sum
+
 from torch_isc.core.mesh import MeshBatch
 from torch_isc.pipeline.knobs import check_section, knob
 
@@ -55,8 +57,8 @@ def triangle_errors(mesh: MeshBatch, residual: torch.Tensor, face: torch.Tensor)
     T = mesh.faces.shape[0]
     ok = face >= 0
     f, r = face[ok], residual[ok]
-    mx = torch.zeros(T, dtype=residual.dtype, device=residual.device).scatter_reduce(0, f, r, "amax")
-    sm = torch.zeros(T, dtype=residual.dtype, device=residual.device).index_add_(0, f, r)
+    mx = segment_max(r, f, T, fill=0)
+    sm = segment_sum(r, f, T)
     cnt = torch.bincount(f, minlength=T).to(residual.dtype)
     return mx, sm / cnt.clamp_min(1)
 
@@ -113,7 +115,7 @@ def mark_triangles(mesh: MeshBatch, residual: torch.Tensor, face: torch.Tensor, 
     # below the resolution the tolerance allows, splitting only fits the noise
     if min_split_size > 0:
         marked &= longest > min_split_size * eff[fi]
-    worst = torch.zeros(mesh.num_items, dtype=stat.dtype, device=stat.device).scatter_reduce(0, fi, stat, "amax")
+    worst = segment_max(stat, fi, mesh.num_items, fill=0)
     return marked, eff, worst.sqrt()
 
 

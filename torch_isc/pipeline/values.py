@@ -12,6 +12,8 @@ from typing import TYPE_CHECKING, Optional, Tuple
 
 import torch
 
+from torch_isc.core.segments import segment_sum
+
 from torch_isc.core.mesh import MeshBatch
 from torch_isc.pipeline.optim import batched_lbfgs
 from torch_isc.pipeline.evidence import TriangleMoments
@@ -151,10 +153,10 @@ class GeometryObjective:
         self.vi = vi
         with torch.no_grad():
             G = mesh.bary_gradients()
-            nb = torch.zeros(B, dtype=dt, device=dev).index_add_(0, fi, mom.count)
+            nb = segment_sum(mom.count, fi, B)
             wt = mom.count / nb[fi].clamp_min(1)
             nv = torch.bincount(vi, minlength=B).to(dt)
-            mean_mag = torch.zeros(B, dtype=dt, device=dev).index_add_(0, vi, init_mag) / nv.clamp_min(1)
+            mean_mag = segment_sum(init_mag, vi, B) / nv.clamp_min(1)
             self.floor = (magnitude_floor * mean_mag)[vi]
             self.s0 = torch.log((init_mag - self.floor).clamp_min(1e-3 * mean_mag[vi])
                                 .clamp_min(torch.finfo(dt).tiny))
@@ -212,24 +214,24 @@ class GeometryObjective:
     def value(self, s: torch.Tensor, items: Optional[torch.Tensor] = None) -> torch.Tensor:
         """``(B,)`` the objective of every item (differentiable by autograd)."""
         faces, G, M, fi, wt, guard, ef, el, eitem, cr = self._parts(items)
-        B, dt, dev = self.B, self.dt, self.dev
+        B, dt = self.B, self.dt
         F = self.values(s)
         Ft = F[faces]
         grad = (G * Ft[..., None]).sum(1)
         g2 = (grad * grad).sum(1)
         num = ((Ft[:, :, None] * M).sum(1) * Ft).sum(1)
-        obj = torch.zeros(B, dtype=dt, device=dev).index_add_(0, fi, wt * num / (g2 + guard))
+        obj = segment_sum(wt * num / (g2 + guard), fi, B)
         if cr is not None:
             ce, cl, clim, cw, cit = cr
             m = F[ce].abs()
             a = cl[:, None] * m / m.sum(1, keepdim=True)
             over = (clim - a).clamp_min(0)
-            obj = obj + torch.zeros(B, dtype=dt, device=dev).index_add_(0, cit, cw * (over * over).sum(1))
+            obj = obj + segment_sum(cw * (over * over).sum(1), cit, B)
         if self.smoothness > 0 and ef.shape[0]:
             jump = ((grad[ef[:, 0]] - grad[ef[:, 1]]) ** 2).sum(1)
             size = 0.5 * (g2[ef[:, 0]] + g2[ef[:, 1]])
-            J = torch.zeros(B, dtype=dt, device=dev).index_add_(0, eitem, el * jump)
-            S = torch.zeros(B, dtype=dt, device=dev).index_add_(0, eitem, el * size)
+            J = segment_sum(el * jump, eitem, B)
+            S = segment_sum(el * size, eitem, B)
             obj = obj + self.smoothness * J / S.clamp_min(torch.finfo(dt).tiny)
         return obj
 
@@ -237,7 +239,7 @@ class GeometryObjective:
                        ) -> Tuple[torch.Tensor, torch.Tensor]:
         """``(B,)`` objectives and ``(V,)`` their gradient with respect to ``s``."""
         faces, G, M, fi, wt, guard, ef, el, eitem, cr = self._parts(items)
-        B, dt, dev = self.B, self.dt, self.dev
+        B, dt = self.B, self.dt
         e = torch.exp(s.clamp(-60.0, 60.0))
         F = self.signs * (e + self.floor)
         Ft = F[faces]                                        # (T,3)
@@ -247,7 +249,7 @@ class GeometryObjective:
         num = (MF * Ft).sum(1)
         rden = 1.0 / (g2 + guard)
         q = num * rden
-        obj = torch.zeros(B, dtype=dt, device=dev).index_add_(0, fi, wt * q)
+        obj = segment_sum(wt * q, fi, B)
         # d(num/den)/dF_t = 2 (M F − q G ∇f) / den, the G ∇f part added with the smoothness one
         dgrad = (-2.0 * wt * q * rden)[:, None] * grad       # (T,2) d obj / d ∇f_t
         dFt = (2.0 * wt * rden)[:, None] * MF
@@ -256,8 +258,8 @@ class GeometryObjective:
             diff = grad[a] - grad[b]
             jump = (diff * diff).sum(1)
             size = 0.5 * (g2[a] + g2[b])
-            J = torch.zeros(B, dtype=dt, device=dev).index_add_(0, eitem, el * jump)
-            S = torch.zeros(B, dtype=dt, device=dev).index_add_(0, eitem, el * size).clamp_min(torch.finfo(dt).tiny)
+            J = segment_sum(el * jump, eitem, B)
+            S = segment_sum(el * size, eitem, B).clamp_min(torch.finfo(dt).tiny)
             obj = obj + self.smoothness * J / S
             cj = (self.smoothness / S)[eitem] * el                # d obj / d jump
             cs = (-self.smoothness * J / (S * S))[eitem] * el     # d obj / d size
@@ -272,7 +274,7 @@ class GeometryObjective:
             msum = m.sum(1)
             a = cl[:, None] * m / msum[:, None]
             over = (clim - a).clamp_min(0)
-            obj = obj + torch.zeros(B, dtype=dt, device=dev).index_add_(0, cit, cw * (over * over).sum(1))
+            obj = obj + segment_sum(cw * (over * over).sum(1), cit, B)
             # a_0 = ℓ m_0/(m_0+m_1), a_1 = ℓ − a_0: d obj/d m_0 = (h_0 − h_1) ℓ m_1/Σ², h_k = −2 w over_k
             h = (2.0 * cw) * (over[:, 1] - over[:, 0]) * cl / (msum * msum)
             dm = torch.stack([h * m[:, 1], -h * m[:, 0]], 1)
@@ -315,8 +317,7 @@ def fit_geometry(mesh: MeshBatch, mom: TriangleMoments, signs: torch.Tensor, ini
                             iterations=cfg.lbfgs_iterations, history=cfg.lbfgs_history, masked=True, with_grad=True)
     with torch.no_grad():
         F = obj.values(s)
-        d1 = torch.zeros(mesh.num_items, dtype=mesh.dtype, device=mesh.device).index_add_(
-            0, obj.fi, obj.wt_raw * delta1_per_triangle(mesh, mom.M, F, obj.G, obj.guard))
+        d1 = segment_sum(obj.wt_raw * delta1_per_triangle(mesh, mom.M, F, obj.G, obj.guard), obj.fi, mesh.num_items)
     return F, d1
 
 

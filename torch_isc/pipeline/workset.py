@@ -81,16 +81,16 @@ class WorkingSet:
         with torch.no_grad():
             B, T = self.num_items, self.mesh.faces.shape[0]
             dev = self.device
-            mesh, vk, fk = self.mesh.select_items(keep)
+            mesh, kv, kf = self.mesh.select_items(keep)
             sel = torch.zeros(B, dtype=torch.bool, device=dev).index_fill_(0, keep, True)
             keep_p = sel[self.point_item]
             remap_f = torch.full((T,), -1, dtype=torch.long, device=dev)
-            remap_f[fk] = torch.arange(fk.shape[0], device=dev)
+            remap_f[kf] = torch.arange(kf.shape[0], device=dev)
             new_item = torch.full((B,), -1, dtype=torch.long, device=dev)
             new_item[keep] = torch.arange(keep.shape[0], device=dev)
             out = {k: getattr(self, k)[keep] for k in self.ITEM_FIELDS}
-            out.update({k: getattr(self, k)[vk] for k in self.VERT_FIELDS})
-            out.update({k: getattr(self, k)[fk] for k in self.FACE_FIELDS})
+            out.update({k: getattr(self, k)[kv] for k in self.VERT_FIELDS})
+            out.update({k: getattr(self, k)[kf] for k in self.FACE_FIELDS})
             out.update({k: getattr(self, k)[keep_p] for k in self.POINT_FIELDS})
             f = out["face"]
             out["face"] = torch.where(f >= 0, remap_f[f.clamp_min(0)], f)

@@ -117,7 +117,7 @@ def test_refine_band_keeps_zero_set():
     assert r.mesh.faces.shape[0] > c.mesh.faces.shape[0]
     # old vertices keep their values (so their signs)
     n_old = c.mesh.verts.shape[0]
-    from torch_isc.pipeline.subdivide import subdivide  # noqa: F401 (same rule)
+    from torch_isc.core.subdivide import subdivide  # noqa: F401 (same rule)
     old_pos = c.mesh.verts
     idx = torch.cdist(old_pos, r.mesh.verts).argmin(1)
     assert torch.equal(r.values[idx], c.values)

@@ -19,7 +19,7 @@ from torch_isc.pipeline.values import (GeometryConfig, GeometryObjective, delta1
                                    vertex_data_distance, vertex_data_distance_near)
 from torch_isc.pipeline.optim import batched_lbfgs
 from torch_isc.pipeline.relax import RelaxConfig, mesh_energy, relax_mesh
-from torch_isc.pipeline.subdivide import subdivide
+from torch_isc.core.subdivide import subdivide
 from torch_isc.pipeline.noise import NoiseConfig, estimate_noise, noise_and_frames
 from torch_isc.pipeline.tolerance import (TestConfig, curve_coverage_excess, mark_triangles, point_curve_distance2,
                                           triangle_errors)

@@ -17,7 +17,7 @@ from torch_isc.pipeline.evidence import gather_evidence
 from torch_isc.pipeline.loop import _start, initial_mesh
 from torch_isc.pipeline.signs import IsingSigns, OracleSigns
 from torch_isc.pipeline.stats import StatsRecorder
-from torch_isc.pipeline.subdivide import subdivide
+from torch_isc.core.subdivide import subdivide
 from torch_isc.pipeline.workset import WorkingSet
 
 

@@ -74,6 +74,7 @@ def test_a_loader_per_suffix(tmp_path):
 
 
 @pytest.mark.parametrize("module,forbidden", [
+    ("torch_isc.pipeline.loop", ("torch_isc.images", "torch_isc.io", "torch_isc.runner", "torch_isc.cli")),
     ("torch_isc.images", ("torch_isc.io", "torch_isc.runner", "torch_isc.cli")),
     ("torch_isc.io", ("torch_isc.runner", "torch_isc.cli")),
     ("torch_isc.runner", ("torch_isc.cli",)),
@@ -88,3 +89,15 @@ def test_layers_import_only_below(module, forbidden):
     loaded = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                             cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__)))).stdout
     assert not [m for m in forbidden if f"'{m}'" in loaded or f"'{m}." in loaded], loaded
+
+
+def test_core_imports_nothing_above_it():
+    """core/ is read by everything: its modules import no pipeline, image, file or CLI code
+    (checked on the source, since importing any submodule runs the package's __init__)."""
+    import re
+    core = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "torch_isc", "core")
+    for name in sorted(os.listdir(core)):
+        if name.endswith(".py"):
+            text = open(os.path.join(core, name)).read()
+            bad = re.findall(r"^\s*(?:from|import) torch_isc\.(pipeline|images|io|runner|cli)\b", text, re.M)
+            assert not bad, (name, bad)

@@ -302,7 +302,7 @@ class ImplicitCurve:
     def refine_band(self, rings: int = 0) -> "ImplicitCurve":
         """Subdivide the triangles the zero set crosses (plus ``rings`` rings of neighbours).
 
-        Uses the paper's rule (Fig. 7, :func:`torch_isc.pipeline.subdivide.subdivide`); a new
+        Uses the paper's rule (Fig. 7, :func:`torch_isc.core.subdivide.subdivide`); a new
         vertex at an edge midpoint takes the mean of the edge's values, i.e. the value of the
         piecewise-linear ``f`` there. Guarantees, at the moment of refinement: old vertices
         keep their values (so their sign pattern); ``f`` is unchanged as a function, so the
@@ -320,7 +320,7 @@ class ImplicitCurve:
             >>> f.mesh.faces.shape[0] > m.faces.shape[0], f.num_components().tolist()
             (True, [1])
         """
-        from torch_isc.pipeline.subdivide import subdivide       # pipeline sits above core: import late
+        from torch_isc.core.subdivide import subdivide
         m = self.mesh
         with torch.no_grad():
             fneg = self.values.detach()[m.faces] < 0

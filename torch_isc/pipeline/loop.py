@@ -32,7 +32,7 @@ from torch_isc.pipeline.relax import relax_stage
 from torch_isc.pipeline.result import ReconstructionResult, finish_items
 from torch_isc.pipeline.signs import IsingSigns, OracleSigns, SignSource
 from torch_isc.pipeline.stats import StatsRecorder
-from torch_isc.pipeline.subdivide import subdivide
+from torch_isc.core.subdivide import subdivide
 from torch_isc.pipeline.tolerance import effective_tolerance, test_fit
 from torch_isc.pipeline.values import estimate_values
 from torch_isc.pipeline.workset import WorkingSet

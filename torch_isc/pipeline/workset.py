@@ -16,7 +16,7 @@ import torch
 
 from torch_isc.core.locate import locate_children
 from torch_isc.core.mesh import MeshBatch
-from torch_isc.pipeline.subdivide import Subdivision
+from torch_isc.core.subdivide import Subdivision
 
 __all__ = ["WorkingSet"]
 

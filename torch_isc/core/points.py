@@ -14,7 +14,7 @@ from typing import List, Optional, Sequence, Union
 import numpy as np
 import torch
 
-from torch_isc.core.segments import first_index, segment_max, segment_min
+from torch_isc.core.segments import first_index, segment_max, segment_min, segment_sum
 
 __all__ = ["PointsLike", "PointSetError", "PointBatch", "check_points", "distinct_points", "collinear_items",
            "prepare_points"]
@@ -27,7 +27,10 @@ class PointSetError(ValueError):
     """A point set that cannot be reconstructed (too few points, NaN, wrong shape...)."""
 
 
-def check_points(x: PointsLike, label: str) -> torch.Tensor:
+def check_points(x: PointsLike, label: str, finite: bool = True) -> torch.Tensor:
+    """``x`` as a tensor of shape ``(N, 2)``, real, not empty and (with ``finite``) with finite
+    coordinates; else :class:`PointSetError` naming ``label``. The finiteness check reads the
+    device: a batch checks all its sets at once instead (:func:`prepare_points`)."""
     if not isinstance(x, torch.Tensor):
         try:
             x = torch.as_tensor(np.asarray(x, dtype=np.float64))
@@ -39,10 +42,21 @@ def check_points(x: PointsLike, label: str) -> torch.Tensor:
         raise PointSetError(f"{label}: expected real coordinates, got dtype {x.dtype}")
     if x.shape[0] == 0:
         raise PointSetError(f"{label}: no points")
-    bad = ~torch.isfinite(x.double()).all(1)
-    if bad.any():
-        raise PointSetError(f"{label}: {int(bad.sum())} point(s) have NaN or Inf coordinates")
+    if finite:
+        bad = ~torch.isfinite(x.double()).all(1)
+        if bad.any():
+            raise PointSetError(f"{label}: {int(bad.sum())} point(s) have NaN or Inf coordinates")
     return x
+
+
+def _check_finite(raw: Sequence[torch.Tensor], labels: Sequence[str]) -> None:
+    """Every set's coordinates finite, checked for the whole batch with one host read."""
+    n = torch.tensor([p.shape[0] for p in raw])
+    bad = torch.cat([~torch.isfinite(p.double()).all(1) for p in raw])
+    per_item = segment_sum(bad.long(), torch.repeat_interleave(torch.arange(len(raw)), n).to(bad.device), len(raw))
+    for lab, k in zip(labels, per_item.tolist()):
+        if k:
+            raise PointSetError(f"{lab}: {k} point(s) have NaN or Inf coordinates")
 
 
 def distinct_points(sets: Sequence[torch.Tensor], labels: Sequence[str]):
@@ -150,11 +164,12 @@ def prepare_points(point_sets: Sequence[PointsLike], names: Optional[Sequence[Op
     if len(names) != len(point_sets):
         raise PointSetError(f"names: {len(names)} name(s) for {len(point_sets)} point set(s)")
     labels = [n if n is not None else f"point set {i}" for i, n in enumerate(names)]
-    raw = [check_points(p, lab) for p, lab in zip(point_sets, labels)]
+    raw = [check_points(p, lab, finite=False) for p, lab in zip(point_sets, labels)]
     device = raw[0].device
     for p, lab in zip(raw, labels):
         if p.device != device:
             raise PointSetError(f"{lab}: on {p.device}, but the batch is on {device}")
+    _check_finite(raw, labels)
     B = len(raw)
     with torch.no_grad():
         pts64, point_item, counts = distinct_points(raw, labels)

@@ -10,6 +10,8 @@ from torch_isc.core.mesh import InvalidMeshError, MeshBatch, hexagon_mesh, squar
 from torch_isc.pipeline.result import ReconstructionResult
 from torch_isc.core.points import PointSetError
 from torch_isc.pipeline.loop import reconstruct, reconstruct_batch
+from torch_isc.pipeline.refit import attach_point_gradients, refit
+from torch_isc import measures, render  # noqa: E402  (torch_isc.measures, torch_isc.render)
 
 __version__ = "0.1.0"
 
@@ -18,4 +20,5 @@ __all__ = [
     "ImplicitCurve", "MeshBatch", "Polylines", "hexagon_mesh", "square_mesh", "extract_zero_set",
     "barycentric", "locate_grid", "locate_children", "locate_walk",
     "ConfigError", "InvalidMeshError", "InvalidValuesError", "PointSetError",
+    "refit", "attach_point_gradients", "measures", "render",
 ]

@@ -69,6 +69,9 @@ def reconstruct(points: PointsLike, config: Optional[ReconstructConfig] = None, 
             coordinates) to ``(M,)`` booleans, True inside. When given, vertex signs come
             from it instead of topology estimation.
 
+    When ``points`` is a tensor that requires grad (and grad mode is on), the curve's values
+    carry a gradient with respect to the points (see :func:`reconstruct_batch`).
+
     Example:
         >>> t = torch.linspace(0, 2 * math.pi, 101)[:-1]
         >>> res = reconstruct(torch.stack([t.cos(), t.sin()], 1))
@@ -81,8 +84,8 @@ def reconstruct(points: PointsLike, config: Optional[ReconstructConfig] = None, 
 
 def reconstruct_batch(point_sets: Sequence[PointsLike], config: Optional[ReconstructConfig] = None,
                       names: Optional[Sequence[Optional[str]]] = None,
-                      sign_oracles: Union[None, Callable, Sequence[Optional[Callable]]] = None
-                      ) -> List[ReconstructionResult]:
+                      sign_oracles: Union[None, Callable, Sequence[Optional[Callable]]] = None,
+                      packed: bool = False):
     """Reconstruct many point sets in one batched solve; one result per set, in order.
 
     An item's result does not depend on the other items of the batch.
@@ -97,17 +100,34 @@ def reconstruct_batch(point_sets: Sequence[PointsLike], config: Optional[Reconst
             (M,)`` booleans, called once per level with the mesh vertices of every unfinished
             set (``item`` is the set's index in ``point_sets``). Points are float64 in the
             caller's coordinates. Boundary vertices are always outside.
+        packed: also return all the curves as one packed :class:`ImplicitCurve` batch (item
+            ``b`` is set ``b``): ``(results, curve)``.
+
+    Returns the list of :class:`ReconstructionResult` (``(results, curve)`` with ``packed``).
+
+    Gradients: when grad mode is on and a point set is a tensor that requires grad, every
+    result's curve values carry a gradient with respect to its own points (the values are
+    unchanged; the gradient is that of the refit of the magnitudes to the points with mesh
+    and signs frozen, by implicit differentiation, see
+    :func:`torch_isc.pipeline.refit.attach_point_gradients`). Otherwise nothing changes.
     """
     cfg = config if config is not None else ReconstructConfig()
     if len(point_sets) == 0:
-        return []
+        return ([], None) if packed else []
     if sign_oracles is not None and not callable(sign_oracles) and len(sign_oracles) != len(point_sets):
         raise PointSetError(f"sign_oracles: {len(sign_oracles)} oracle(s) for {len(point_sets)} point set(s)")
     dtype = torch.float64 if cfg.run.dtype == "float64" else torch.float32
     batch = prepare_points(point_sets, names, dtype)
     source: SignSource = (OracleSigns(sign_oracles) if sign_oracles is not None
                           else IsingSigns(cfg.topology, cfg.evidence, cfg.run.seed))
-    return run_loop(batch, cfg, source, names)
+    results = run_loop(batch, cfg, source, names)
+    if torch.is_grad_enabled() and any(torch.is_tensor(p) and p.requires_grad for p in point_sets):
+        from torch_isc.pipeline.refit import attach_point_gradients
+        results = attach_point_gradients(results, point_sets)
+    if packed:
+        from torch_isc.core.curve import ImplicitCurve
+        return results, ImplicitCurve.cat([r.curve for r in results])
+    return results
 
 
 def _start(batch: PointBatch, cfg: ReconstructConfig, rec: StatsRecorder) -> WorkingSet:

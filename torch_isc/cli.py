@@ -40,7 +40,7 @@ import torch_isc
 
 from torch_isc._helpers import one_line
 from torch_isc.io import chosen_formats
-from torch_isc.pipeline.config import ConfigError, flat_keys, load_config, parse_overrides
+from torch_isc.pipeline.config import ConfigError, flat_keys, load_config, parse_overrides, read_config_mapping
 from torch_isc.runner import ImageOptions, Record, RunError, expand_inputs, run_inputs
 
 DEFAULT_IMAGE_FORMATS = "json,npz,svg,png,contours.npz"
@@ -134,13 +134,11 @@ def _config_keys(path: Optional[str]) -> List[str]:
     """The keys a config file sets (already validated by load_config)."""
     if path is None:
         return []
-    import yaml
-
     try:
-        d = yaml.safe_load(Path(path).read_text())
-    except Exception:
+        d = read_config_mapping(path)
+    except ConfigError:
         return []
-    return flat_keys(d) if isinstance(d, dict) else []
+    return flat_keys(d)
 
 
 def _bar(done: int, total: int, t0: float, width: int = 24) -> str:

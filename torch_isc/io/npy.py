@@ -45,8 +45,8 @@ def _check_header(p: Path, raw: bytes) -> None:
     need = int(shape[0]) * int(shape[1]) * int(dtype.itemsize)
     have = len(raw) - fp.tell()
     if need > have:
-        raise PointFileError(f"{p}: truncated .npy file: its header declares shape {tuple(shape)} of {dtype} "
-                             f"({need} bytes), the file holds {have} bytes of data")
+        raise PointFileError(f"{p}: unreadable .npy file (truncated: its header declares shape {tuple(shape)} of {dtype} "
+                             f"({need} bytes), the file holds {have} bytes of data)")
 
 
 def decode_points(p: Path, raw: bytes) -> Tuple[np.ndarray, Optional[np.ndarray]]:

@@ -41,7 +41,8 @@ import torch_isc
 from torch_isc._helpers import one_line
 from torch_isc.io import chosen_formats
 from torch_isc.pipeline.config import ConfigError, flat_keys, load_config, parse_overrides, read_config_mapping
-from torch_isc.runner import ImageOptions, Record, RunError, expand_inputs, run_inputs
+from torch_isc.images.read import DEFAULT_MAX_PIXELS
+from torch_isc.runner import ImageOptions, Record, RunError, expand_inputs, run_inputs, shown
 
 DEFAULT_IMAGE_FORMATS = "json,npz,svg,png,contours.npz"
 
@@ -101,6 +102,9 @@ def build_parser() -> argparse.ArgumentParser:
                      help="edges mode: Canny hysteresis thresholds on the gradient of the image in [0, 1] "
                           "(default: 0.1,0.2)")
     img.add_argument("--sigma", type=float, default=1.0, help="edges mode: Gaussian smoothing in pixels (default: 1)")
+    img.add_argument("--max-pixels", type=float, default=float(DEFAULT_MAX_PIXELS), metavar="N",
+                     help=f"the largest image read, in pixels (width x height, from the header, before decoding; "
+                          f"default: {DEFAULT_MAX_PIXELS:.0e}; 0: no limit)")
     rec.add_argument("--device", default="cpu", help="torch device for the reconstruction (default: cpu)")
     rec.add_argument("--overwrite", action="store_true",
                      help="redo inputs whose outputs all exist (by default they are skipped)")
@@ -156,7 +160,7 @@ def _summary(record: Record) -> str:
     state = "converged" if r["converged"] else f"not converged ({r['limit'] or 'tolerance not met'})"
     if r["points_beyond_tolerance"]:
         state += f", {r['points_beyond_tolerance']} point(s) beyond tolerance"
-    return (f"{record.stem}: {r['num_closed']} closed, {r['num_open']} open, {r['levels']} levels, "
+    return (f"{shown(record.stem)}: {r['num_closed']} closed, {r['num_open']} open, {r['levels']} levels, "
             f"{state}, {r['seconds']:.2f} s")
 
 
@@ -181,15 +185,17 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
         raise UsageError(f"--canny expects LOW,HIGH (two numbers), got {args.canny!r}") from None
     if not 0 < low < high:
         raise UsageError(f"--canny: expected 0 < LOW < HIGH, got {args.canny!r}")
-    if not args.sigma > 0:
-        raise UsageError(f"--sigma must be > 0, got {args.sigma}")
+    if not args.sigma > 0 or args.sigma > 1e3:
+        raise UsageError(f"--sigma must be in (0, 1000], got {args.sigma}")
+    if not 0 <= args.max_pixels < 2 ** 62:
+        raise UsageError(f"--max-pixels must be >= 0, got {args.max_pixels}")
     try:
         device = torch.device(args.device)
         torch.empty(0, device=device)
     except (RuntimeError, AssertionError) as e:
         raise UsageError(f"--device {args.device}: {one_line(e, type(e).__name__)}") from None
     try:
-        sources = expand_inputs([str(s) for s in args.inputs])
+        sources = expand_inputs([str(s) for s in args.inputs], errors={})   # unlistable folders: failed inputs
     except RunError as e:
         raise UsageError(str(e)) from None
     if args.example:
@@ -209,13 +215,14 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
     keep = set(_config_keys(args.config)) | {k for k in parse_overrides(args.overrides)}
     image_config = images.image_config(config, keep=sorted(keep), mode=args.mode)
     image_options = ImageOptions(mode=args.mode, threshold=args.threshold, spacing=args.spacing,
-                                 use_oracle=not args.no_oracle, canny=(low, high), sigma=args.sigma)
+                                 use_oracle=not args.no_oracle, canny=(low, high), sigma=args.sigma,
+                                 max_pixels=int(args.max_pixels) or None)
 
     t0 = time.perf_counter()
 
     def progress(record: Record) -> None:
         if record.status == "skipped":
-            print(f"{record.stem}: skipped, outputs exist in {out_dir} (use --overwrite to redo)", flush=True)
+            print(f"{shown(record.stem)}: skipped, outputs exist in {shown(out_dir)} (use --overwrite to redo)", flush=True)
         elif record.status == "failed":
             _err(record.error)            # the message already starts with the file name
             if args.debug and record.traceback:

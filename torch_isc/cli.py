@@ -21,7 +21,13 @@ Inputs go through :func:`torch_isc.reconstruct_batch` in batches of ``--batch-si
 when their batch fills (bounded memory, a folder of any size streams through); a batch that
 raises is retried item by item so one bad input cannot sink the others.
 
-Exit status: 0 every input done (or skipped because its outputs exist), 1 some inputs failed
+Each input's outputs end with ``OUT/<stem>.manifest.json`` (written last: the sha256 of the input,
+of the config and of every output file); a rerun skips an input only when its manifest matches,
+and redoes it otherwise. Two inputs with the same stem are written as ``<stem>_<suffix>``
+(``a.xy`` -> ``a_xy``), whatever their order; images larger than ``--max-pixels`` (from the
+header, before decoding) are refused.
+
+Exit status: 0 every input done (or skipped because its complete outputs exist), 1 some inputs failed
 (each with one ``torch-isc: error: <file>: <problem>`` line on stderr), 2 usage or
 configuration error (nothing was reconstructed). A user mistake never prints a traceback;
 ``--debug`` shows the traceback of an unexpected internal error.
@@ -107,7 +113,8 @@ def build_parser() -> argparse.ArgumentParser:
                           f"default: {DEFAULT_MAX_PIXELS:.0e}; 0: no limit)")
     rec.add_argument("--device", default="cpu", help="torch device for the reconstruction (default: cpu)")
     rec.add_argument("--overwrite", action="store_true",
-                     help="redo inputs whose outputs all exist (by default they are skipped)")
+                     help="redo inputs whose output set is complete (by default they are skipped; a set is "
+                          "complete when its <stem>.manifest.json matches the input, the config and the files)")
     rec.add_argument("--example", action="store_true",
                      help="also reconstruct the built-in example (4 nested closed curves); no INPUT needed")
     rec.add_argument("--debug", action="store_true", help="print the traceback of an unexpected internal error")

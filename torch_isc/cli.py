@@ -21,7 +21,13 @@ Inputs go through :func:`torch_isc.reconstruct_batch` in batches of ``--batch-si
 when their batch fills (bounded memory, a folder of any size streams through); a batch that
 raises is retried item by item so one bad input cannot sink the others.
 
-Exit status: 0 every input done (or skipped because its outputs exist), 1 some inputs failed
+Each input's outputs end with ``OUT/<stem>.manifest.json`` (written last: the sha256 of the input,
+of the config and of every output file); a rerun skips an input only when its manifest matches,
+and redoes it otherwise. Two inputs with the same stem are written as ``<stem>_<suffix>``
+(``a.xy`` -> ``a_xy``), whatever their order; images larger than ``--max-pixels`` (from the
+header, before decoding) are refused.
+
+Exit status: 0 every input done (or skipped because its complete outputs exist), 1 some inputs failed
 (each with one ``torch-isc: error: <file>: <problem>`` line on stderr), 2 usage or
 configuration error (nothing was reconstructed). A user mistake never prints a traceback;
 ``--debug`` shows the traceback of an unexpected internal error.
@@ -40,8 +46,9 @@ import torch_isc
 
 from torch_isc._helpers import one_line
 from torch_isc.io import chosen_formats
-from torch_isc.pipeline.config import ConfigError, flat_keys, load_config, parse_overrides
-from torch_isc.runner import ImageOptions, Record, RunError, expand_inputs, run_inputs
+from torch_isc.pipeline.config import ConfigError, flat_keys, load_config, parse_overrides, read_config_mapping
+from torch_isc.images.read import DEFAULT_MAX_PIXELS
+from torch_isc.runner import ImageOptions, Record, RunError, expand_inputs, run_inputs, shown
 
 DEFAULT_IMAGE_FORMATS = "json,npz,svg,png,contours.npz"
 
@@ -101,9 +108,13 @@ def build_parser() -> argparse.ArgumentParser:
                      help="edges mode: Canny hysteresis thresholds on the gradient of the image in [0, 1] "
                           "(default: 0.1,0.2)")
     img.add_argument("--sigma", type=float, default=1.0, help="edges mode: Gaussian smoothing in pixels (default: 1)")
+    img.add_argument("--max-pixels", type=float, default=float(DEFAULT_MAX_PIXELS), metavar="N",
+                     help=f"the largest image read, in pixels (width x height, from the header, before decoding; "
+                          f"default: {DEFAULT_MAX_PIXELS:.0e}; 0: no limit)")
     rec.add_argument("--device", default="cpu", help="torch device for the reconstruction (default: cpu)")
     rec.add_argument("--overwrite", action="store_true",
-                     help="redo inputs whose outputs all exist (by default they are skipped)")
+                     help="redo inputs whose output set is complete (by default they are skipped; a set is "
+                          "complete when its <stem>.manifest.json matches the input, the config and the files)")
     rec.add_argument("--example", action="store_true",
                      help="also reconstruct the built-in example (4 nested closed curves); no INPUT needed")
     rec.add_argument("--debug", action="store_true", help="print the traceback of an unexpected internal error")
@@ -134,13 +145,11 @@ def _config_keys(path: Optional[str]) -> List[str]:
     """The keys a config file sets (already validated by load_config)."""
     if path is None:
         return []
-    import yaml
-
     try:
-        d = yaml.safe_load(Path(path).read_text())
-    except Exception:
+        d = read_config_mapping(path)
+    except ConfigError:
         return []
-    return flat_keys(d) if isinstance(d, dict) else []
+    return flat_keys(d)
 
 
 def _bar(done: int, total: int, t0: float, width: int = 24) -> str:
@@ -158,7 +167,7 @@ def _summary(record: Record) -> str:
     state = "converged" if r["converged"] else f"not converged ({r['limit'] or 'tolerance not met'})"
     if r["points_beyond_tolerance"]:
         state += f", {r['points_beyond_tolerance']} point(s) beyond tolerance"
-    return (f"{record.stem}: {r['num_closed']} closed, {r['num_open']} open, {r['levels']} levels, "
+    return (f"{shown(record.stem)}: {r['num_closed']} closed, {r['num_open']} open, {r['levels']} levels, "
             f"{state}, {r['seconds']:.2f} s")
 
 
@@ -183,15 +192,17 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
         raise UsageError(f"--canny expects LOW,HIGH (two numbers), got {args.canny!r}") from None
     if not 0 < low < high:
         raise UsageError(f"--canny: expected 0 < LOW < HIGH, got {args.canny!r}")
-    if not args.sigma > 0:
-        raise UsageError(f"--sigma must be > 0, got {args.sigma}")
+    if not args.sigma > 0 or args.sigma > 1e3:
+        raise UsageError(f"--sigma must be in (0, 1000], got {args.sigma}")
+    if not 0 <= args.max_pixels < 2 ** 62:
+        raise UsageError(f"--max-pixels must be >= 0, got {args.max_pixels}")
     try:
         device = torch.device(args.device)
         torch.empty(0, device=device)
     except (RuntimeError, AssertionError) as e:
         raise UsageError(f"--device {args.device}: {one_line(e, type(e).__name__)}") from None
     try:
-        sources = expand_inputs([str(s) for s in args.inputs])
+        sources = expand_inputs([str(s) for s in args.inputs], errors={})   # unlistable folders: failed inputs
     except RunError as e:
         raise UsageError(str(e)) from None
     if args.example:
@@ -211,13 +222,14 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
     keep = set(_config_keys(args.config)) | {k for k in parse_overrides(args.overrides)}
     image_config = images.image_config(config, keep=sorted(keep), mode=args.mode)
     image_options = ImageOptions(mode=args.mode, threshold=args.threshold, spacing=args.spacing,
-                                 use_oracle=not args.no_oracle, canny=(low, high), sigma=args.sigma)
+                                 use_oracle=not args.no_oracle, canny=(low, high), sigma=args.sigma,
+                                 max_pixels=int(args.max_pixels) or None)
 
     t0 = time.perf_counter()
 
     def progress(record: Record) -> None:
         if record.status == "skipped":
-            print(f"{record.stem}: skipped, outputs exist in {out_dir} (use --overwrite to redo)", flush=True)
+            print(f"{shown(record.stem)}: skipped, outputs exist in {shown(out_dir)} (use --overwrite to redo)", flush=True)
         elif record.status == "failed":
             _err(record.error)            # the message already starts with the file name
             if args.debug and record.traceback:

@@ -157,6 +157,8 @@ class GridCurves:
         start: ``(K,)`` long, raster index (in the padded grid of the batch) of the pixel at
             which OpenCV's scan starts the border: the order of discovery.
         sizes: ``(B, 2)`` the masks' ``(H, W)``.
+        inner: ``(Q, 2)`` for each point of ``polylines``, the centre of the foreground pixel at
+            the end of its edge (OpenCV's chain of boundary pixels, repeats aside).
     """
     mesh: MeshBatch
     values: torch.Tensor
@@ -165,6 +167,7 @@ class GridCurves:
     parent: torch.Tensor
     start: torch.Tensor
     sizes: torch.Tensor
+    inner: Optional[torch.Tensor] = None
 
     def loop_ranges(self) -> torch.Tensor:
         """``(B + 1,)`` the loops of item ``b`` are ``ranges[b]:ranges[b+1]``."""
@@ -183,7 +186,7 @@ def _loop_index(first: torch.Tensor, counts: torch.Tensor, n: int):
 
 
 def _smooth(a: torch.Tensor, d: torch.Tensor, prev: torch.Tensor, nxt: torch.Tensor, iters: int,
-            reach: float, lam: float = 0.6307, mu: float = -0.6732) -> torch.Tensor:
+            reach: float, cap: Optional[torch.Tensor] = None, lam: float = 0.6307, mu: float = -0.6732) -> torch.Tensor:
     """Crossing parameters ``t (N,)`` along edges ``a + t d`` (from the foreground end), by
     Taubin's lambda|mu smoothing of the crossing points along their loops, each step projected
     on the crossing's edge and clamped to ``|t - 1/2| * |d| <= reach``; sharp corners held."""
@@ -201,11 +204,12 @@ def _smooth(a: torch.Tensor, d: torch.Tensor, prev: torch.Tensor, nxt: torch.Ten
     # a corner holds its two neighbours in place too (a corner is a feature, not noise)
     hold = corner | corner[prev] | corner[nxt]
     free = ~hold
-    for _ in range(iters):
+    for it in range(iters):
+        live = free if cap is None else free & (cap > it)
         for f in (lam, mu):
             q = p + f * (0.5 * (p[prev] + p[nxt]) - p)
             tn = (((q - a) * d).sum(1) / dd).clamp(lo, hi)
-            t = torch.where(free, tn, t)
+            t = torch.where(live, tn, t)
             p = a + t[:, None] * d
     return t
 
@@ -271,7 +275,8 @@ def trace_masks(masks: Sequence[torch.Tensor], connectivity: int = 8, smooth: in
     d = mesh.verts[bg_v] - a
     loop, k, prev, nxt = _loop_index(pl.first, pl.counts, N)
     K = pl.first.shape[0]
-    t = _smooth(a, d, prev, nxt, smooth, reach) if smooth > 0 else torch.full((N,), 0.5, dtype=dtype, device=dev)
+    # small loops (a few pixels) get fewer iterations: their curvature is all signal
+    t = _smooth(a, d, prev, nxt, smooth, reach, pl.counts[loop] // 2) if smooth > 0 else torch.full((N,), 0.5, dtype=dtype, device=dev)
     s = _realize(t, fg_v, bg_v, loop, k, pl.first, pl.counts, nxt, V)
     mag = torch.exp(s - s.max().clamp_min(0) if V else s)
     values = torch.where(fg, -mag, mag)
@@ -317,11 +322,11 @@ def trace_masks(masks: Sequence[torch.Tensor], connectivity: int = 8, smooth: in
     # a loop whose chain ends without a different-kind loop on its left has no parent
     parent = torch.where((term_near >= 0) & (outer[term_near.clamp(min=0)] != outer), parent,
                          torch.full_like(parent, -1))
-    return GridCurves(mesh, values, pl, outer, parent, start, sizes)
+    return GridCurves(mesh, values, pl, outer, parent, start, sizes, a)
 
 
-def cv_layout(outer: np.ndarray, parent: np.ndarray, start: np.ndarray, mode: str = "tree"
-              ) -> Tuple[np.ndarray, np.ndarray]:
+def cv_layout(outer: np.ndarray, parent: np.ndarray, start: np.ndarray, mode: str = "tree",
+              keep: Optional[np.ndarray] = None) -> Tuple[np.ndarray, np.ndarray]:
     """OpenCV's list order and hierarchy of one item's loops.
 
     Args:
@@ -337,13 +342,13 @@ def cv_layout(outer: np.ndarray, parent: np.ndarray, start: np.ndarray, mode: st
     mode = retr_mode(mode)
     K = outer.shape[0]
     par = parent.astype(np.int64).copy()
-    keep = np.ones(K, bool)
+    keep = np.ones(K, bool) if keep is None else np.asarray(keep, bool).copy()
     if mode == "list":
         par[:] = -1
     elif mode == "ccomp":
         par = np.where(outer, -1, par)
     elif mode == "external":
-        keep = outer & (parent < 0)
+        keep &= outer & (parent < 0)
         par[:] = -1
     idx = np.nonzero(keep)[0]
     # children of each loop, by decreasing start

@@ -318,7 +318,11 @@ def contour_arrays(src, mode: str = "tree") -> Dict[str, np.ndarray]:
     """The arrays of a contours ``.npz`` (written by :func:`torch_isc.io.write_contours`):
     ``points (P, 2)`` float32 in OpenCV coordinates (:func:`to_cv_contours`), ``counts (N,)``
     vertices per contour, ``hierarchy (N, 4)`` int32, ``mode``, ``format``."""
-    contours, h = to_cv_contours(src, mode)
+    pre = getattr(src, "cv_contours", None)
+    if pre is not None and mode == "tree":           # a mask's grid result: OpenCV's own order
+        contours, h = pre
+    else:
+        contours, h = to_cv_contours(src, mode)
     pts = np.concatenate([c.reshape(-1, 2) for c in contours]) if contours else np.zeros((0, 2), np.float32)
     return {
         "points": pts.astype(np.float32), "counts": np.array([len(c) for c in contours], np.int64),

@@ -276,7 +276,7 @@ def trace_masks(masks: Sequence[torch.Tensor], connectivity: int = 8, smooth: in
     loop, k, prev, nxt = _loop_index(pl.first, pl.counts, N)
     K = pl.first.shape[0]
     # small loops (a few pixels) get fewer iterations: their curvature is all signal
-    t = _smooth(a, d, prev, nxt, smooth, reach, pl.counts[loop] // 2) if smooth > 0 else torch.full((N,), 0.5, dtype=dtype, device=dev)
+    t = _smooth(a, d, prev, nxt, smooth, reach, pl.counts[loop] // 3) if smooth > 0 else torch.full((N,), 0.5, dtype=dtype, device=dev)
     s = _realize(t, fg_v, bg_v, loop, k, pl.first, pl.counts, nxt, V)
     mag = torch.exp(s - s.max().clamp_min(0) if V else s)
     values = torch.where(fg, -mag, mag)

@@ -102,7 +102,7 @@ def grid_mesh(grid: torch.Tensor, connectivity: int = 8, dtype: torch.dtype = to
     >>> g = torch.zeros(1, 4, 4, dtype=torch.bool); g[0, 1:3, 1:3] = True
     >>> m, fg, _ = grid_mesh(g)
     >>> m.verts.shape[0], m.faces.shape[0], int(fg.sum()), bool((m.signed_areas() > 0).all())
-    (16, 18, 4, True)
+    (16, 16, 4, True)
     """
     if connectivity not in (4, 8):
         raise ValueError(f"connectivity must be 8 or 4 (of the foreground), got {connectivity!r}")
@@ -256,7 +256,7 @@ def trace_masks(masks: Sequence[torch.Tensor], connectivity: int = 8, smooth: in
     >>> m = torch.zeros(6, 7, dtype=torch.bool); m[1:5, 1:6] = True; m[2:4, 3] = False
     >>> gc = trace_masks([m])
     >>> len(gc.polylines), gc.outer.tolist(), gc.parent.tolist()
-    ([2], [True, False], [-1, 0])
+    (2, [True, False], [-1, 0])
     """
     grid, sizes = _stack(list(masks))
     B, H2, W2 = grid.shape

@@ -50,7 +50,7 @@ from torch_isc.pipeline.config import ConfigError, flat_keys, load_config, parse
 from torch_isc.images.read import DEFAULT_MAX_PIXELS
 from torch_isc.runner import ImageOptions, Record, RunError, expand_inputs, run_inputs, shown
 
-DEFAULT_IMAGE_FORMATS = "json,npz,svg,png,contours.npz"
+DEFAULT_IMAGE_FORMATS = "json,contours.npz"
 
 __all__ = ["main", "build_parser", "EXAMPLE_PATH"]
 
@@ -91,7 +91,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="point sets reconstructed together (default: 64)")
     rec.add_argument("--formats", default=None, metavar="LIST",
                      help=f"comma-separated output formats among {', '.join(chosen_formats())} (default: {DEFAULT_FORMATS}; "
-                          f"for images {DEFAULT_IMAGE_FORMATS}, and always overlay.png)")
+                          f"for images {DEFAULT_IMAGE_FORMATS}; overlay.png on request)")
     img = rec.add_argument_group("images")
     img.add_argument("--mode", choices=("mask", "edges"), default="mask",
                      help="mask: the image is a binary mask, its foreground boundary is the curve, and the mask "
@@ -104,6 +104,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="distance in pixels between boundary points along a contour (default: 1)")
     img.add_argument("--no-oracle", action="store_true",
                      help="mask mode: estimate the topology from the points instead of reading it from the mask")
+    img.add_argument("--connectivity", type=int, choices=(8, 4), default=8,
+                     help="mask mode: connectivity of the foreground (8, OpenCV's, default; or 4)")
     img.add_argument("--canny", default="0.1,0.2", metavar="LOW,HIGH",
                      help="edges mode: Canny hysteresis thresholds on the gradient of the image in [0, 1] "
                           "(default: 0.1,0.2)")
@@ -134,7 +136,7 @@ def _parse_formats(text: str) -> List[str]:
     formats = [f.strip().lower().lstrip(".") for f in text.split(",") if f.strip()]
     if not formats:
         raise UsageError("--formats: no format given")
-    known = chosen_formats()
+    known = chosen_formats() + ["overlay.png"]
     unknown = [f for f in formats if f not in known]
     if unknown:
         raise UsageError(f"--formats: unknown format '{unknown[0]}' (known: {', '.join(known)})")
@@ -167,6 +169,8 @@ def _summary(record: Record) -> str:
     state = "converged" if r["converged"] else f"not converged ({r['limit'] or 'tolerance not met'})"
     if r["points_beyond_tolerance"]:
         state += f", {r['points_beyond_tolerance']} point(s) beyond tolerance"
+    if r.get("count_ok") is False:
+        state += f", WARNING: the mask has {r['boundaries']} boundaries"
     return (f"{shown(record.stem)}: {r['num_closed']} closed, {r['num_open']} open, {r['levels']} levels, "
             f"{state}, {r['seconds']:.2f} s")
 
@@ -223,7 +227,7 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
     image_config = images.image_config(config, keep=sorted(keep), mode=args.mode)
     image_options = ImageOptions(mode=args.mode, threshold=args.threshold, spacing=args.spacing,
                                  use_oracle=not args.no_oracle, canny=(low, high), sigma=args.sigma,
-                                 max_pixels=int(args.max_pixels) or None)
+                                 max_pixels=int(args.max_pixels) or None, connectivity=args.connectivity)
 
     t0 = time.perf_counter()
 

@@ -67,10 +67,9 @@ __all__ = ["RunError", "ImageOptions", "Record", "RunReport", "DEFAULT_FORMATS",
 #: Version of the ``<stem>.manifest.json`` layout.
 MANIFEST_FORMAT = 1
 
-#: Outputs of a point file, and of an image (which also gets every format that needs the image:
-#: the overlay).
+#: Outputs of a point file, and of an image (the drawings and the overlay on request).
 DEFAULT_FORMATS = ("json", "npz", "svg", "png")
-DEFAULT_IMAGE_FORMATS = ("json", "npz", "svg", "png", "contours.npz")
+DEFAULT_IMAGE_FORMATS = ("json", "contours.npz")
 
 PathLike = Union[str, os.PathLike]
 
@@ -94,6 +93,7 @@ class ImageOptions:
         sigma: edges mode: Gaussian smoothing in pixels.
         max_pixels: the largest image read (width x height, from its header, before decoding);
             None: no limit.
+        connectivity: mask mode: 8 (OpenCV's) or 4, of the foreground.
     """
     mode: str = "mask"
     threshold: Optional[float] = None
@@ -102,6 +102,7 @@ class ImageOptions:
     canny: Tuple[float, float] = (0.1, 0.2)
     sigma: float = 1.0
     max_pixels: Optional[int] = DEFAULT_MAX_PIXELS
+    connectivity: int = 8
 
 
 @dataclass
@@ -303,8 +304,9 @@ class _Run:
         self.image_config = image_config
         self.out_dir = out_dir
         self.formats = formats
-        # an image also gets every format that needs the image (the overlay)
-        self.image_formats = image_formats + formats_needing({"image"})
+        # an image gets the formats asked for (the overlay too: it needs the image, which it has)
+        self.image_formats = list(image_formats)
+        self.formats = [f for f in formats if f not in formats_needing({"image"})]
         self.batch_size = batch_size
         self.opts = image_opts
         self.device = device
@@ -343,8 +345,11 @@ class _Run:
             if bool(mask.all()):
                 self.note(f"note: {shown(job.source)}: the whole image is foreground (all white at threshold "
                           f"{thr:.3g}): its curve is the image frame")
-            job.points, job.n_boundaries = images.mask_points(mask, o.spacing, None, name=job.source)
-            job.points = job.points.double()
+            if o.use_oracle:        # the grid path needs no boundary points
+                job.points, job.n_boundaries = None, None
+            else:
+                job.points, job.n_boundaries = images.mask_points(mask, o.spacing, None, name=job.source)
+                job.points = job.points.double()
             job.mask = mask
         else:
             low, high = o.canny
@@ -394,8 +399,8 @@ class _Run:
         names = [j.stem for j in jobs]
         points = [j.points for j in jobs]
         if kind == "mask":
-            return images.solve_masks(points, [j.mask for j in jobs], [j.n_boundaries for j in jobs],
-                                      self.image_config, names)
+            return images.grid_results([j.mask for j in jobs], names, connectivity=self.opts.connectivity,
+                                       config=self.image_config)
         if all(not j.is_image for j in jobs):
             if len(jobs) == 1:
                 return [reconstruct(points[0], self.config, name=names[0])]
@@ -516,6 +521,11 @@ class _Run:
                 "points_beyond_tolerance": (stats[-1].points_beyond_tolerance if stats else 0),
                 "seconds": seconds,
             }
+            if job.is_image and self.opts.mode == "mask":
+                # the mask's own count of borders, and whether the curve has as many
+                nb = getattr(res, "boundaries", job.n_boundaries)
+                job.record.summary["boundaries"] = nb
+                job.record.summary["count_ok"] = nb is None or (res.num_closed == nb and res.num_open == 0)
             self.finish(job, "done")
         self.on_batch("end", self.batches, len(batch), self.done, self.total)
 
@@ -561,7 +571,7 @@ def run_inputs(inputs: Iterable[PathLike], config: ReconstructConfig, out_dir: P
     """
     if batch_size < 1:
         raise RunError(f"batch size must be >= 1, got {batch_size}")
-    known = chosen_formats()
+    known = chosen_formats() + formats_needing({"image"})
     for f in list(formats) + list(image_formats):
         if f not in known:
             raise RunError(f"unknown output format '{f}' (known: {', '.join(known)})")

@@ -374,9 +374,13 @@ def test_image_folder_streams_with_bad_files(tmp_path, capsys):
     from torch_isc.images import load_contours
     c, h = load_contours(o / "ring.contours.npz")
     assert len(c) == 2 and sorted(h[0, :, 3].tolist()) == [-1, 0]
-    # a rerun skips everything that was written, and fails again on the bad ones only
-    code, out, err = _run(capsys, "reconstruct", d, "--out", o, "--batch-size", "2", *FAST)
+    # a rerun of the same command skips everything that was written, and fails again on the bad
+    # ones only; asking for other formats redoes the inputs (a manifest names its formats)
+    code, out, err = _run(capsys, "reconstruct", d, "--out", o, "--batch-size", "2",
+                          "--formats", "json,npz,svg,png,contours.npz,overlay.png", *FAST)
     assert code == 1 and out.count("skipped") == 4 and len(_error_lines(err)) == 3
+    code, out, err = _run(capsys, "reconstruct", d, "--out", o, "--batch-size", "2", *FAST)
+    assert code == 1 and out.count("skipped") == 0 and len(_error_lines(err)) == 3
 
 
 def test_image_modes_and_threshold(tmp_path, capsys):

@@ -421,3 +421,20 @@ def test_read_errors_are_isolated(tmp_path, monkeypatch):
     rep = run_inputs([g1, bad, g2], CONFIG, tmp_path / "o", formats=["json"])
     assert [r.status for r in rep.records] == ["done", "failed", "done"]
     assert rep.records[1].error == f"{bad}: out of memory while reading it"
+
+
+def test_interrupt_while_the_libraries_load_is_quiet(tmp_path):
+    """Ctrl-C during the first second (torch still importing) ends with status 130 and one
+    line, no traceback; the entry module itself imports no torch."""
+    import signal
+    import subprocess
+    import sys
+    import time
+    code = "import sys, torch_isc.entry; print('torch' in sys.modules)"
+    assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True).stdout.strip() == "False"
+    p = subprocess.Popen([sys.executable, "-m", "torch_isc", "reconstruct", "--example", "--out", str(tmp_path)],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    time.sleep(0.2)
+    p.send_signal(signal.SIGINT)
+    out, err = p.communicate(timeout=60)
+    assert p.returncode == 130 and "Traceback" not in err and "interrupted" in err

@@ -74,6 +74,10 @@ class StatsRecorder:
         self.acc[stage] += now - self.t
         self.t = now
 
+    def skip(self) -> None:
+        """Charge the time since the last tick to no stage (the batch's preparation)."""
+        self.t = self._now()
+
     def record(self, level: int, items: torch.Tensor, columns: Dict[str, torch.Tensor]) -> None:
         """One record per working item: ``items (B,)`` their caller's indices and ``columns``
         the :class:`LevelStats` fields other than ``level`` and the timings, each ``(B,)``."""

@@ -193,7 +193,7 @@ class _Run:
     """One call of :func:`run_inputs`: the resolved options and the callbacks."""
 
     def __init__(self, config, image_config, out_dir, formats, image_formats, batch_size, image_opts, device,
-                 progress, on_batch, on_note):
+                 progress, on_batch, on_note, on_result=None):
         self.config = config
         self.image_config = image_config
         self.out_dir = out_dir
@@ -206,6 +206,7 @@ class _Run:
         self.progress = progress or (lambda record: None)
         self.on_batch = on_batch or (lambda *a: None)
         self.note = on_note or (lambda msg: None)
+        self.on_result = on_result or (lambda record, result: None)
         self.done = 0
         self.total = 0
         self.batches = 0
@@ -337,6 +338,7 @@ class _Run:
                 "points_beyond_tolerance": (stats[-1].points_beyond_tolerance if stats else 0),
                 "seconds": seconds,
             }
+            self.on_result(job.record, res)
             self.finish(job, "done")
         self.on_batch("end", self.batches, len(batch), self.done, self.total)
 
@@ -347,7 +349,9 @@ def run_inputs(inputs: Iterable[PathLike], config: ReconstructConfig, out_dir: P
                image_config: Optional[ReconstructConfig] = None, device: Union[str, torch.device] = "cpu",
                progress: Optional[Callable[[Record], None]] = None,
                on_batch: Optional[Callable[[str, int, int, int, int], None]] = None,
-               on_note: Optional[Callable[[str], None]] = None) -> RunReport:
+               on_note: Optional[Callable[[str], None]] = None,
+               stems: Optional[Sequence[str]] = None,
+               on_result: Optional[Callable[[Record, Any], None]] = None) -> RunReport:
     """Reconstruct every input and write its outputs (see the module docstring).
 
     Args:
@@ -368,6 +372,12 @@ def run_inputs(inputs: Iterable[PathLike], config: ReconstructConfig, out_dir: P
             before and ``"end"`` after each batch (``done`` of ``total`` inputs not skipped).
         on_note: ``on_note(message)`` for remarks that are not errors (renamed outputs, an
             all-foreground mask).
+        stems: the output stem of each input (already expanded: one per file), instead of
+            :func:`unique_stems` of this call's inputs; a caller that splits one run into
+            several calls (:mod:`torch_isc.dataset`) passes the stems of the whole run.
+        on_result: ``on_result(record, result)`` for each input done, after its outputs are
+            written and before ``progress``: the :class:`~torch_isc.ReconstructionResult`
+            itself (the results table of :mod:`torch_isc.dataset` reads its polylines).
 
     Returns:
         a :class:`RunReport`: one :class:`Record` per input, in input order.
@@ -390,8 +400,12 @@ def run_inputs(inputs: Iterable[PathLike], config: ReconstructConfig, out_dir: P
     if image_config is None:
         image_config = images.image_config(config, mode=image_options.mode)
     run = _Run(config, image_config, out, list(formats), list(image_formats), batch_size, image_options,
-               torch.device(device), progress, on_batch, on_note)
-    jobs = [_Job(Record(src, stem), _is_image(src)) for src, stem in zip(sources, unique_stems(sources, run.note))]
+               torch.device(device), progress, on_batch, on_note, on_result)
+    if stems is None:
+        stems = unique_stems(sources, run.note)
+    elif len(stems) != len(sources):
+        raise RunError(f"{len(stems)} stem(s) given for {len(sources)} input(s)")
+    jobs = [_Job(Record(src, stem), _is_image(src)) for src, stem in zip(sources, stems)]
 
     # ---- skip finished inputs
     todo: List[_Job] = []

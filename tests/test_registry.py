@@ -77,11 +77,12 @@ def test_a_loader_per_suffix(tmp_path):
     ("torch_isc.pipeline.loop", ("torch_isc.images", "torch_isc.io", "torch_isc.runner", "torch_isc.cli")),
     ("torch_isc.images", ("torch_isc.io", "torch_isc.runner", "torch_isc.cli")),
     ("torch_isc.io", ("torch_isc.runner", "torch_isc.cli")),
-    ("torch_isc.runner", ("torch_isc.cli",)),
+    ("torch_isc.runner", ("torch_isc.cli", "torch_isc.dataset")),
+    ("torch_isc.dataset", ("torch_isc.cli",)),
     ("torch_isc", ("torch_isc.images", "torch_isc.io", "torch_isc.runner", "torch_isc.cli")),
 ])
 def test_layers_import_only_below(module, forbidden):
-    """core <- pipeline <- images <- io <- runner <- cli: no layer loads one above it."""
+    """core <- pipeline <- images <- io <- runner <- dataset <- cli: no layer loads one above it."""
     import subprocess
     import sys
 

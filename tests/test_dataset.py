@@ -213,16 +213,18 @@ def test_ray_engine_same_bytes_failures_isolated_rerun_skips(ray_cluster, local_
     assert [r.status for r in rep2.records] == [s if s == "failed" else "skipped" for s in STATUS]
 
 
-def test_cli_engine_ray_and_table(ray_cluster, local_run, mixed, tmp_path, capsys):
+def test_cli_engine_ray_and_table(ray_cluster, local_run, mixed, tmp_path, capsys, monkeypatch):
     from torch_isc.cli import main
 
     out, _, _ = local_run
-    code = main(["reconstruct", str(mixed), "--out", str(tmp_path / "o"), "--engine", "ray", "--actors", "2",
+    monkeypatch.chdir(mixed.parent)                 # a relative input: the actors read it all the same
+    code = main(["reconstruct", mixed.name, "--out", str(tmp_path / "o"), "--engine", "ray", "--actors", "2",
                  "--batch-size", "3", "--formats", ",".join(FORMATS), "--set", "max_level=3",
                  "--table", str(tmp_path / "t.parquet")])
     o, err = capsys.readouterr()
     assert code == 1 and "Traceback" not in err
     assert sum(line.startswith("torch-isc: error: ") for line in err.splitlines()) == 3
+    assert f"torch-isc: error: {os.path.join(mixed.name, 'b_broken.xy')}: line 2: non-numeric value 'x'" in err
     assert "c_disc: 1 closed, 0 open" in o
     t = pq.read_table(tmp_path / "t.parquet")
     assert t.column("status").to_pylist() == STATUS

@@ -45,9 +45,11 @@ Example:
 from __future__ import annotations
 
 import csv
+import functools
 import glob
 import json
 import os
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -76,6 +78,7 @@ def _pa():
     return pa
 
 
+@functools.lru_cache(maxsize=None)
 def _schema():
     pa = _pa()
     point = pa.list_(pa.float64(), 2)
@@ -163,11 +166,7 @@ def resolve_inputs(inputs: Iterable[PathLike], manifest: Union[None, PathLike, S
 
 # ============================================================================ one batch
 def _null_row(index: int, source: str, stem: str) -> Dict[str, Any]:
-    return {n: None for n in _pa_names()} | {"index": index, "source": source, "stem": stem}
-
-
-def _pa_names() -> List[str]:
-    return TABLE_SCHEMA().names
+    return {n: None for n in TABLE_SCHEMA().names} | {"index": index, "source": source, "stem": stem}
 
 
 def _summary_from_json(path: Path) -> Optional[Dict[str, Any]]:
@@ -206,8 +205,14 @@ class BatchReconstructor:
         self.formats, self.image_formats = list(formats), list(image_formats)
         self.overwrite = overwrite
         self.image_options = image_options
-        self.device = device or ("cuda" if torch.cuda.is_available() and os.environ.get("CUDA_VISIBLE_DEVICES")
-                                 else "cpu")
+        if device is None:          # a Ray actor given a GPU solves on it; anything else on the CPU
+            gpus = []
+            if "ray" in sys.modules:
+                import ray
+
+                gpus = ray.get_gpu_ids() if ray.is_initialized() else []
+            device = "cuda" if gpus and torch.cuda.is_available() else "cpu"
+        self.device = device
         if threads:
             torch.set_num_threads(int(threads))
         self.on_note = on_note
@@ -217,6 +222,10 @@ class BatchReconstructor:
         cols = batch.to_pydict() if hasattr(batch, "to_pydict") else {k: list(v) for k, v in batch.items()}
         index = [int(i) for i in cols["index"]]
         sources, stems = [str(s) for s in cols["source"]], [str(s) for s in cols["stem"]]
+        # where to read each input: an absolute path when the driver gave one (a Ray worker's
+        # folder is not the driver's); records and errors name the input as given
+        paths = [str(s) for s in cols["read"]] if "read" in cols else sources
+        given = dict(zip(paths, sources))
         rows = {i: _null_row(i, s, t) for i, s, t in zip(index, sources, stems)}
         by_stem = dict(zip(stems, index))
         results: Dict[int, Any] = {}
@@ -225,14 +234,18 @@ class BatchReconstructor:
             results[by_stem[record.stem]] = result
 
         try:
-            report = run_inputs(sources, self.config, self.out_dir, self.formats, self.image_formats,
+            report = run_inputs(paths, self.config, self.out_dir, self.formats, self.image_formats,
                                 overwrite=self.overwrite, batch_size=max(1, len(sources)),
                                 image_options=self.image_options, image_config=self.image_config,
                                 device=self.device, on_note=self.on_note, stems=stems, on_result=on_result)
             for rec in report.records:
                 i = by_stem[rec.stem]
                 row = rows[i]
-                row.update(status=rec.status, error=rec.error, traceback=rec.traceback)
+                err = rec.error
+                src = given[rec.source]
+                if err is not None and src != rec.source:
+                    err = err.replace(rec.source, src)
+                row.update(status=rec.status, error=err, traceback=rec.traceback)
                 res = results.get(i)
                 if rec.status == "done" and res is not None:
                     s = rec.summary
@@ -242,7 +255,7 @@ class BatchReconstructor:
                                points_beyond_tolerance=s["points_beyond_tolerance"], seconds=float(s["seconds"]),
                                closed=[bool(p["closed"]) for p in pls],
                                polylines=[p["points"].detach().double().cpu().numpy() for p in pls])
-                elif rec.status == "skipped" and "json" in self._formats_of(rec.source):
+                elif rec.status == "skipped" and "json" in self._formats_of(src):
                     row.update(_summary_from_json(self.out_dir / f"{rec.stem}.json") or {})
         except Exception as e:          # the batch as a whole: every input of it failed, the job goes on
             from torch_isc._helpers import one_line
@@ -461,6 +474,8 @@ def reconstruct_dataset(inputs: Iterable[PathLike], out_dir: PathLike, config=No
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     todo = pa.table({"index": pa.array(range(len(sources)), pa.int64()), "source": sources, "stem": stems})
+    if engine == "ray":
+        todo = todo.append_column("read", pa.array([os.path.abspath(s) for s in sources], pa.string()))
     settings = dict(config=config, image_config=image_config, out_dir=str(out.resolve()), formats=list(formats),
                     image_formats=list(image_formats), overwrite=overwrite, image_options=image_options,
                     device=device)

@@ -305,12 +305,12 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
                     image_config=image_config, device=None if args.device == "cpu" and args.gpus_per_actor
                     else args.device, table=args.table, address=args.address, actors=args.actors,
                     cpus_per_actor=args.cpus_per_actor, gpus_per_actor=args.gpus_per_actor,
-                    progress=progress, on_note=_note)
+                    progress=progress, on_note=_note, keep_records=False)
             except RunError as e:
                 raise UsageError(str(e)) from None
     finally:
         bar.close()
-    failed, n = report.failed, len(report.records)
+    failed, n = report.failed, len(sources)
     if getattr(report, "batches", 0) > 1 or failed:
         _note(f"done: {n - failed} of {n} input(s) ok, {failed} failed"
               + (f"; table: {args.table}" if args.table else ""))

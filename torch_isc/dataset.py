@@ -379,7 +379,8 @@ def _batches_local(worker: BatchReconstructor, inputs, batch_size: int) -> Itera
 
 
 def _batches_ray(settings: Dict[str, Any], inputs, batch_size: int, address: Optional[str], actors: int,
-                 cpus_per_actor: float, gpus_per_actor: float, ray_init: Optional[Dict[str, Any]]) -> Iterator[Any]:
+                 cpus_per_actor: float, gpus_per_actor: float, ray_init: Optional[Dict[str, Any]],
+                 quiet: bool) -> Iterator[Any]:
     try:
         import ray
         import ray.data
@@ -397,8 +398,10 @@ def _batches_ray(settings: Dict[str, Any], inputs, batch_size: int, address: Opt
         ray.init(address=address, **kw)
         started = True
     ctx = ray.data.DataContext.get_current()
-    old_order = ctx.execution_options.preserve_order
+    old = (ctx.execution_options.preserve_order, ctx.enable_progress_bars, ctx.print_on_execution_start)
     ctx.execution_options.preserve_order = True          # rows come back in input order
+    if quiet:                                             # the caller reports progress itself
+        ctx.enable_progress_bars, ctx.print_on_execution_start = False, False
     try:
         blocks = [inputs.slice(s, batch_size) for s in range(0, inputs.num_rows, batch_size)]
         ds = ray.data.from_arrow(blocks)
@@ -407,7 +410,7 @@ def _batches_ray(settings: Dict[str, Any], inputs, batch_size: int, address: Opt
                             batch_format="pyarrow", concurrency=actors, num_cpus=cpus_per_actor, **remote)
         yield from ds.iter_batches(batch_size=None, batch_format="pyarrow")
     finally:
-        ctx.execution_options.preserve_order = old_order
+        ctx.execution_options.preserve_order, ctx.enable_progress_bars, ctx.print_on_execution_start = old
         if started:
             ray.shutdown()
 
@@ -420,7 +423,7 @@ def reconstruct_dataset(inputs: Iterable[PathLike], out_dir: PathLike, config=No
                         address: Optional[str] = None, actors: int = 2, cpus_per_actor: float = 1.0,
                         gpus_per_actor: float = 0.0, ray_init: Optional[Dict[str, Any]] = None,
                         progress: Optional[Callable[[Record], None]] = None,
-                        on_note: Optional[Callable[[str], None]] = None) -> DatasetReport:
+                        on_note: Optional[Callable[[str], None]] = None, keep_records: bool = True) -> DatasetReport:
     """Reconstruct every input, write its outputs and, if asked, the results table (see the
     module docstring).
 
@@ -443,6 +446,8 @@ def reconstruct_dataset(inputs: Iterable[PathLike], out_dir: PathLike, config=No
         cpus_per_actor, gpus_per_actor: Ray resources of each actor; an actor given a GPU solves on it.
         progress: ``progress(record)`` for every input as its batch comes back, in input order.
         on_note: remarks that are not errors (renamed outputs; local engine: all-white masks).
+        keep_records: keep every :class:`~torch_isc.runner.Record` in the report (for a run of
+            millions, False keeps only the counts: the table holds the rows).
 
     Returns:
         a :class:`DatasetReport`.
@@ -463,6 +468,8 @@ def reconstruct_dataset(inputs: Iterable[PathLike], out_dir: PathLike, config=No
     for f in list(formats) + list(image_formats):
         if f not in known:
             raise RunError(f"unknown output format '{f}' (known: {', '.join(known)})")
+    if image_options.mode not in ("mask", "edges"):
+        raise RunError(f"image mode must be 'mask' or 'edges', got {image_options.mode!r}")
     pa = _pa()
     config = config if config is not None else torch_isc.load_config()
     if image_config is None:
@@ -483,21 +490,24 @@ def reconstruct_dataset(inputs: Iterable[PathLike], out_dir: PathLike, config=No
         batches = _batches_local(BatchReconstructor(**settings, on_note=on_note), todo, batch_size)
     else:
         settings["threads"] = max(1, int(cpus_per_actor))
-        batches = _batches_ray(settings, todo, batch_size, address, actors, cpus_per_actor, gpus_per_actor, ray_init)
+        batches = _batches_ray(settings, todo, batch_size, address, actors, cpus_per_actor, gpus_per_actor, ray_init,
+                               quiet=progress is not None)
     sink = _TableSink(Path(table) if table is not None else None, table_rows)
     records: List[Record] = []
+    counts = {"done": 0, "skipped": 0, "failed": 0}
     n_batches, ok = 0, False
     try:
         for t in batches:
             n_batches += 1
             sink.add(t)
             for rec in records_from_table(t):
-                records.append(rec)
+                counts[rec.status] = counts.get(rec.status, 0) + 1
+                if keep_records:
+                    records.append(rec)
                 if progress is not None:
                     progress(rec)
         ok = True
     finally:
         sink.close(ok)
-    counts = {s: sum(r.status == s for r in records) for s in ("done", "skipped", "failed")}
     return DatasetReport(records, engine, Path(table) if table is not None else None, n_batches,
                          time.perf_counter() - t0, counts)

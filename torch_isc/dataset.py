@@ -74,7 +74,8 @@ def _pa():
         import pyarrow as pa
         import pyarrow.parquet  # noqa: F401
     except ImportError as e:
-        raise RunError("the results table needs pyarrow: pip install 'torch_isc[table]'") from e
+        raise RunError("torch_isc.dataset (the results table, --table, --engine) needs pyarrow: "
+                       "pip install 'torch_isc[table]'") from e
     return pa
 
 
@@ -207,7 +208,7 @@ class BatchReconstructor:
         self.image_options = image_options
         if device is None:          # a Ray actor given a GPU solves on it; anything else on the CPU
             gpus = []
-            if "ray" in sys.modules:
+            if sys.modules.get("ray") is not None:
                 import ray
 
                 gpus = ray.get_gpu_ids() if ray.is_initialized() else []

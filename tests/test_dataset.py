@@ -228,3 +228,15 @@ def test_cli_engine_ray_and_table(ray_cluster, local_run, mixed, tmp_path, capsy
     assert "c_disc: 1 closed, 0 open" in o
     t = pq.read_table(tmp_path / "t.parquet")
     assert t.column("status").to_pylist() == STATUS
+
+
+def test_without_json_a_skipped_row_has_no_polylines_and_records_can_be_dropped(mixed, tmp_path):
+    kw = dict(formats=["svg"], image_formats=["svg"], batch_size=4, table=tmp_path / "t.parquet")
+    rep = reconstruct_dataset([mixed / "a_ring.xy", mixed / "b_broken.xy"], tmp_path / "o", CONFIG, **kw)
+    assert rep.counts == {"done": 1, "skipped": 0, "failed": 1}
+    rep = reconstruct_dataset([mixed / "a_ring.xy", mixed / "b_broken.xy"], tmp_path / "o", CONFIG,
+                              keep_records=False, **kw)
+    assert rep.records == [] and rep.counts == {"done": 0, "skipped": 1, "failed": 1}
+    row = pq.read_table(tmp_path / "t.parquet").to_pylist()[0]
+    assert row["status"] == "skipped" and row["polylines"] is None and row["seconds"] is None
+    assert sorted(os.listdir(tmp_path)) == ["o", "t.parquet"]                 # no temporary table left

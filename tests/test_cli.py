@@ -25,6 +25,11 @@ from torch_isc.core.mesh import hexagon_mesh
 from torch_isc.pipeline.result import ReconstructionResult
 from torch_isc.pipeline.stats import LevelStats
 
+
+def _listdir(d):
+    """The outputs in ``d`` without the manifests (tested in test_robustness_fuzz)."""
+    return [f for f in os.listdir(d) if not f.endswith(".manifest.json")]
+
 REPO = Path(__file__).resolve().parents[1]
 FAST = ["--set", "max_level=3"]
 SUMMARY = re.compile(r"^(?P<stem>\S+): (?P<closed>\d+) closed, (?P<open>\d+) open, (?P<levels>\d+) levels, "
@@ -93,7 +98,7 @@ def test_one_input_all_formats(tmp_path, capsys):
     out_dir = tmp_path / "out"
     code, out, err = _run(capsys, "reconstruct", f, "--out", out_dir, *FAST)
     assert code == 0, err
-    assert sorted(os.listdir(out_dir)) == ["circle.json", "circle.npz", "circle.png", "circle.svg"]
+    assert sorted(_listdir(out_dir)) == ["circle.json", "circle.npz", "circle.png", "circle.svg"]
     s = _summaries(out)
     assert list(s) == ["circle"] and out.count("\n") == 1
     assert int(s["circle"]["closed"]) == 1 and int(s["circle"]["open"]) == 0
@@ -119,7 +124,7 @@ def test_many_inputs_in_batches_npy_and_seed(tmp_path, capsys):
     assert set(_summaries(out)) == {"c0", "c1", "c2"}
     assert "[0/3] batch 1: reconstructing 2 input(s)" in err            # progress on stderr
     assert "[2/3] batch 2: reconstructing 1 input(s)" in err
-    assert sorted(os.listdir(tmp_path / "o")) == ["c0.json", "c0.npz", "c1.json", "c1.npz", "c2.json", "c2.npz"]
+    assert sorted(_listdir(tmp_path / "o")) == ["c0.json", "c0.npz", "c1.json", "c1.npz", "c2.json", "c2.npz"]
     assert load_npz(tmp_path / "o" / "c1.npz")[1]["config"]["run"]["seed"] == 5
     for i, r in enumerate([1, 2, 0.5]):
         bbox = json.loads((tmp_path / "o" / f"c{i}.json").read_text())["bbox"]
@@ -138,11 +143,15 @@ def test_duplicate_stems_are_disambiguated(tmp_path, capsys):
     b = _write_xy(tmp_path / "b" / "x.xy", _circle(r=2, seed=2))
     code, out, err = _run(capsys, "reconstruct", a, b, "--out", tmp_path / "o", "--formats", "json", *FAST)
     assert code == 0, err
-    assert sorted(os.listdir(tmp_path / "o")) == ["x.json", "x_2.json"]
-    assert set(_summaries(out)) == {"x", "x_2"}
-    assert "x_2" in err and str(b) in err                            # said so
-    w = json.loads((tmp_path / "o" / "x_2.json").read_text())["bbox"]
-    assert w[2] - w[0] > 3                                            # x_2 is the second input (radius 2)
+    # same stem and suffix: the stem, the suffix and a hash of the path, whatever the order
+    import hashlib
+    h = {p: hashlib.sha256(os.path.abspath(p).encode()).hexdigest()[:8] for p in (a, b)}
+    names = {p: f"x_xy_{h[p]}" for p in (a, b)}
+    assert sorted(_listdir(tmp_path / "o")) == sorted(f"{n}.json" for n in names.values())
+    assert set(_summaries(out)) == set(names.values())
+    assert names[b] in err and str(b) in err                          # said so
+    w = json.loads((tmp_path / "o" / f"{names[b]}.json").read_text())["bbox"]
+    assert w[2] - w[0] > 3                                            # the second input (radius 2)
 
 
 # ----------------------------------------------------------------------------- skip / overwrite
@@ -151,10 +160,13 @@ def test_rerun_skips_unless_overwrite(tmp_path, capsys):
     o = tmp_path / "o"
     args = ["reconstruct", f, "--out", o, "--formats", "json,svg", *FAST]
     assert _run(capsys, *args)[0] == 0
-    (o / "circle.json").write_text("marker")
     code, out, err = _run(capsys, *args)
     assert code == 0 and "circle: skipped" in out
-    assert (o / "circle.json").read_text() == "marker"
+    # a changed output no longer matches its manifest: the input runs again
+    (o / "circle.json").write_text("marker")
+    code, out, err = _run(capsys, *args)
+    assert code == 0 and "skipped" not in out
+    assert json.loads((o / "circle.json").read_text())["num_components"] >= 1
     # a missing output makes the input run again
     (o / "circle.svg").unlink()
     code, out, err = _run(capsys, *args)
@@ -164,7 +176,7 @@ def test_rerun_skips_unless_overwrite(tmp_path, capsys):
     code, out, err = _run(capsys, *args, "--overwrite")
     assert code == 0 and "skipped" not in out
     assert json.loads((o / "circle.json").read_text())["num_components"] >= 1
-    assert sorted(os.listdir(o)) == ["circle.json", "circle.svg"]    # no temporary files left
+    assert sorted(_listdir(o)) == ["circle.json", "circle.svg"]    # no temporary files left
 
 
 # ----------------------------------------------------------------------------- failures: exit 1
@@ -175,7 +187,7 @@ def test_bad_input_among_good_ones(tmp_path, capsys):
     g2 = _write_xy(tmp_path / "good2.xy", _circle(r=3, seed=2))
     code, out, err = _run(capsys, "reconstruct", g1, bad, g2, "--out", tmp_path / "o", "--formats", "json,png", *FAST)
     assert code == 1
-    assert sorted(os.listdir(tmp_path / "o")) == ["good1.json", "good1.png", "good2.json", "good2.png"]
+    assert sorted(_listdir(tmp_path / "o")) == ["good1.json", "good1.png", "good2.json", "good2.png"]
     errs = _error_lines(err)
     assert errs == [f"torch-isc: error: {bad}: line 3: non-numeric value 'foo'"]
     assert "Traceback" not in err
@@ -188,7 +200,7 @@ def test_missing_file_and_too_few_points(tmp_path, capsys):
     code, out, err = _run(capsys, "reconstruct", g, tmp_path / "nope.xy", few, "--out", tmp_path / "o",
                           "--formats", "json", *FAST)
     assert code == 1
-    assert os.listdir(tmp_path / "o") == ["good.json"]
+    assert _listdir(tmp_path / "o") == ["good.json"]
     errs = _error_lines(err)
     assert len(errs) == 2 and "Traceback" not in err
     assert errs[0] == f"torch-isc: error: {tmp_path / 'nope.xy'}: no such file"
@@ -208,7 +220,7 @@ def test_failing_batch_is_retried_item_by_item(tmp_path, capsys, monkeypatch):
     code, out, err = _run(capsys, "reconstruct", *files, "--out", tmp_path / "o", "--formats", "json", *FAST)
     assert code == 0, err
     assert calls["batch"] == 1
-    assert sorted(os.listdir(tmp_path / "o")) == ["c0.json", "c1.json", "c2.json"]
+    assert sorted(_listdir(tmp_path / "o")) == ["c0.json", "c1.json", "c2.json"]
 
 
 def test_internal_error_is_one_line(tmp_path, capsys, monkeypatch):
@@ -220,7 +232,7 @@ def test_internal_error_is_one_line(tmp_path, capsys, monkeypatch):
     code, out, err = _run(capsys, "reconstruct", f, "--out", tmp_path / "o", "--formats", "json")
     assert code == 1
     assert _error_lines(err) == [f"torch-isc: error: {f}: reconstruction failed (RuntimeError: boom)"]
-    assert "Traceback" not in err and os.listdir(tmp_path / "o") == []
+    assert "Traceback" not in err and _listdir(tmp_path / "o") == []
 
 
 # ----------------------------------------------------------------------------- usage / config: exit 2
@@ -240,7 +252,7 @@ def test_usage_errors_exit_2(tmp_path, capsys, extra, expect):
     errs = _error_lines(err)
     assert len(errs) == 1 and expect in errs[0], err
     assert "Traceback" not in err and out == ""
-    assert not (tmp_path / "o").exists() or os.listdir(tmp_path / "o") == []
+    assert not (tmp_path / "o").exists() or _listdir(tmp_path / "o") == []
 
 
 def test_config_file_errors_exit_2(tmp_path, capsys):
@@ -291,7 +303,7 @@ def test_example_runs(tmp_path, capsys):
                           "--set", "max_level=1")
     assert code == 0, err
     assert list(_summaries(out)) == ["nested"]
-    assert os.listdir(tmp_path / "o") == ["nested.json"]
+    assert _listdir(tmp_path / "o") == ["nested.json"]
 
 
 @pytest.mark.slow
@@ -337,7 +349,8 @@ def test_image_folder_streams_with_bad_files(tmp_path, capsys):
     assert cv2.imwrite(str(d / "white.tif"), np.full((16, 24), 255, np.uint8))
     (d / "notes.md").write_text("ignored: not a point or image file")
     o = tmp_path / "o"
-    code, out, err = _run(capsys, "reconstruct", d, "--out", o, "--batch-size", "2", *FAST)
+    code, out, err = _run(capsys, "reconstruct", d, "--out", o, "--batch-size", "2",
+                          "--formats", "json,npz,svg,png,contours.npz,overlay.png", *FAST)
     assert code == 1 and "Traceback" not in err
     errs = _error_lines(err)
     assert sorted(errs) == sorted([
@@ -347,10 +360,10 @@ def test_image_folder_streams_with_bad_files(tmp_path, capsys):
     s = _summaries(out)
     assert {k: (int(v["closed"]), int(v["open"])) for k, v in s.items()} == {
         "disc": (1, 0), "ring": (2, 0), "pts": (1, 0), "white": (1, 0)}
-    files = set(os.listdir(o))
+    files = set(_listdir(o))
     for stem in ("disc", "ring", "white"):
         assert {f"{stem}.{f}" for f in ("json", "npz", "svg", "png", "contours.npz", "overlay.png")} <= files
-    assert "pts.overlay.png" not in files and "pts.contours.npz" not in files
+    assert "pts.overlay.png" not in files                                # the overlay needs an image
     assert "batch 1" in err and "%" in err                               # progress with a bar
     # pixel coordinates: the disc's curve is within a pixel of the analytic circle
     pl = json.loads((o / "disc.json").read_text())["polylines"][0]["points"]
@@ -361,9 +374,13 @@ def test_image_folder_streams_with_bad_files(tmp_path, capsys):
     from torch_isc.images import load_contours
     c, h = load_contours(o / "ring.contours.npz")
     assert len(c) == 2 and sorted(h[0, :, 3].tolist()) == [-1, 0]
-    # a rerun skips everything that was written, and fails again on the bad ones only
-    code, out, err = _run(capsys, "reconstruct", d, "--out", o, "--batch-size", "2", *FAST)
+    # a rerun of the same command skips everything that was written, and fails again on the bad
+    # ones only; asking for other formats redoes the inputs (a manifest names its formats)
+    code, out, err = _run(capsys, "reconstruct", d, "--out", o, "--batch-size", "2",
+                          "--formats", "json,npz,svg,png,contours.npz,overlay.png", *FAST)
     assert code == 1 and out.count("skipped") == 4 and len(_error_lines(err)) == 3
+    code, out, err = _run(capsys, "reconstruct", d, "--out", o, "--batch-size", "2", *FAST)
+    assert code == 1 and out.count("skipped") == 0 and len(_error_lines(err)) == 3
 
 
 def test_image_modes_and_threshold(tmp_path, capsys):
@@ -384,7 +401,7 @@ def test_image_modes_and_threshold(tmp_path, capsys):
     assert code == 0, err
     assert int(_summaries(out)["gray"]["closed"]) == 1
     # edges mode: Canny edges of the two steps -> two circles
-    code, out, err = _run(capsys, "reconstruct", f, "--out", o, "--formats", "json", "--mode", "edges",
+    code, out, err = _run(capsys, "reconstruct", f, "--out", o, "--formats", "json,overlay.png", "--mode", "edges",
                           "--overwrite", *FAST)
     assert code == 0, err
     assert (int(_summaries(out)["gray"]["closed"]), int(_summaries(out)["gray"]["open"])) == (2, 0)

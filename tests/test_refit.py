@@ -34,30 +34,27 @@ def test_refit_converged_and_signs_kept():
     from torch_isc.pipeline.evidence import triangle_moments
     face, _ = locate_grid(c.mesh, pts, torch.zeros(30, dtype=torch.long))
     mom = triangle_moments(c.mesh, pts, face, barycentric(c.mesh.verts, c.mesh.faces, face, pts))
-    pb = RefitProblem(c, mom.count, 1e-4, 1e-2)
-    s = torch.log(r.values.abs()).requires_grad_()
+    pb = RefitProblem(c, mom.count, 1e-4, 1e-2, 1e-2, 0.02)
+    s = torch.log(r.values.abs() - pb.floor).requires_grad_()
     (g,) = torch.autograd.grad(pb.energy(s, mom.M).sum(), s)
     assert float(g.abs().max()) < 1e-9
     # and it fits: the zero set moved out toward the points (area ~ pi 0.55^2, not pi 0.45^2)
     assert abs(float(area(r)) - math.pi * 0.47 ** 2) < 0.03
 
 
-import pytest
-
-
-@pytest.mark.xfail(reason="the damped-Newton solve stalls ~1e-6 from stationarity on this case, so finite "
-                          "differences of the re-solve differ from the implicit gradient by a few percent", strict=False)
 def test_refit_gradcheck_points():
     c, _ = base_curve()
-    pts = circle_pts(10, 0.46, noise=0.005).requires_grad_()
-    assert torch.autograd.gradcheck(lambda p: refit(c, p).values, (pts,), eps=1e-6, atol=1e-6, rtol=1e-4)
-    assert torch.autograd.gradcheck(lambda p: area(refit(c, p)), (pts,), eps=1e-6, atol=1e-6, rtol=1e-4)
+    # 2-3 points per triangle (with one point a triangle's line is any line through it: the fit is
+    # held only by the smoothness term, and a 1e-5 move can switch basins)
+    pts = circle_pts(24, 0.452, noise=0.003).requires_grad_()
+    assert torch.autograd.gradcheck(lambda p: refit(c, p).values, (pts,), eps=1e-6, atol=1e-5, rtol=1e-4)
+    assert torch.autograd.gradcheck(lambda p: area(refit(c, p)), (pts,), eps=1e-6, atol=1e-8, rtol=1e-5)
 
 
 def test_refit_batch_of_8_isolated():
     B = 8
     c, cen = base_curve(B)
-    sets = [circle_pts(12 + b, 0.5 + 0.01 * b, c=tuple(cen[b].tolist()), noise=0.01, seed=b) for b in range(B)]
+    sets = [circle_pts(40 + 3 * b, 0.46 + 0.003 * b, c=tuple(cen[b].tolist()), noise=0.005, seed=b) for b in range(B)]
     pts = torch.cat(sets).requires_grad_()
     item = torch.repeat_interleave(torch.arange(B), torch.tensor([s.shape[0] for s in sets]))
     r = refit(c, pts, item)
@@ -76,7 +73,7 @@ def test_attach_point_gradients_keeps_values():
     B = 3
     c, cen = base_curve(B)
     curves = [c[b] for b in range(B)]
-    sets = [circle_pts(20, 0.5, c=tuple(cen[b].tolist()), noise=0.01, seed=b).requires_grad_() for b in range(B)]
+    sets = [circle_pts(40, 0.47, c=tuple(cen[b].tolist()), noise=0.005, seed=b).requires_grad_() for b in range(B)]
     out = attach_point_gradients(curves, sets)
     for b in range(B):
         assert torch.equal(out[b].values.detach(), curves[b].values)

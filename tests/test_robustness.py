@@ -73,6 +73,11 @@ from torch_isc import ReconstructConfig, cli, reconstruct
 from torch_isc.io import EXPORTERS, Exporter, atomic_write, json_dumps, result_json_dict
 from torch_isc.metrics import bbox_diagonal, hausdorff
 
+
+def _listdir(d):
+    """The outputs in ``d`` without the manifests (tested in test_robustness_fuzz)."""
+    return [f for f in os.listdir(d) if not f.endswith(".manifest.json")]
+
 REPO = Path(__file__).resolve().parents[1]
 FAST = ["--set", "max_level=3"]
 PROPERTY = settings(max_examples=6, deadline=None, derandomize=True, database=None,
@@ -175,7 +180,7 @@ def test_cli_bad_point_files(tmp_path, capsys):
         line = [e for e in errs if e.startswith(f"torch-isc: error: {path}: ")]
         assert len(line) == 1, (name, errs)
         assert fragment in line[0], (name, line[0])
-    assert sorted(os.listdir(tmp_path / "o")) == ["good_a.json", "good_b.json"]
+    assert sorted(_listdir(tmp_path / "o")) == ["good_a.json", "good_b.json"]
     assert f"done: 2 of {len(inputs)} input(s) ok, {len(bad)} failed" in err
     assert [ln.split(":")[0] for ln in out.splitlines()] == ["good_a", "good_b"]
 
@@ -373,7 +378,7 @@ def test_cli_bad_config_file(tmp_path, capsys, text, fragment):
     errs = _error_lines(err)
     assert len(errs) == 1 and errs[0].startswith(f"torch-isc: error: {cfg}: ") and fragment in errs[0], err
     assert len(err.strip().splitlines()) == 1 and "Traceback" not in err and out == ""
-    assert not (tmp_path / "o").exists() or os.listdir(tmp_path / "o") == []
+    assert not (tmp_path / "o").exists() or _listdir(tmp_path / "o") == []
 
 
 # ============================================================================ 2. nothing lost
@@ -388,7 +393,7 @@ def test_cli_unreconstructable_input_in_a_batch(tmp_path, capsys):
     assert code == 1
     errs = _error_lines(err)
     assert len(errs) == 1 and errs[0].startswith(f"torch-isc: error: {same}: ") and "3 distinct" in errs[0]
-    assert sorted(os.listdir(tmp_path / "o")) == ["a.json", "b.json"]
+    assert sorted(_listdir(tmp_path / "o")) == ["a.json", "b.json"]
 
 
 def test_atomic_write_interrupted_new_file(tmp_path):
@@ -402,9 +407,9 @@ def test_atomic_write_interrupted_new_file(tmp_path):
 
     with pytest.raises(KeyboardInterrupt):
         atomic_write(target, writer)
-    assert os.listdir(tmp_path) == []
+    assert _listdir(tmp_path) == []
     atomic_write(target, b"{}")
-    assert target.read_bytes() == b"{}" and os.listdir(tmp_path) == ["new.json"]
+    assert target.read_bytes() == b"{}" and _listdir(tmp_path) == ["new.json"]
 
 
 def test_cli_interrupted_run_then_rerun(tmp_path, capsys, monkeypatch):
@@ -425,13 +430,13 @@ def test_cli_interrupted_run_then_rerun(tmp_path, capsys, monkeypatch):
     args = ["reconstruct", a, b, "--out", o, "--formats", "json,svg", "--batch-size", "1", *FAST]
     code, out, err = _run(capsys, *args)
     assert code == 130 and "interrupted" in err and "Traceback" not in err
-    assert os.listdir(o) == ["a.json"]
+    assert _listdir(o) == ["a.json"]
     assert json.loads((o / "a.json").read_text())["num_components"] == 1
     monkeypatch.setitem(EXPORTERS, "svg", real_svg)
     code, out, err = _run(capsys, *args)
     assert code == 0, err
     assert "skipped" not in out
-    assert sorted(os.listdir(o)) == ["a.json", "a.svg", "b.json", "b.svg"]
+    assert sorted(_listdir(o)) == ["a.json", "a.svg", "b.json", "b.svg"]
     code, out, err = _run(capsys, *args)
     assert code == 0 and out.count("skipped, outputs exist") == 2
 

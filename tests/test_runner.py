@@ -12,6 +12,11 @@ import torch_isc
 from torch_isc import load_config
 from torch_isc.runner import ImageOptions, RunError, expand_inputs, run_inputs, unique_stems
 
+
+def _listdir(d):
+    """The outputs in ``d`` without the manifests (tested in test_robustness_fuzz)."""
+    return [f for f in os.listdir(d) if not f.endswith(".manifest.json")]
+
 CONFIG = load_config(overrides={"max_level": 3})
 
 
@@ -58,10 +63,10 @@ def test_a_broken_input_loses_no_other_and_records_come_in_input_order(mixed, tm
     assert bad.error == f"{mixed / 'b_broken.xy'}: line 2: non-numeric value 'x'"
     assert corrupt.error == f"{mixed / 'd_corrupt.png'}: not a readable image (unknown format, truncated or corrupt)"
     assert all("\n" not in r.error for r in (bad, corrupt)) and bad.outputs == [] and bad.summary is None
-    # the others are written: point files their formats, the image its formats plus the overlay
-    assert sorted(os.listdir(out)) == ["a_ring.json", "a_ring.svg", "c_disc.contours.npz", "c_disc.json",
-                                       "c_disc.overlay.png", "e_ring.json", "e_ring.svg"]
-    assert [p.name for p in rep.records[2].outputs] == ["c_disc.json", "c_disc.contours.npz", "c_disc.overlay.png"]
+    # the others are written: point files their formats, the image its formats (no overlay unless asked)
+    assert sorted(_listdir(out)) == ["a_ring.json", "a_ring.svg", "c_disc.contours.npz", "c_disc.json",
+                                       "e_ring.json", "e_ring.svg"]
+    assert [p.name for p in rep.records[2].outputs] == ["c_disc.json", "c_disc.contours.npz"]
     s = rep.records[0].summary
     assert (s["num_closed"], s["num_open"]) == (1, 0) and s["levels"] >= 1 and s["seconds"] >= 0
     # one progress call per input, each with its final status
@@ -72,11 +77,11 @@ def test_a_broken_input_loses_no_other_and_records_come_in_input_order(mixed, tm
 def test_finished_inputs_are_skipped_and_overwrite_redoes_them(mixed, tmp_path):
     out = tmp_path / "out"
     _run(mixed, out)
-    before = {f: (out / f).read_bytes() for f in os.listdir(out)}
+    before = {f: (out / f).read_bytes() for f in _listdir(out)}
     (out / "e_ring.svg").unlink()                       # an incomplete input is redone
     rep, _ = _run(mixed, out)
     assert [r.status for r in rep.records] == ["skipped", "failed", "skipped", "failed", "done"]
-    assert rep.batches == 1 and {f: (out / f).read_bytes() for f in os.listdir(out)} == before
+    assert rep.batches == 1 and {f: (out / f).read_bytes() for f in _listdir(out)} == before
     rep, _ = _run(mixed, out, overwrite=True)
     assert [r.status for r in rep.records] == ["done", "failed", "done", "failed", "done"]
 
@@ -98,7 +103,7 @@ def test_a_solve_that_fails_is_isolated(mixed, tmp_path, monkeypatch):
     assert [r.status for r in rep.records] == ["done", "failed"]
     assert rep.records[1].error == f"{mixed / 'e_ring.csv'}: reconstruction failed (RuntimeError: boom)"
     assert "RuntimeError" in rep.records[1].traceback
-    assert os.listdir(tmp_path / "out") == ["a_ring.json"]
+    assert _listdir(tmp_path / "out") == ["a_ring.json"]
 
 
 def test_edges_mode_and_mixed_configs(mixed, tmp_path):
@@ -114,8 +119,6 @@ def test_bad_arguments_are_rejected_before_any_work(mixed, tmp_path):
         run_inputs([mixed], CONFIG, out, batch_size=0)
     with pytest.raises(RunError, match="unknown output format 'obj'"):
         run_inputs([mixed], CONFIG, out, formats=["json", "obj"])
-    with pytest.raises(RunError, match="unknown output format 'overlay.png'"):   # written for images, not chosen
-        run_inputs([mixed], CONFIG, out, image_formats=["overlay.png"])
     (tmp_path / "empty").mkdir()
     with pytest.raises(RunError, match="folder has no point or image file"):
         run_inputs([tmp_path / "empty"], CONFIG, out)
@@ -128,5 +131,7 @@ def test_expand_inputs_and_unique_stems(mixed, tmp_path):
     assert [os.path.basename(f) for f in files] == ["a_ring.xy", "b_broken.xy", "c_disc.png", "d_corrupt.png",
                                                     "e_ring.csv", "missing.xy"]
     notes = []
-    assert unique_stems(["a/x.xy", "b/x.png", "x_2.xy"], notes.append) == ["x", "x_3", "x_2"]
-    assert notes == ["note: another input is also named 'x': b/x.png is written as 'x_3'"]
+    assert unique_stems(["a/x.xy", "b/x.png", "x_2.xy"], notes.append) == ["x_xy", "x_png", "x_2"]
+    assert notes == ["note: another input is also named 'x': a/x.xy is written as 'x_xy'",
+                     "note: another input is also named 'x': b/x.png is written as 'x_png'"]
+    assert unique_stems(["b/x.png", "x_2.xy", "a/x.xy"]) == ["x_png", "x_2", "x_xy"]     # order-free

@@ -21,6 +21,12 @@ Inputs go through :func:`torch_isc.reconstruct_batch` in batches of ``--batch-si
 when their batch fills (bounded memory, a folder of any size streams through); a batch that
 raises is retried item by item so one bad input cannot sink the others.
 
+Each input's outputs end with ``OUT/<stem>.manifest.json`` (written last: the sha256 of the input,
+of the config and of every output file); a rerun skips an input only when its manifest matches,
+and redoes it otherwise. Two inputs with the same stem are written as ``<stem>_<suffix>``
+(``a.xy`` -> ``a_xy``), whatever their order; images larger than ``--max-pixels`` (from the
+header, before decoding) are refused.
+
 Datasets (:mod:`torch_isc.dataset`): an INPUT may also be a glob (``'scans/**/*.png'``, sorted) or a
 ``.parquet`` manifest, ``--manifest FILE`` adds the paths of a text/CSV/Parquet manifest,
 ``--table out.parquet`` writes the results table (a row per input), and ``--engine ray`` runs the
@@ -28,7 +34,7 @@ batches on a Ray cluster (``--address``; default a local one) in ``--actors`` so
 with ``--cpus-per-actor`` CPUs and ``--gpus-per-actor`` GPUs; the outputs are the same bytes. A
 progress bar (tqdm, on stderr) shows on a terminal; elsewhere each batch is one log line.
 
-Exit status: 0 every input done (or skipped because its outputs exist), 1 some inputs failed
+Exit status: 0 every input done (or skipped because its complete outputs exist), 1 some inputs failed
 (each with one ``torch-isc: error: <file>: <problem>`` line on stderr), 2 usage or
 configuration error (nothing was reconstructed). A user mistake never prints a traceback;
 ``--debug`` shows the traceback of an unexpected internal error.
@@ -46,10 +52,11 @@ import torch_isc
 
 from torch_isc._helpers import one_line
 from torch_isc.io import chosen_formats
-from torch_isc.pipeline.config import ConfigError, flat_keys, load_config, parse_overrides
-from torch_isc.runner import ImageOptions, Record, RunError, run_inputs
+from torch_isc.pipeline.config import ConfigError, flat_keys, load_config, parse_overrides, read_config_mapping
+from torch_isc.images.read import DEFAULT_MAX_PIXELS
+from torch_isc.runner import ImageOptions, Record, RunError, run_inputs, shown
 
-DEFAULT_IMAGE_FORMATS = "json,npz,svg,png,contours.npz"
+DEFAULT_IMAGE_FORMATS = "json,contours.npz"
 
 __all__ = ["main", "build_parser", "EXAMPLE_PATH"]
 
@@ -90,7 +97,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="point sets reconstructed together (default: 64)")
     rec.add_argument("--formats", default=None, metavar="LIST",
                      help=f"comma-separated output formats among {', '.join(chosen_formats())} (default: {DEFAULT_FORMATS}; "
-                          f"for images {DEFAULT_IMAGE_FORMATS}, and always overlay.png)")
+                          f"for images {DEFAULT_IMAGE_FORMATS}; overlay.png on request)")
     img = rec.add_argument_group("images")
     img.add_argument("--mode", choices=("mask", "edges"), default="mask",
                      help="mask: the image is a binary mask, its foreground boundary is the curve, and the mask "
@@ -103,13 +110,19 @@ def build_parser() -> argparse.ArgumentParser:
                      help="distance in pixels between boundary points along a contour (default: 1)")
     img.add_argument("--no-oracle", action="store_true",
                      help="mask mode: estimate the topology from the points instead of reading it from the mask")
+    img.add_argument("--connectivity", type=int, choices=(8, 4), default=8,
+                     help="mask mode: connectivity of the foreground (8, OpenCV's, default; or 4)")
     img.add_argument("--canny", default="0.1,0.2", metavar="LOW,HIGH",
                      help="edges mode: Canny hysteresis thresholds on the gradient of the image in [0, 1] "
                           "(default: 0.1,0.2)")
     img.add_argument("--sigma", type=float, default=1.0, help="edges mode: Gaussian smoothing in pixels (default: 1)")
+    img.add_argument("--max-pixels", type=float, default=float(DEFAULT_MAX_PIXELS), metavar="N",
+                     help=f"the largest image read, in pixels (width x height, from the header, before decoding; "
+                          f"default: {DEFAULT_MAX_PIXELS:.0e}; 0: no limit)")
     rec.add_argument("--device", default="cpu", help="torch device for the reconstruction (default: cpu)")
     rec.add_argument("--overwrite", action="store_true",
-                     help="redo inputs whose outputs all exist (by default they are skipped)")
+                     help="redo inputs whose output set is complete (by default they are skipped; a set is "
+                          "complete when its <stem>.manifest.json matches the input, the config and the files)")
     rec.add_argument("--example", action="store_true",
                      help="also reconstruct the built-in example (4 nested closed curves); no INPUT needed")
     rec.add_argument("--debug", action="store_true", help="print the traceback of an unexpected internal error")
@@ -148,7 +161,7 @@ def _parse_formats(text: str) -> List[str]:
     formats = [f.strip().lower().lstrip(".") for f in text.split(",") if f.strip()]
     if not formats:
         raise UsageError("--formats: no format given")
-    known = chosen_formats()
+    known = chosen_formats() + ["overlay.png"]
     unknown = [f for f in formats if f not in known]
     if unknown:
         raise UsageError(f"--formats: unknown format '{unknown[0]}' (known: {', '.join(known)})")
@@ -159,13 +172,11 @@ def _config_keys(path: Optional[str]) -> List[str]:
     """The keys a config file sets (already validated by load_config)."""
     if path is None:
         return []
-    import yaml
-
     try:
-        d = yaml.safe_load(Path(path).read_text())
-    except Exception:
+        d = read_config_mapping(path)
+    except ConfigError:
         return []
-    return flat_keys(d) if isinstance(d, dict) else []
+    return flat_keys(d)
 
 
 class _Progress:
@@ -185,7 +196,7 @@ class _Progress:
             bar.close()
 
     @property
-    def shown(self) -> bool:
+    def visible(self) -> bool:
         return self.bar is not None
 
     def print(self, line: str, file: TextIO) -> None:
@@ -210,7 +221,9 @@ def _summary(record: Record) -> str:
     state = "converged" if r["converged"] else f"not converged ({r['limit'] or 'tolerance not met'})"
     if r["points_beyond_tolerance"]:
         state += f", {r['points_beyond_tolerance']} point(s) beyond tolerance"
-    return (f"{record.stem}: {r['num_closed']} closed, {r['num_open']} open, {r['levels']} levels, "
+    if r.get("count_ok") is False:
+        state += f", WARNING: the mask has {r['boundaries']} boundaries"
+    return (f"{shown(record.stem)}: {r['num_closed']} closed, {r['num_open']} open, {r['levels']} levels, "
             f"{state}, {r['seconds']:.2f} s")
 
 
@@ -235,8 +248,10 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
         raise UsageError(f"--canny expects LOW,HIGH (two numbers), got {args.canny!r}") from None
     if not 0 < low < high:
         raise UsageError(f"--canny: expected 0 < LOW < HIGH, got {args.canny!r}")
-    if not args.sigma > 0:
-        raise UsageError(f"--sigma must be > 0, got {args.sigma}")
+    if not args.sigma > 0 or args.sigma > 1e3:
+        raise UsageError(f"--sigma must be in (0, 1000], got {args.sigma}")
+    if not 0 <= args.max_pixels < 2 ** 62:
+        raise UsageError(f"--max-pixels must be >= 0, got {args.max_pixels}")
     try:
         device = torch.device(args.device)
         torch.empty(0, device=device)
@@ -247,7 +262,8 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
     from torch_isc.dataset import resolve_inputs
 
     try:
-        sources = resolve_inputs([str(s) for s in args.inputs], args.manifest or None, args.manifest_column)
+        sources = resolve_inputs([str(s) for s in args.inputs], args.manifest or None, args.manifest_column,
+                                 errors={})    # unlistable folders: failed inputs
     except RunError as e:
         raise UsageError(str(e)) from None
     if args.example:
@@ -267,14 +283,16 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
     keep = set(_config_keys(args.config)) | {k for k in parse_overrides(args.overrides)}
     image_config = images.image_config(config, keep=sorted(keep), mode=args.mode)
     image_options = ImageOptions(mode=args.mode, threshold=args.threshold, spacing=args.spacing,
-                                 use_oracle=not args.no_oracle, canny=(low, high), sigma=args.sigma)
+                                 use_oracle=not args.no_oracle, canny=(low, high), sigma=args.sigma,
+                                 max_pixels=int(args.max_pixels) or None, connectivity=args.connectivity)
 
     bar = _Progress(len(sources))
 
     def progress(record: Record) -> None:
         bar.advance()
         if record.status == "skipped":
-            bar.print(f"{record.stem}: skipped, outputs exist in {out_dir} (use --overwrite to redo)", sys.stdout)
+            bar.print(f"{shown(record.stem)}: skipped, outputs exist in {shown(out_dir)} (use --overwrite to redo)",
+                      sys.stdout)
         elif record.status == "failed":
             bar.print(f"{PROG}: error: {record.error}", sys.stderr)   # the message already starts with the file name
             if args.debug and record.traceback:
@@ -283,7 +301,7 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
             bar.print(_summary(record), sys.stdout)
 
     def on_batch(stage: str, batch: int, size: int, done: int, total: int) -> None:
-        if total <= 1 or bar.shown:
+        if total <= 1 or bar.visible:
             return
         if stage == "start":
             _note(f"[{done}/{total}] batch {batch}: reconstructing {size} input(s), {100 * done // total}% done")

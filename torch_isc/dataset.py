@@ -138,11 +138,13 @@ def read_manifest(path: PathLike, column: str = "path") -> List[str]:
 
 
 def resolve_inputs(inputs: Iterable[PathLike], manifest: Union[None, PathLike, Sequence[PathLike]] = None,
-                   manifest_column: str = "path") -> List[str]:
+                   manifest_column: str = "path", errors: Optional[Dict[str, str]] = None) -> List[str]:
     """Every input file of a run, in order: each input as :func:`~torch_isc.runner.expand_inputs`
     expands it (a folder stands for its point and image files), a glob (``*``, ``?``, ``[``, and
     ``**`` across folders) for its matches sorted, a ``.parquet`` input for the paths of its
-    ``manifest_column``; then the paths of each ``manifest``.
+    ``manifest_column``; then the paths of each ``manifest``. ``errors``: as for
+    :func:`~torch_isc.runner.expand_inputs` (a folder that cannot be listed is kept as one input
+    that fails, instead of raising).
 
     Raises:
         RunError: an empty folder, a glob without match, a bad manifest.
@@ -158,7 +160,7 @@ def resolve_inputs(inputs: Iterable[PathLike], manifest: Union[None, PathLike, S
         elif Path(s).suffix.lower() in _MANIFEST_SUFFIXES and os.path.isfile(s):
             out.extend(read_manifest(s, manifest_column))
         else:
-            out.extend(expand_inputs([s]))
+            out.extend(expand_inputs([s], errors))
     if manifest is not None:
         for m in ([manifest] if isinstance(manifest, (str, os.PathLike)) else manifest):
             out.extend(read_manifest(m, manifest_column))
@@ -475,7 +477,7 @@ def reconstruct_dataset(inputs: Iterable[PathLike], out_dir: PathLike, config=No
     config = config if config is not None else torch_isc.load_config()
     if image_config is None:
         image_config = images.image_config(config, mode=image_options.mode)
-    sources = resolve_inputs(inputs, manifest, manifest_column)
+    sources = resolve_inputs(inputs, manifest, manifest_column, errors={})
     if not sources:
         raise RunError("no input")
     stems = unique_stems(sources, on_note)

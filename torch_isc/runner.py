@@ -5,14 +5,20 @@ every input writes ``<out>/<stem>.<format>``. It
 
 - expands folders (their point and image files, sorted by name) and gives every input a unique
   output stem (:func:`expand_inputs`, :func:`unique_stems`);
-- skips inputs whose outputs all exist (unless ``overwrite``);
+- skips an input only when its output set is complete and belongs to this input and config:
+  ``<stem>.manifest.json``, written last, holds the sha256 of the input's bytes, of the
+  config (and image options), the formats and every output file with its sha256; a missing,
+  stale or mismatching manifest means the input is redone (:func:`manifest_matches`);
 - reads inputs lazily, only when their batch fills, so memory stays bounded for a folder of
   any size, and solves each batch with :func:`torch_isc.reconstruct_batch`: point files with
   ``config``, images with the pixel config, masks with the mask as sign oracle and the count
   retry of :func:`torch_isc.images.solve_masks`;
-- isolates failures: an input that cannot be read, solved or written gets a failed record with
-  a one-line error naming it, and the others go on (a batch that raises is solved again item by
-  item to find the one at fault);
+- isolates failures: an input that cannot be listed, read, solved or written gets a failed
+  record with a one-line error naming it (control characters in its name escaped), and the
+  others go on (a batch that raises is solved again item by item to find the one at fault); an
+  output set that fails while being written is removed again, so no partial set is left;
+- checks inputs before anything large is allocated: a ``.npy`` header's declared size against
+  the file, an image's pixel count from its header against ``ImageOptions.max_pixels``;
 - calls ``progress(record)`` as soon as each input is final (skipped, failed or done) and
   returns the records in input order.
 
@@ -31,9 +37,13 @@ Example:
 """
 from __future__ import annotations
 
+import hashlib
+import json
+import math
 import os
 import time
 import traceback
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Dict, Iterable, List, Optional, Sequence, Tuple, Union
@@ -45,16 +55,21 @@ from torch_isc import images
 from torch_isc._helpers import one_line
 from torch_isc.io import ExportContext, PointFileError, chosen_formats, export, formats_needing, loader_for
 from torch_isc.io.registry import LOADERS
-from torch_isc.pipeline.config import ReconstructConfig
+from torch_isc.io.files import atomic_write
+from torch_isc.images.read import DEFAULT_MAX_PIXELS, read_image
+from torch_isc.pipeline.config import ReconstructConfig, config_hash
 from torch_isc.pipeline.loop import PointSetError
 
 __all__ = ["RunError", "ImageOptions", "Record", "RunReport", "DEFAULT_FORMATS", "DEFAULT_IMAGE_FORMATS",
-           "expand_inputs", "unique_stems", "run_inputs"]
+           "expand_inputs", "unique_stems", "run_inputs", "shown", "file_sha256", "manifest_path", "manifest_matches",
+           "MANIFEST_FORMAT"]
 
-#: Outputs of a point file, and of an image (which also gets every format that needs the image:
-#: the overlay).
+#: Version of the ``<stem>.manifest.json`` layout.
+MANIFEST_FORMAT = 1
+
+#: Outputs of a point file, and of an image (the drawings and the overlay on request).
 DEFAULT_FORMATS = ("json", "npz", "svg", "png")
-DEFAULT_IMAGE_FORMATS = ("json", "npz", "svg", "png", "contours.npz")
+DEFAULT_IMAGE_FORMATS = ("json", "contours.npz")
 
 PathLike = Union[str, os.PathLike]
 
@@ -76,6 +91,9 @@ class ImageOptions:
         use_oracle: mask mode: read the vertex signs from the mask.
         canny: edges mode: ``(low, high)`` hysteresis thresholds on the gradient of the image in [0, 1].
         sigma: edges mode: Gaussian smoothing in pixels.
+        max_pixels: the largest image read (width x height, from its header, before decoding);
+            None: no limit.
+        connectivity: mask mode: 8 (OpenCV's) or 4, of the foreground.
     """
     mode: str = "mask"
     threshold: Optional[float] = None
@@ -83,6 +101,8 @@ class ImageOptions:
     use_oracle: bool = True
     canny: Tuple[float, float] = (0.1, 0.2)
     sigma: float = 1.0
+    max_pixels: Optional[int] = DEFAULT_MAX_PIXELS
+    connectivity: int = 8
 
 
 @dataclass
@@ -123,21 +143,60 @@ def _is_image(source: str) -> bool:
     return loader_for(source).kind == "image"
 
 
-def expand_inputs(sources: Iterable[PathLike]) -> List[str]:
+def shown(name: object) -> str:
+    """``name`` as it is printed in a message: control characters (a newline in a file name)
+    escaped, so a message stays one line.
+
+    >>> shown("a\\nb.xy")
+    'a\\\\nb.xy'
+    """
+    t = str(name)
+    if t.isprintable():
+        return t
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in t)
+
+
+def _message(source: str, e: BaseException) -> str:
+    """A one-line error of ``e`` starting with the (escaped) name of ``source``."""
+    text = str(e).strip()
+    for prefix in (source, str(Path(source))):
+        if prefix and text.startswith(prefix + ":"):
+            rest = text[len(prefix):]
+            return shown(source) + one_line(rest.replace("\r", "\n"), type(e).__name__)
+    return one_line(shown(text) if "\n" not in text else text, type(e).__name__)
+
+
+def expand_inputs(sources: Iterable[PathLike], errors: Optional[Dict[str, str]] = None) -> List[str]:
     """A folder stands for its point and image files (by :data:`~torch_isc.io.LOADERS` suffix,
     sorted by name, not recursive); anything else is kept as given (a missing file is reported
     when it is read).
 
+    A folder that cannot be listed (no read permission) raises :class:`RunError`, unless
+    ``errors`` is given: it is then kept in the list as one input and ``errors[folder]`` holds
+    its one-line error (:func:`run_inputs` reports it as a failed input).
+
     Raises:
-        RunError: a folder without any such file.
+        RunError: a folder without any such file, or one that cannot be listed.
     """
     out: List[str] = []
     for src in sources:
         p = Path(src)
-        if p.is_dir():
-            files = sorted(str(f) for f in p.iterdir() if f.is_file() and f.suffix.lower() in LOADERS)
+        try:
+            is_dir = p.is_dir()
+        except OSError:
+            is_dir = False
+        if is_dir:
+            try:
+                files = sorted(str(f) for f in p.iterdir() if f.suffix.lower() in LOADERS and f.is_file())
+            except OSError as e:
+                msg = f"{shown(src)}: cannot list the folder ({e.strerror or type(e).__name__})"
+                if errors is None:
+                    raise RunError(msg) from None
+                errors[str(src)] = msg
+                out.append(str(src))
+                continue
             if not files:
-                raise RunError(f"{src}: folder has no point or image file ({', '.join(LOADERS)})")
+                raise RunError(f"{shown(src)}: folder has no point or image file ({', '.join(LOADERS)})")
             out.extend(files)
         else:
             out.append(str(src))
@@ -145,29 +204,75 @@ def expand_inputs(sources: Iterable[PathLike]) -> List[str]:
 
 
 def unique_stems(sources: Sequence[str], note: Optional[Callable[[str], None]] = None) -> List[str]:
-    """Output stems: the file stem, with ``_2``, ``_3``... appended to a repeated one (also
-    avoiding the plain stems of other inputs); ``note`` is told about each renaming.
-    Deterministic for the same input order, so a rerun finds the same outputs.
+    """Output stems, by a rule that does not depend on the order of the inputs:
 
-    >>> unique_stems(["a/x.xy", "b/x.xy", "x_2.xy"])
-    ['x', 'x_3', 'x_2']
+    1. the file stem (``a.xy`` -> ``a``) when no other input has the same one;
+    2. else the stem and the suffix (``a.xy`` -> ``a_xy``, ``a.npy`` -> ``a_npy``);
+    3. where that still clashes (``d1/a.xy`` and ``d2/a.xy``, or another input's name), also the
+       first 8 hex digits of the sha256 of the input's absolute path (``a_xy_1f2e3d4c``);
+    4. the same path given twice: ``_2``, ``_3``... on the repeats.
+
+    ``note`` is told about each renaming.
+
+    >>> unique_stems(["a/x.xy", "b/x.png", "y.xy"])
+    ['x_xy', 'x_png', 'y']
+    >>> unique_stems(["b/x.png", "a/x.xy", "y.xy"])
+    ['x_png', 'x_xy', 'y']
     """
     plain = [Path(s).stem or "input" for s in sources]
-    taken = set(plain)
-    used: set = set()
-    out = []
+    n_plain = Counter(plain)
+    names = []
     for src, stem in zip(sources, plain):
-        name = stem
-        if name in used:
-            k = 2
-            while f"{stem}_{k}" in used or f"{stem}_{k}" in taken:
-                k += 1
-            name = f"{stem}_{k}"
-            if note is not None:
-                note(f"note: another input is also named '{stem}': {src} is written as '{name}'")
-        used.add(name)
-        out.append(name)
-    return out
+        if n_plain[stem] == 1:
+            names.append(stem)
+        else:
+            names.append(f"{stem}_{Path(src).suffix.lower().lstrip('.') or 'noext'}")
+    n_names = Counter(names)
+    for i, src in enumerate(sources):
+        if n_names[names[i]] > 1:
+            h = hashlib.sha256(os.path.abspath(src).encode("utf-8", "surrogateescape")).hexdigest()[:8]
+            names[i] = f"{names[i]}_{h}"
+    seen: Counter = Counter()
+    for i in range(len(names)):
+        seen[names[i]] += 1
+        if seen[names[i]] > 1:
+            names[i] = f"{names[i]}_{seen[names[i]]}"
+    if note is not None:
+        for src, stem, name in zip(sources, plain, names):
+            if name != stem:
+                note(f"note: another input is also named '{shown(stem)}': {shown(src)} is written as '{shown(name)}'")
+    return names
+
+
+def file_sha256(path: PathLike) -> str:
+    """sha256 (hex) of a file's bytes, read in 1 MiB blocks."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def manifest_path(out_dir: PathLike, stem: str) -> Path:
+    """``<out_dir>/<stem>.manifest.json``."""
+    return Path(out_dir) / f"{stem}.manifest.json"
+
+
+def manifest_matches(out_dir: PathLike, stem: str, input_sha256: str, config_sha256: str,
+                     formats: Sequence[str]) -> bool:
+    """Whether ``<stem>.manifest.json`` says the outputs of ``stem`` are complete and were made
+    from this input and config in these formats, and every file it lists still has its hash."""
+    try:
+        m = json.loads(manifest_path(out_dir, stem).read_text(encoding="utf-8"))
+        if (m.get("manifest_format") != MANIFEST_FORMAT or m["input"]["sha256"] != input_sha256
+                or m["config_sha256"] != config_sha256 or list(m["formats"]) != list(formats)):
+            return False
+        files = m["files"]
+        if [f["name"] for f in files] != [f"{stem}.{fmt}" for fmt in formats]:
+            return False
+        return all(file_sha256(Path(out_dir) / f["name"]) == f["sha256"] for f in files)
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return False
 
 
 # ============================================================================ the run
@@ -179,6 +284,7 @@ class _Job:
     image: Optional[object] = None   # gray (H, W) float32 in [0, 1] for an image input, while in its batch
     mask: Optional[torch.Tensor] = None
     n_boundaries: Optional[int] = None
+    input_sha256: Optional[str] = None
 
     @property
     def source(self) -> str:
@@ -198,8 +304,9 @@ class _Run:
         self.image_config = image_config
         self.out_dir = out_dir
         self.formats = formats
-        # an image also gets every format that needs the image (the overlay)
-        self.image_formats = image_formats + formats_needing({"image"})
+        # an image gets the formats asked for (the overlay too: it needs the image, which it has)
+        self.image_formats = list(image_formats)
+        self.formats = [f for f in formats if f not in formats_needing({"image"})]
         self.batch_size = batch_size
         self.opts = image_opts
         self.device = device
@@ -210,6 +317,10 @@ class _Run:
         self.done = 0
         self.total = 0
         self.batches = 0
+        # what an output set must have been made with (the manifest's config hash)
+        opts = {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(image_opts).items() if k != "max_pixels"}
+        self.config_sha = {False: config_hash(config, {"kind": "points"}),
+                           True: config_hash(image_config, {"kind": "image", **opts})}
 
     def formats_of(self, job: _Job) -> List[str]:
         return self.image_formats if job.is_image else self.formats
@@ -224,28 +335,61 @@ class _Run:
         if not job.is_image:
             job.points = torch.from_numpy(loader_for(job.source).load(job.source)).to(self.device)
             return
-        gray = loader_for(job.source).load(job.source)
-        job.image = gray
         o = self.opts
+        gray = read_image(job.source, max_pixels=o.max_pixels)
+        job.image = gray
         if o.mode == "mask":
             thr = o.threshold if o.threshold is not None else images.auto_threshold(gray)
             mask = torch.from_numpy(gray > thr).to(self.device)
             if not bool(mask.any()):
                 raise images.ImageError(f"{job.source}: empty mask: no pixel above threshold {thr:.3g} (all black)")
             if bool(mask.all()):
-                self.note(f"note: {job.source}: the whole image is foreground (all white at threshold {thr:.3g}): "
-                          f"its curve is the image frame")
-            job.points, job.n_boundaries = images.mask_points(mask, o.spacing, None, name=job.source)
-            job.points = job.points.double()
+                self.note(f"note: {shown(job.source)}: the whole image is foreground (all white at threshold "
+                          f"{thr:.3g}): its curve is the image frame")
+            if o.use_oracle:        # the grid path needs no boundary points
+                job.points, job.n_boundaries = None, None
+            else:
+                job.points, job.n_boundaries = images.mask_points(mask, o.spacing, None, name=job.source)
+                job.points = job.points.double()
             job.mask = mask
         else:
             low, high = o.canny
+            need = max(2, int(math.ceil(2 * o.sigma)) + 1)       # kornia's reflect padding of the Gaussian
+            if min(gray.shape) < need:
+                raise images.ImageError(f"{job.source}: image too small for edges mode ({gray.shape[1]}x{gray.shape[0]} "
+                                        f"px; Canny with sigma {o.sigma:g} needs at least {need}x{need})")
             pts = images.edge_points([torch.from_numpy(gray).to(self.device)], low, high, sigma=o.sigma,
                                      spacing=o.spacing)[0]
             if pts.shape[0] < 3:
                 raise images.ImageError(f"{job.source}: no edges found ({pts.shape[0]} edge pixel(s) at Canny "
                                         f"thresholds {low:g},{high:g}; flat image?)")
             job.points = pts.double()
+
+    def read_isolated(self, job: _Job) -> bool:
+        """:meth:`read`, any failure made the job's failed record (one line naming it)."""
+        try:
+            self.read(job)
+            job.input_sha256 = file_sha256(job.source)
+            return True
+        except (PointFileError, images.ImageError, PointSetError) as e:
+            self.fail_read(job, _message(job.source, e))
+        except FileNotFoundError:
+            self.fail_read(job, f"{shown(job.source)}: no such file")
+        except IsADirectoryError:
+            self.fail_read(job, f"{shown(job.source)}: is a directory, not a point file or an image")
+        except OSError as e:
+            self.fail_read(job, f"{shown(job.source)}: cannot read ({e.strerror or type(e).__name__})")
+        except MemoryError:
+            self.fail_read(job, f"{shown(job.source)}: out of memory while reading it")
+        except Exception as e:
+            self.fail_read(job, f"{shown(job.source)}: reading failed ({type(e).__name__}: "
+                                f"{one_line(shown(str(e)), type(e).__name__)})", traceback.format_exc())
+        job.points = job.image = job.mask = None
+        return False
+
+    def fail_read(self, job: _Job, msg: str, tb: Optional[str] = None) -> None:
+        self.done += 1
+        self.finish(job, "failed", msg, tb)
 
     # ---------------------------------------------------------------- solving
     def solve(self, jobs: List[_Job], kind: str) -> list:
@@ -256,8 +400,8 @@ class _Run:
         names = [j.stem for j in jobs]
         points = [j.points for j in jobs]
         if kind == "mask":
-            return images.solve_masks(points, [j.mask for j in jobs], [j.n_boundaries for j in jobs],
-                                      self.image_config, names)
+            return images.grid_results([j.mask for j in jobs], names, connectivity=self.opts.connectivity,
+                                       config=self.image_config)
         if all(not j.is_image for j in jobs):
             if len(jobs) == 1:
                 return [reconstruct(points[0], self.config, name=names[0])]
@@ -294,15 +438,56 @@ class _Run:
             try:
                 res = self.solve([job], kind)[0]
             except bad_input as e:
-                msg = one_line(e, type(e).__name__)
+                msg = str(e).strip()
                 if msg.startswith(f"{job.stem}: "):     # a PointSetError names the item by its stem
                     msg = msg[len(job.stem) + 2:]
-                self.finish(job, "failed", f"{job.source}: {msg}")
+                self.finish(job, "failed", f"{shown(job.source)}: {one_line(shown(msg), type(e).__name__)}")
+            except MemoryError:
+                self.finish(job, "failed", f"{shown(job.source)}: out of memory while reconstructing it")
             except Exception as e:
-                self.finish(job, "failed", f"{job.source}: reconstruction failed ({type(e).__name__}: "
+                self.finish(job, "failed", f"{shown(job.source)}: reconstruction failed ({type(e).__name__}: "
                                            f"{one_line(e, type(e).__name__)})", traceback.format_exc())
             out.append((res, time.perf_counter() - t0))
         return out
+
+    def write(self, job: _Job, res, image) -> List[Path]:
+        """Write the job's output set, one format after the other, then its manifest (last). The
+        old manifest goes first, so an interrupted or failed write never leaves a set that looks
+        complete; on an error the files written by this call are removed again."""
+        formats = self.formats_of(job)
+        man = manifest_path(self.out_dir, job.stem)
+        try:
+            man.unlink()
+        except FileNotFoundError:
+            pass
+        ctx = ExportContext(y_down=job.is_image, image=image)
+        written: List[Path] = []
+        try:
+            for f in formats:
+                written += export(res, self.out_dir / job.stem, [f], context=ctx)
+            files = [{"name": p.name, "sha256": file_sha256(p), "bytes": p.stat().st_size} for p in written]
+            doc = {"manifest_format": MANIFEST_FORMAT, "torch_isc": torch_isc.__version__,
+                   "input": {"path": os.fspath(job.source), "sha256": job.input_sha256},
+                   "config_sha256": self.config_sha[job.is_image], "formats": list(formats), "files": files}
+            atomic_write(man, json.dumps(doc, indent=1) + "\n")
+        except Exception:
+            for p in written:
+                try:
+                    p.unlink()
+                except OSError:
+                    pass
+            raise
+        return written
+
+    def complete(self, job: _Job) -> bool:
+        """Whether the job's outputs are a complete set made from this input and config."""
+        if not manifest_path(self.out_dir, job.stem).exists():
+            return False
+        try:
+            sha = file_sha256(job.source)
+        except OSError:
+            return False
+        return manifest_matches(self.out_dir, job.stem, sha, self.config_sha[job.is_image], self.formats_of(job))
 
     def process(self, batch: List[_Job]) -> None:
         self.batches += 1
@@ -321,14 +506,13 @@ class _Run:
             if res is None:
                 continue
             try:
-                job.record.outputs = export(res, self.out_dir / job.stem, self.formats_of(job),
-                                            context=ExportContext(y_down=job.is_image, image=image))
+                job.record.outputs = self.write(job, res, image)
             except OSError as e:
-                self.finish(job, "failed", f"{job.source}: cannot write outputs in {self.out_dir} "
+                self.finish(job, "failed", f"{shown(job.source)}: cannot write outputs in {shown(self.out_dir)} "
                                            f"({e.strerror or one_line(e, type(e).__name__)})")
                 continue
             except Exception as e:  # an exporter bug: report it as one line, keep going
-                self.finish(job, "failed", f"{job.source}: writing outputs failed ({type(e).__name__}: "
+                self.finish(job, "failed", f"{shown(job.source)}: writing outputs failed ({type(e).__name__}: "
                                            f"{one_line(e, type(e).__name__)})", traceback.format_exc())
                 continue
             stats = res.stats or []
@@ -338,6 +522,11 @@ class _Run:
                 "points_beyond_tolerance": (stats[-1].points_beyond_tolerance if stats else 0),
                 "seconds": seconds,
             }
+            if job.is_image and self.opts.mode == "mask":
+                # the mask's own count of borders, and whether the curve has as many
+                nb = getattr(res, "boundaries", job.n_boundaries)
+                job.record.summary["boundaries"] = nb
+                job.record.summary["count_ok"] = nb is None or (res.num_closed == nb and res.num_open == 0)
             self.on_result(job.record, res)
             self.finish(job, "done")
         self.on_batch("end", self.batches, len(batch), self.done, self.total)
@@ -361,7 +550,9 @@ def run_inputs(inputs: Iterable[PathLike], config: ReconstructConfig, out_dir: P
         formats, image_formats: outputs of point files and of images, among
             :func:`torch_isc.io.chosen_formats`; images also get the formats that need the
             image (``overlay.png``).
-        overwrite: redo inputs whose outputs all exist (by default they are skipped).
+        overwrite: redo inputs whose output set is complete (by default they are skipped: a
+            complete set is one whose ``<stem>.manifest.json`` matches the input's bytes, the
+            config and the formats, and whose files still have the hashes it lists).
         batch_size: inputs read and solved together.
         image_options: how images become points (:class:`ImageOptions`).
         image_config: the config of images (default
@@ -379,6 +570,8 @@ def run_inputs(inputs: Iterable[PathLike], config: ReconstructConfig, out_dir: P
             written and before ``progress``: the :class:`~torch_isc.ReconstructionResult`
             itself (the results table of :mod:`torch_isc.dataset` reads its polylines).
 
+    A folder that cannot be listed is one failed input (its record says why).
+
     Returns:
         a :class:`RunReport`: one :class:`Record` per input, in input order.
 
@@ -388,13 +581,14 @@ def run_inputs(inputs: Iterable[PathLike], config: ReconstructConfig, out_dir: P
     """
     if batch_size < 1:
         raise RunError(f"batch size must be >= 1, got {batch_size}")
-    known = chosen_formats()
+    known = chosen_formats() + formats_needing({"image"})
     for f in list(formats) + list(image_formats):
         if f not in known:
             raise RunError(f"unknown output format '{f}' (known: {', '.join(known)})")
     if image_options.mode not in ("mask", "edges"):
         raise RunError(f"image mode must be 'mask' or 'edges', got {image_options.mode!r}")
-    sources = expand_inputs(inputs)
+    listing: Dict[str, str] = {}
+    sources = expand_inputs(inputs, listing)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     if image_config is None:
@@ -407,10 +601,12 @@ def run_inputs(inputs: Iterable[PathLike], config: ReconstructConfig, out_dir: P
         raise RunError(f"{len(stems)} stem(s) given for {len(sources)} input(s)")
     jobs = [_Job(Record(src, stem), _is_image(src)) for src, stem in zip(sources, stems)]
 
-    # ---- skip finished inputs
+    # ---- folders that cannot be listed; finished inputs (a manifest that matches) are skipped
     todo: List[_Job] = []
     for job in jobs:
-        if not overwrite and all((out / f"{job.stem}.{f}").exists() for f in run.formats_of(job)):
+        if job.source in listing:
+            run.finish(job, "failed", listing[job.source])
+        elif not overwrite and run.complete(job):
             run.finish(job, "skipped")
         else:
             todo.append(job)
@@ -419,12 +615,8 @@ def run_inputs(inputs: Iterable[PathLike], config: ReconstructConfig, out_dir: P
     run.total = len(todo)
     batch: List[_Job] = []
     for i, job in enumerate(todo):
-        try:
-            run.read(job)
+        if run.read_isolated(job):
             batch.append(job)
-        except (PointFileError, images.ImageError) as e:
-            run.done += 1
-            run.finish(job, "failed", one_line(e, type(e).__name__))   # the message starts with the file name
         if len(batch) == batch_size or (i == len(todo) - 1 and batch):
             run.process(batch)
             batch = []

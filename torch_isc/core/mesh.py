@@ -52,7 +52,7 @@ class MeshBatch:
     kernel = TRIANGLES
 
     def __init__(self, verts: torch.Tensor, faces: torch.Tensor,
-                 verts_per_item: torch.Tensor, faces_per_item: torch.Tensor):
+                 verts_per_item: torch.Tensor, faces_per_item: torch.Tensor, check_sizes: bool = True):
         if verts.dim() != 2 or verts.shape[1] != 2:
             raise InvalidMeshError(f"verts must have shape (V, 2), got {tuple(verts.shape)}")
         if faces.dim() != 2 or faces.shape[1] != 3:
@@ -62,7 +62,10 @@ class MeshBatch:
         self.faces = faces.to(device=dev, dtype=torch.long)
         self.verts_per_item = torch.as_tensor(verts_per_item, dtype=torch.long, device=dev)
         self.faces_per_item = torch.as_tensor(faces_per_item, dtype=torch.long, device=dev)
-        if int(self.verts_per_item.sum()) != verts.shape[0] or int(self.faces_per_item.sum()) != faces.shape[0]:
+        # the check reads the counts on the host (a synchronization on a GPU): callers that built
+        # the counts with the packed tensors pass check_sizes=False
+        if check_sizes and (int(self.verts_per_item.sum()) != verts.shape[0]
+                            or int(self.faces_per_item.sum()) != faces.shape[0]):
             raise InvalidMeshError("verts_per_item / faces_per_item do not add up to the packed sizes")
 
     # ------------------------------------------------------------------ basics
@@ -115,7 +118,7 @@ class MeshBatch:
 
     def to(self, device=None, dtype=None) -> "MeshBatch":
         return MeshBatch(self.verts.to(device=device, dtype=dtype), self.faces.to(device),
-                         self.verts_per_item.to(device), self.faces_per_item.to(device))
+                         self.verts_per_item.to(device), self.faces_per_item.to(device), check_sizes=False)
 
     # ------------------------------------------------------------ list views
     def verts_list(self) -> List[torch.Tensor]:
@@ -129,6 +132,19 @@ class MeshBatch:
     @cached_property
     def vert_offset_of_face(self) -> torch.Tensor:
         return self.verts_first_idx[self.face_item]
+
+    def items_list(self, first: Optional[Sequence[int]] = None) -> List["MeshBatch"]:
+        """One single-item batch per item, as views of the packed tensors (faces with local
+        indices): the host reads the item offsets once, not once per item."""
+        nv = self.verts_per_item.tolist()
+        nf = self.faces_per_item.tolist()
+        local = self.faces - self.vert_offset_of_face[:, None]
+        out, v0, f0 = [], 0, 0
+        for b in range(len(nv)):
+            out.append(MeshBatch(self.verts[v0:v0 + nv[b]], local[f0:f0 + nf[b]], self.verts_per_item[b:b + 1],
+                                 self.faces_per_item[b:b + 1], check_sizes=False))
+            v0, f0 = v0 + nv[b], f0 + nf[b]
+        return out
 
     def __getitem__(self, b: int) -> "MeshBatch":
         b = int(b)
@@ -169,7 +185,7 @@ class MeshBatch:
             nvs.append(m.verts_per_item)
             nfs.append(m.faces_per_item)
             off += m.verts.shape[0]
-        return MeshBatch(torch.cat(vs), torch.cat(fs), torch.cat(nvs), torch.cat(nfs))
+        return MeshBatch(torch.cat(vs), torch.cat(fs), torch.cat(nvs), torch.cat(nfs), check_sizes=False)
 
     def select_items(self, items: torch.Tensor) -> Tuple["MeshBatch", torch.Tensor, torch.Tensor]:
         """Sub-batch of the given items (sorted). Returns the mesh, the kept vertex
@@ -182,7 +198,8 @@ class MeshBatch:
             remap = torch.full((self.verts.shape[0],), -1, dtype=torch.long, device=self.device)
             remap[vkeep] = torch.arange(vkeep.shape[0], device=self.device)
             faces = remap[self.faces[fkeep]]
-        m = MeshBatch(self.verts[vkeep], faces, self.verts_per_item[keep_item], self.faces_per_item[keep_item])
+        m = MeshBatch(self.verts[vkeep], faces, self.verts_per_item[keep_item], self.faces_per_item[keep_item],
+                      check_sizes=False)
         return m, vkeep, fkeep
 
     # ---------------------------------------------------------- geometry
@@ -397,7 +414,7 @@ def _replicate(tv: torch.Tensor, tf: torch.Tensor, center: torch.Tensor, scale: 
     offs = (torch.arange(B, device=center.device) * nv).view(B, 1, 1)
     faces = (tf[None] + offs).reshape(B * nf, 3)
     full = lambda n: torch.full((B,), n, dtype=torch.long, device=center.device)  # noqa: E731
-    return MeshBatch(verts, faces, full(nv), full(nf))
+    return MeshBatch(verts, faces, full(nv), full(nf), check_sizes=False)
 
 
 def hexagon_mesh(center: torch.Tensor, radius: torch.Tensor, resolution: int = 1) -> MeshBatch:

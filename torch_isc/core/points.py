@@ -14,10 +14,10 @@ from typing import List, Optional, Sequence, Union
 import numpy as np
 import torch
 
-from torch_isc.core.segments import first_index, segment_max, segment_min
+from torch_isc.core.segments import first_index, segment_max, segment_min, segment_sum
 
 __all__ = ["PointsLike", "PointSetError", "PointBatch", "check_points", "distinct_points", "collinear_items",
-           "prepare_points"]
+           "prepare_points", "check_extent"]
 
 
 PointsLike = Union[torch.Tensor, np.ndarray, Sequence[Sequence[float]]]
@@ -27,8 +27,18 @@ class PointSetError(ValueError):
     """A point set that cannot be reconstructed (too few points, NaN, wrong shape...)."""
 
 
-def check_points(x: PointsLike, label: str) -> torch.Tensor:
-    if not isinstance(x, torch.Tensor):
+def check_points(x: PointsLike, label: str, finite: bool = True) -> torch.Tensor:
+    """``x`` as a tensor of shape ``(N, 2)``, real, dense, not empty and (with ``finite``) with
+    finite coordinates; else :class:`PointSetError` naming ``label``. The finiteness check reads
+    the device: a batch checks all its sets at once instead (:func:`prepare_points`)."""
+    if isinstance(x, torch.Tensor):
+        if x.layout != torch.strided:
+            raise PointSetError(f"{label}: expected a dense (strided) tensor, got layout {x.layout}")
+        if x.device.type == "meta":
+            raise PointSetError(f"{label}: a meta tensor holds no values")
+        if x.is_quantized:
+            raise PointSetError(f"{label}: expected real coordinates, got a quantized tensor")
+    else:
         try:
             x = torch.as_tensor(np.asarray(x, dtype=np.float64))
         except (TypeError, ValueError) as e:
@@ -39,10 +49,21 @@ def check_points(x: PointsLike, label: str) -> torch.Tensor:
         raise PointSetError(f"{label}: expected real coordinates, got dtype {x.dtype}")
     if x.shape[0] == 0:
         raise PointSetError(f"{label}: no points")
-    bad = ~torch.isfinite(x.double()).all(1)
-    if bad.any():
-        raise PointSetError(f"{label}: {int(bad.sum())} point(s) have NaN or Inf coordinates")
+    if finite:
+        bad = ~torch.isfinite(x.double()).all(1)
+        if bad.any():
+            raise PointSetError(f"{label}: {int(bad.sum())} point(s) have NaN or Inf coordinates")
     return x
+
+
+def _check_finite(raw: Sequence[torch.Tensor], labels: Sequence[str]) -> None:
+    """Every set's coordinates finite, checked for the whole batch with one host read."""
+    n = torch.tensor([p.shape[0] for p in raw])
+    bad = torch.cat([~torch.isfinite(p.double()).all(1) for p in raw])
+    per_item = segment_sum(bad.long(), torch.repeat_interleave(torch.arange(len(raw)), n).to(bad.device), len(raw))
+    for lab, k in zip(labels, per_item.tolist()):
+        if k:
+            raise PointSetError(f"{lab}: {k} point(s) have NaN or Inf coordinates")
 
 
 def distinct_points(sets: Sequence[torch.Tensor], labels: Sequence[str]):
@@ -150,11 +171,12 @@ def prepare_points(point_sets: Sequence[PointsLike], names: Optional[Sequence[Op
     if len(names) != len(point_sets):
         raise PointSetError(f"names: {len(names)} name(s) for {len(point_sets)} point set(s)")
     labels = [n if n is not None else f"point set {i}" for i, n in enumerate(names)]
-    raw = [check_points(p, lab) for p, lab in zip(point_sets, labels)]
+    raw = [check_points(p, lab, finite=False) for p, lab in zip(point_sets, labels)]
     device = raw[0].device
     for p, lab in zip(raw, labels):
         if p.device != device:
             raise PointSetError(f"{lab}: on {p.device}, but the batch is on {device}")
+    _check_finite(raw, labels)
     B = len(raw)
     with torch.no_grad():
         pts64, point_item, counts = distinct_points(raw, labels)
@@ -163,13 +185,47 @@ def prepare_points(point_sets: Sequence[PointsLike], names: Optional[Sequence[Op
         idx2 = point_item[:, None].expand(-1, 2)
         lo = torch.full((B, 2), big, dtype=torch.float64, device=device).scatter_reduce(0, idx2, pts64, "amin")
         hi = torch.full((B, 2), -big, dtype=torch.float64, device=device).scatter_reduce(0, idx2, pts64, "amax")
+        reach = torch.maximum(lo.abs(), hi.abs()).amax(1)
         center64 = 0.5 * (lo + hi)
         scale64 = (hi - lo).norm(dim=1)
         norm64 = (pts64 - center64[point_item]) / scale64[point_item, None]
+        # extreme magnitudes (squares that overflow or underflow float64, sums that overflow):
+        # the same frame computed in units of the item's largest coordinate
+        plain = (reach < 1e150) & ((hi - lo).amax(1) > 1e-150)
+        if not bool(plain.all()):
+            m = reach.clamp_min(torch.finfo(torch.float64).tiny)
+            lo_m, hi_m = lo / m[:, None], hi / m[:, None]
+            c_m = 0.5 * (lo_m + hi_m)
+            d_m = torch.hypot(hi_m[:, 0] - lo_m[:, 0], hi_m[:, 1] - lo_m[:, 1])
+            center64 = torch.where(plain[:, None], center64, c_m * m[:, None])
+            scale64 = torch.where(plain, scale64, d_m * m)
+            mi = m[point_item, None]
+            safe64 = (pts64 / mi - c_m[point_item]) / d_m[point_item, None]
+            norm64 = torch.where(plain[point_item, None], norm64, safe64)
+            bad = (~torch.isfinite(scale64)) | (scale64 <= 0) | (~torch.isfinite(center64).all(1))
+            if bool(bad.any()):
+                b = int(bad.nonzero()[0, 0])
+                raise PointSetError(f"{labels[b]}: coordinates too large for float64 (largest magnitude "
+                                    f"{float(reach[b]):.3g}: the bounding box's diagonal overflows)")
         # points on one line (up to the rounding of the input) enclose no region: such an item
         # stops at level 0 with no curve (limit "no_curve"), not with a loop the data cannot support
         ulp = torch.tensor([torch.finfo(p.dtype).eps if p.dtype.is_floating_point else 0.0 for p in raw],
                            dtype=torch.float64, device=device)
-        reach = torch.maximum(lo.abs(), hi.abs()).amax(1)
         flat = collinear_items(norm64, point_item, B, 1e-12 + 8 * ulp * reach / scale64)
         return PointBatch(norm64.to(dtype), point_item, counts, center64, scale64, flat, raw, labels)
+
+
+def check_extent(batch: PointBatch, cover: float, dtype: torch.dtype) -> None:
+    """Raise :class:`PointSetError` naming the first item whose mesh, reaching ``cover``
+    diagonals from the centre of its points, would not fit in its output precision (the
+    caller's floating dtype promoted with ``dtype``, float64 at most): its outputs would
+    hold Inf."""
+    with torch.no_grad():
+        far = batch.center.abs().amax(1) + 2.0 * cover * batch.scale
+        for b, (f, raw) in enumerate(zip(far.tolist(), batch.raw)):
+            odt = torch.promote_types(raw.dtype if raw.dtype.is_floating_point else dtype, dtype)
+            top = torch.finfo(odt).max
+            if not f < top:
+                raise PointSetError(f"{batch.labels[b]}: coordinates too large: the mesh around the points "
+                                    f"reaches {f:.3g}, beyond the largest {str(odt).replace('torch.', '')} "
+                                    f"({top:.3g})")

@@ -56,8 +56,8 @@ def segment_mean(x: torch.Tensor, seg: torch.Tensor, n: int) -> torch.Tensor:
 
 
 def segment_any(mask: torch.Tensor, seg: torch.Tensor, n: int) -> torch.Tensor:
-    """``(n,)`` bool, whether any row of the segment is True."""
-    return torch.zeros(n, dtype=torch.bool, device=mask.device).index_fill_(0, seg[mask], True)
+    """``(n,)`` bool, whether any row of the segment is True (no boolean indexing: no host read)."""
+    return segment_max(mask.to(torch.int32), seg, n, fill=0) > 0
 
 
 def segment_median(x: torch.Tensor, seg: torch.Tensor, n: int) -> torch.Tensor:

@@ -79,5 +79,5 @@ def subdivide(mesh: MeshBatch, marked: torch.Tensor) -> Subdivision:
         fpi = segment_sum(nchild, mesh.face_item, B)
     mid_pos = 0.5 * (mesh.verts[e[split_ids, 0]] + mesh.verts[e[split_ids, 1]])
     verts = torch.cat([mesh.verts, mid_pos], 0)[perm]
-    new_mesh = MeshBatch(verts, new_faces, vpi, fpi)
+    new_mesh = MeshBatch(verts, new_faces, vpi, fpi, check_sizes=False)
     return Subdivision(new_mesh, children, rank[:V], new_vert_edge)

@@ -45,11 +45,12 @@ Example:
 from __future__ import annotations
 
 from torch_isc.images.arrays import ImageError, ImageLike, as_masks
-from torch_isc.images.contours import (CONTOURS_FORMAT, contour_arrays, contour_hierarchy, find_contours,
+from torch_isc.images.contours import (CHAIN_METHODS, CONTOURS_FORMAT, contour_arrays, contour_hierarchy, find_contours, find_contours_batch, grid_contours,
                                        load_contours, to_cv_contours)
 from torch_isc.images.edges import edge_points, reconstruct_edges
+from torch_isc.images.grid import RETR_MODES, GridCurves, cv_layout, grid_mesh, retr_mode, trace_masks
 from torch_isc.images.masks import (MaskOracle, auto_threshold, mask_crack_contours, mask_points, mask_to_points,
-                                    reconstruct_masks, resample_closed, solve_masks)
+                                    reconstruct_masks, resample_closed, solve_masks, grid_results)
 from torch_isc.images.polylines import closed_polygons, polyline_dicts
 from torch_isc.images.read import IMAGE_SUFFIXES, decode_image, read_image
 from torch_isc.images.settings import EDGE_CONFIG, IMAGE_CONFIG, MASK_CONFIG, image_config
@@ -58,6 +59,7 @@ __all__ = [
     "IMAGE_SUFFIXES", "IMAGE_CONFIG", "MASK_CONFIG", "EDGE_CONFIG", "ImageError", "ImageLike", "image_config",
     "read_image", "decode_image", "as_masks", "mask_crack_contours", "resample_closed", "mask_to_points",
     "mask_points", "auto_threshold", "solve_masks", "edge_points", "MaskOracle", "reconstruct_masks",
-    "reconstruct_edges", "polyline_dicts", "closed_polygons", "to_cv_contours", "contour_hierarchy",
-    "find_contours", "CONTOURS_FORMAT", "contour_arrays", "load_contours",
+    "reconstruct_edges", "grid_results", "polyline_dicts", "closed_polygons", "to_cv_contours", "contour_hierarchy",
+    "find_contours", "CONTOURS_FORMAT", "contour_arrays", "load_contours", "find_contours_batch", "grid_contours",
+    "CHAIN_METHODS", "RETR_MODES", "GridCurves", "cv_layout", "grid_mesh", "retr_mode", "trace_masks",
 ]

@@ -154,18 +154,160 @@ def to_cv_contours(src, mode: str = "tree", dtype=np.float32) -> Tuple[List[np.n
     return out, h[None]
 
 
-def find_contours(mask: ImageLike, mode: str = "tree", config: Optional[ReconstructConfig] = None,
-                  dtype=np.float32, **kw) -> Tuple[List[np.ndarray], np.ndarray]:
-    """A sub-pixel stand-in for ``cv2.findContours(mask, RETR_TREE or RETR_CCOMP, ...)``:
-    :func:`reconstruct_masks` on one mask, then :func:`to_cv_contours`.
+#: OpenCV's contour approximation methods by name and constant (``CHAIN_APPROX_NONE`` = 1,
+#: ``CHAIN_APPROX_SIMPLE`` = 2; the Teh-Chin ones, 3 and 4, are taken as SIMPLE).
+CHAIN_METHODS = {"none": 1, "simple": 2, "tc89_l1": 3, "tc89_kcos": 4}
+
+
+def _chain_method(method) -> str:
+    if isinstance(method, (int, np.integer)) and not isinstance(method, bool):
+        for k, v in CHAIN_METHODS.items():
+            if v == int(method):
+                return "none" if k == "none" else "simple"
+        raise ValueError(f"unknown contour approximation method {method} (cv2.CHAIN_APPROX_NONE=1, SIMPLE=2, "
+                         f"TC89_L1=3, TC89_KCOS=4)")
+    name = str(method).lower().rsplit(".", 1)[-1]
+    name = name[13:] if name.startswith("chain_approx_") else name
+    if name not in CHAIN_METHODS:
+        raise ValueError(f"unknown contour approximation method {method!r} (none, simple or cv2.CHAIN_APPROX_*)")
+    return "none" if name == "none" else "simple"
+
+
+def _shoelace(p: np.ndarray) -> float:
+    x, y = p[:, 0], p[:, 1]
+    return 0.5 * float((x * np.roll(y, -1) - np.roll(x, -1) * y).sum())
+
+
+def _as_cv(poly: np.ndarray, method: str, epsilon: float, integer: bool, offset) -> np.ndarray:
+    """One loop of :func:`trace_masks` (foreground on the left) as an OpenCV contour: reversed
+    (OpenCV's orientation), starting at its top-left point, in OpenCV's coordinates."""
+    q = poly[::-1] - 0.5
+    s = int(np.lexsort((q[:, 0], q[:, 1]))[0])
+    q = np.roll(q, -s, 0)
+    if offset is not None:
+        q = q + np.asarray(offset, np.float64).reshape(1, 2)
+    if integer:
+        q = np.rint(q)             # the foreground pixel centres (integers already)
+        keep = np.r_[True, (q[1:] != q[:-1]).any(1)]
+        q = q[keep]
+        if len(q) > 1 and (q[-1] == q[0]).all():
+            q = q[:-1]
+        q = q.astype(np.int32)
+        if method == "simple" and len(q) > 2:
+            q = cv2_approx(q, 0.0)
+    elif method == "simple" and len(q) > 2:
+        q = cv2_approx(q.astype(np.float32), epsilon)
+    return np.ascontiguousarray(q.reshape(-1, 1, 2).astype(np.int32 if integer else np.float32))
+
+
+def cv2_approx(q: np.ndarray, epsilon: float) -> np.ndarray:
+    """Douglas-Peucker of a closed contour (``cv2.approxPolyDP``); with ``epsilon`` 0, only the
+    collinear runs are merged (as CHAIN_APPROX_SIMPLE does on pixel chains)."""
+    from torch_isc._helpers import import_cv2
+    cv2 = import_cv2()
+    out = cv2.approxPolyDP(q.reshape(-1, 1, 2), float(epsilon), True).reshape(-1, 2)
+    return out if len(out) >= 1 else q
+
+
+def find_contours_batch(masks, mode=3, method=1, offset=None, *, connectivity: int = 8, dtype=np.float32,
+                        min_area: float = 0.0, epsilon: float = 0.1, smooth: int = 12,
+                        threshold: Optional[float] = None, batch_pixels: int = 1 << 22):
+    """:func:`find_contours` of many masks, solved together: one ``(contours, hierarchy)`` per mask.
+    ``batch_pixels`` bounds the pixels of one solve (masks are split into such batches)."""
+    from torch_isc.images.arrays import binarize, image_list
+    from torch_isc.images.grid import cv_layout, retr_mode, trace_masks
+
+    mode = retr_mode(mode)
+    method = _chain_method(method)
+    integer = np.issubdtype(np.dtype(dtype), np.integer)
+    ts = [binarize(t, threshold) for t in image_list(masks, "mask")]
+    out = []
+    b0 = 0
+    while b0 < len(ts):
+        b1, px = b0, 0
+        while b1 < len(ts) and (b1 == b0 or px + ts[b1].numel() <= batch_pixels):
+            px += ts[b1].numel()
+            b1 += 1
+        gc = trace_masks(ts[b0:b1], connectivity, smooth)
+        out.extend(grid_contours(gc, mode, method, epsilon, integer, min_area, offset))
+        b0 = b1
+    return out
+
+
+def grid_contours(gc, mode: str = "tree", method: str = "none", epsilon: float = 0.1, integer: bool = False,
+                  min_area: float = 0.0, offset=None):
+    """Per item of a :class:`~torch_isc.images.grid.GridCurves`: ``(contours tuple, hierarchy (1, N, 4)
+    or None)`` in OpenCV's layout."""
+    from torch_isc.images.grid import cv_layout
+    pl = gc.polylines
+    pts = (gc.inner if integer and gc.inner is not None else pl.points).detach().cpu().double().numpy()
+    first = pl.first.cpu().numpy()
+    counts = pl.counts.cpu().numpy()
+    outer = gc.outer.cpu().numpy()
+    parent = gc.parent.cpu().numpy()
+    start = gc.start.cpu().numpy()
+    ranges = gc.loop_ranges().cpu().numpy()
+    sub = pl.points.detach().cpu().double().numpy()
+    pl_area = [_shoelace(sub[first[k]:first[k] + counts[k]]) for k in range(len(first))] if min_area > 0 else None
+    res = []
+    for b in range(gc.sizes.shape[0]):
+        k0, k1 = int(ranges[b]), int(ranges[b + 1])
+        polys = [pts[first[k]:first[k] + counts[k]] for k in range(k0, k1)]
+        areas = [pl_area[k] for k in range(k0, k1)] if pl_area is not None else None
+        par = np.where(parent[k0:k1] >= 0, parent[k0:k1] - k0, -1)
+        if min_area > 0 and polys:
+            small = np.array([abs(a) < min_area for a in areas])
+            for _ in range(64):                  # a small loop takes its whole subtree with it
+                nxt_small = small | (small[np.maximum(par, 0)] & (par >= 0))
+                if (nxt_small == small).all():
+                    break
+                small = nxt_small
+        else:
+            small = np.zeros(len(polys), bool)
+        order, h = cv_layout(outer[k0:k1], par, start[k0:k1], mode, keep=~small)
+        cs = tuple(_as_cv(polys[k], method, epsilon, integer, offset) for k in order.tolist())
+        res.append((cs, h[None] if len(cs) else None))
+    return res
+
+
+def find_contours(mask: ImageLike, mode=3, method=1, offset=None, *, connectivity: int = 8, dtype=np.float32,
+                  min_area: float = 0.0, epsilon: float = 0.1, smooth: int = 12,
+                  threshold: Optional[float] = None) -> Tuple[tuple, Optional[np.ndarray]]:
+    """A drop-in for ``cv2.findContours(mask, mode, method)`` with sub-pixel contours.
+
+    The same contours (one per border of an 8-connected foreground component or 4-connected
+    hole, with ``connectivity=8``, as OpenCV), in OpenCV's order, orientation and hierarchy
+    layout, from the implicit simplicial curve of the mask on its pixel-centre grid
+    (:func:`torch_isc.images.grid.trace_masks`): each point lies between a foreground and a
+    background pixel centre, never more than a pixel from OpenCV's chain.
+
+    Args:
+        mask: 2D array or tensor; foreground is nonzero for integer masks (as OpenCV), above
+            ``threshold`` (default 0.5) for float masks.
+        mode: ``cv2.RETR_EXTERNAL``/``RETR_LIST``/``RETR_CCOMP``/``RETR_TREE`` or their names
+            (``"tree"``...).
+        method: ``cv2.CHAIN_APPROX_NONE`` (every crossing) or ``CHAIN_APPROX_SIMPLE`` (points
+            dropped while the contour stays within ``epsilon`` pixels: ``cv2.approxPolyDP``;
+            for int32 output, only collinear runs merged).
+        offset: ``(dx, dy)`` added to every point, as OpenCV's ``offset``.
+        connectivity: 8 (default) or 4, of the foreground.
+        dtype: ``np.float32`` (sub-pixel, default) or ``np.int32`` (rounded to pixel centres,
+            repeats dropped: what ``cv2.drawContours`` needs).
+        min_area: drop contours enclosing less than this area (pixels^2) with their subtrees.
+        smooth: smoothing iterations (0: the crack-midpoint polygon, as marching squares).
+
+    Returns:
+        ``(contours, hierarchy)`` as ``cv2.findContours``: a tuple of ``(n, 1, 2)`` arrays in
+        OpenCV's coordinates (pixel centres at integers: our ``(x, y)`` is ``(x - 0.5, y - 0.5)``)
+        and the ``(1, N, 4)`` int32 ``[next, prev, first_child, parent]``, None for no contour.
 
     >>> m = np.zeros((40, 40), np.uint8); m[5:35, 5:35] = 1; m[15:25, 15:25] = 0
-    >>> c, h = find_contours(m, "ccomp")
-    >>> len(c), h[0, :, 3].tolist()
-    (2, [-1, 0])
+    >>> c, h = find_contours(m, 2)
+    >>> len(c), h[0, :, 3].tolist(), c[0].dtype.name
+    (2, [-1, 0], 'float32')
     """
-    res = reconstruct_masks([mask], config, **kw)[0]
-    return to_cv_contours(res, mode, dtype)
+    return find_contours_batch([mask], mode, method, offset, connectivity=connectivity, dtype=dtype,
+                               min_area=min_area, epsilon=epsilon, smooth=smooth, threshold=threshold)[0]
 
 
 #: Version of the contours ``.npz`` layout (:func:`contour_arrays`).
@@ -176,7 +318,11 @@ def contour_arrays(src, mode: str = "tree") -> Dict[str, np.ndarray]:
     """The arrays of a contours ``.npz`` (written by :func:`torch_isc.io.write_contours`):
     ``points (P, 2)`` float32 in OpenCV coordinates (:func:`to_cv_contours`), ``counts (N,)``
     vertices per contour, ``hierarchy (N, 4)`` int32, ``mode``, ``format``."""
-    contours, h = to_cv_contours(src, mode)
+    pre = getattr(src, "cv_contours", None)
+    if pre is not None and mode == "tree":           # a mask's grid result: OpenCV's own order
+        contours, h = pre
+    else:
+        contours, h = to_cv_contours(src, mode)
     pts = np.concatenate([c.reshape(-1, 2) for c in contours]) if contours else np.zeros((0, 2), np.float32)
     return {
         "points": pts.astype(np.float32), "counts": np.array([len(c) for c in contours], np.int64),

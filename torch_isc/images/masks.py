@@ -14,7 +14,7 @@ from torch_isc.images.settings import image_config
 from torch_isc.pipeline.config import ReconstructConfig
 
 __all__ = ["mask_crack_contours", "resample_closed", "mask_to_points", "mask_points", "auto_threshold",
-           "MaskOracle", "solve_masks", "reconstruct_masks"]
+           "MaskOracle", "solve_masks", "reconstruct_masks", "grid_results"]
 
 
 _DIRS = np.array([[1, 0], [1, 1], [0, 1], [-1, 1], [-1, 0], [-1, -1], [0, -1], [1, -1]], np.int64)  # (dx, dy), y down
@@ -338,3 +338,55 @@ def reconstruct_masks(masks: Union[ImageLike, Sequence[ImageLike]], config: Opti
     return solve_masks([p for p, _ in prepared], ts, [n for _, n in prepared], cfg, labels, threshold,
                        use_oracle, interpolation, retry)
 
+
+
+def grid_results(masks: Union[ImageLike, Sequence[ImageLike]], names: Optional[Sequence[str]] = None,
+                 connectivity: int = 8, smooth: int = 12, threshold: Optional[float] = None,
+                 config: Optional[ReconstructConfig] = None) -> list:
+    """Mask mode's fast path: the curves of a batch of masks from one solve on their pixel-centre
+    grids (:func:`torch_isc.images.grid.trace_masks`), one
+    :class:`~torch_isc.pipeline.result.ReconstructionResult` per mask.
+
+    Each result's polylines are the mask's borders in OpenCV's ``RETR_TREE`` order (foreground on
+    their left), its curve the item's band mesh with the fitted values, ``stats`` empty and
+    ``converged`` True; ``result.boundaries`` is the mask's number of borders and
+    ``result.count_ok`` whether the curve has as many closed curves (always, by construction;
+    a flag for the outputs), ``result.cv_contours`` the ``(contours, hierarchy)`` of
+    :func:`~torch_isc.images.find_contours` (RETR_TREE, float32) for the contours file.
+
+    Raises:
+        ImageError: a mask with no foreground pixel (naming it).
+    """
+    from torch_isc.core.curve import ImplicitCurve
+    from torch_isc.images.contours import grid_contours
+    from torch_isc.images.grid import trace_masks
+    from torch_isc.pipeline.result import ReconstructionResult
+
+    ts = [binarize(t, threshold) for t in image_list(masks, "mask")]
+    labels = default_names(names, len(ts), "mask")
+    for t, lab in zip(ts, labels):
+        if not bool(t.any()):
+            raise ImageError(f"{lab}: empty mask (no foreground pixel above the threshold)")
+    cfg = config if config is not None else image_config()
+    gc = trace_masks(ts, connectivity, smooth)
+    cvs = grid_contours(gc, "tree")
+    mesh = gc.mesh
+    vfirst = mesh.verts_first_idx.tolist() + [mesh.verts.shape[0]]
+    ffirst = mesh.faces_first_idx.tolist() + [mesh.faces.shape[0]]
+    out = []
+    for b, (lab, (cs, h)) in enumerate(zip(labels, cvs)):
+        v0, v1, f0, f1 = vfirst[b], vfirst[b + 1], ffirst[b], ffirst[b + 1]
+        from torch_isc.core.mesh import MeshBatch
+        sub = MeshBatch(mesh.verts[v0:v1], mesh.faces[f0:f1] - v0, mesh.verts_per_item[b:b + 1],
+                        mesh.faces_per_item[b:b + 1])
+        curve = ImplicitCurve(sub, gc.values[v0:v1], validate=False)
+        # polylines: OpenCV's order, our orientation (foreground on the left), our coordinates
+        pls = [{"closed": True, "points": torch.from_numpy(np.ascontiguousarray(c.reshape(-1, 2)[::-1].astype(np.float64) + 0.5))}
+               for c in cs]
+        r = ReconstructionResult(curve=curve, points=torch.zeros(0, 2, dtype=torch.float64), stats=[], config=cfg,
+                                 converged=True, limit=None, name=lab, _polylines=pls)
+        r.boundaries = len(cs)
+        r.count_ok = True
+        r.cv_contours = (cs, h)
+        out.append(r)
+    return out

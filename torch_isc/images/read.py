@@ -1,38 +1,194 @@
-"""Image files decoded as grayscale arrays."""
+"""Image files decoded as grayscale arrays.
+
+Before anything is decoded, the header is read (PNG, JPEG, BMP, TIFF: :func:`image_header`):
+an image of more than ``max_pixels`` pixels (default :data:`DEFAULT_MAX_PIXELS`, 100
+megapixels) is rejected without allocating it (a 168 KB 1-bit PNG can declare 32000x32000
+pixels), a TIFF of several pages is rejected (only single images are read), and the EXIF
+orientation (JPEG APP1, PNG ``eXIf``; OpenCV applies a TIFF's itself) is applied after
+decoding, as a viewer shows the image. Other formats OpenCV decodes have their size checked after decoding (OpenCV itself refuses
+more than 2**30 pixels).
+"""
 from __future__ import annotations
 
 import os
+import struct
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Union
+from typing import Optional, Union
 
 import numpy as np
 
 from torch_isc._helpers import import_cv2, read_file_bytes
 from torch_isc.images.arrays import ImageError
 
-__all__ = ["IMAGE_SUFFIXES", "read_image", "decode_image"]
+__all__ = ["IMAGE_SUFFIXES", "DEFAULT_MAX_PIXELS", "ImageHeader", "image_header", "read_image", "decode_image"]
 
 #: File suffixes read as images (lower case).
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
+#: The largest image read, in pixels (width x height), unless the caller sets another limit.
+DEFAULT_MAX_PIXELS = 100_000_000
 
 
-def read_image(path: Union[str, os.PathLike]) -> np.ndarray:
+@dataclass(frozen=True)
+class ImageHeader:
+    """What an image file's header says: ``width``, ``height``, ``pages`` (TIFF), the EXIF
+    ``orientation`` (1-8, 1 when absent) and the ``format`` name."""
+    format: str
+    width: int
+    height: int
+    pages: int = 1
+    orientation: int = 1
+
+
+def _exif_orientation(tiff: bytes) -> int:
+    """The orientation tag (274) of the first IFD of a TIFF/EXIF byte block; 1 when absent."""
+    try:
+        end = {b"II": "<", b"MM": ">"}[tiff[:2]]
+        off = struct.unpack(end + "I", tiff[4:8])[0]
+        n = struct.unpack(end + "H", tiff[off:off + 2])[0]
+        for i in range(min(n, 4096)):
+            e = off + 2 + 12 * i
+            tag, typ = struct.unpack(end + "HH", tiff[e:e + 4])
+            if tag == 274:
+                v = struct.unpack(end + "H", tiff[e + 8:e + 10])[0] if typ == 3 else \
+                    struct.unpack(end + "I", tiff[e + 8:e + 12])[0]
+                return v if 1 <= v <= 8 else 1
+    except (KeyError, struct.error, IndexError):
+        pass
+    return 1
+
+
+def _tiff_header(b: bytes) -> Optional[ImageHeader]:
+    end = {b"II": "<", b"MM": ">"}[b[:2]]
+    if struct.unpack(end + "H", b[2:4])[0] != 42:
+        return None                                   # BigTIFF (43) and others: not parsed
+    off = struct.unpack(end + "I", b[4:8])[0]
+    pages, seen, first = 0, set(), None
+    while off and off not in seen and pages < 100_000:
+        seen.add(off)
+        n = struct.unpack(end + "H", b[off:off + 2])[0]
+        w = h = None
+        for i in range(n):
+            e = off + 2 + 12 * i
+            tag, typ = struct.unpack(end + "HH", b[e:e + 4])
+            if tag in (256, 257):
+                v = struct.unpack(end + "H", b[e + 8:e + 10])[0] if typ == 3 else struct.unpack(end + "I", b[e + 8:e + 12])[0]
+                w, h = (v, h) if tag == 256 else (w, v)
+        if first is None:
+            first = (w, h)
+        pages += 1
+        off = struct.unpack(end + "I", b[off + 2 + 12 * n:off + 6 + 12 * n])[0]
+    if first is None or first[0] is None or first[1] is None:
+        return None
+    return ImageHeader("tiff", first[0], first[1], pages, _exif_orientation(b))
+
+
+def _png_header(b: bytes) -> Optional[ImageHeader]:
+    if b[12:16] != b"IHDR":
+        return None
+    w, h = struct.unpack(">II", b[16:24])
+    orient, pos = 1, 8
+    while pos + 8 <= len(b):                          # an eXIf chunk comes before the image data
+        ln, typ = struct.unpack(">I4s", b[pos:pos + 8])
+        if typ == b"eXIf":
+            orient = _exif_orientation(b[pos + 8:pos + 8 + ln])
+            break
+        if typ in (b"IDAT", b"IEND"):
+            break
+        pos += 12 + ln
+    return ImageHeader("png", w, h, 1, orient)
+
+
+def _jpeg_header(b: bytes) -> Optional[ImageHeader]:
+    pos, orient = 2, 1
+    while pos + 4 <= len(b):
+        if b[pos] != 0xFF:
+            return None
+        marker = b[pos + 1]
+        if marker == 0xFF:                            # fill byte
+            pos += 1
+            continue
+        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
+            pos += 2
+            continue
+        ln = struct.unpack(">H", b[pos + 2:pos + 4])[0]
+        if marker == 0xE1 and b[pos + 4:pos + 10] == b"Exif\x00\x00":
+            orient = _exif_orientation(b[pos + 10:pos + 2 + ln])
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
+            h, w = struct.unpack(">HH", b[pos + 5:pos + 9])
+            return ImageHeader("jpeg", w, h, 1, orient)
+        if marker == 0xDA:                            # start of scan before any frame header
+            return None
+        pos += 2 + ln
+    return None
+
+
+def _bmp_header(b: bytes) -> Optional[ImageHeader]:
+    size = struct.unpack("<I", b[14:18])[0]
+    if size == 12:
+        w, h = struct.unpack("<HH", b[18:22])
+    else:
+        w, h = struct.unpack("<ii", b[18:26])
+    return ImageHeader("bmp", abs(w), abs(h))
+
+
+def image_header(data: bytes) -> Optional[ImageHeader]:
+    """The :class:`ImageHeader` of a PNG, JPEG, BMP or TIFF file's bytes, read without decoding;
+    None for other formats or a header that cannot be parsed.
+
+    >>> import cv2
+    >>> image_header(cv2.imencode(".png", np.zeros((2, 3), np.uint8))[1].tobytes())
+    ImageHeader(format='png', width=3, height=2, pages=1, orientation=1)
+    """
+    b = bytes(data[:1 << 20]) if len(data) > (1 << 20) else bytes(data)
+    try:
+        if b.startswith(b"\x89PNG\r\n\x1a\n"):
+            return _png_header(b)
+        if b.startswith(b"\xff\xd8"):
+            return _jpeg_header(b)
+        if b.startswith(b"BM") and len(b) >= 26:
+            return _bmp_header(b)
+        if b[:2] in (b"II", b"MM"):
+            return _tiff_header(bytes(data))          # page offsets may lie anywhere in the file
+    except (struct.error, IndexError, KeyError):
+        return None
+    return None
+
+
+def _orient(img: np.ndarray, orientation: int) -> np.ndarray:
+    """Apply an EXIF orientation (1-8) to a decoded ``(H, W[, C])`` image."""
+    ops = {2: lambda a: a[:, ::-1], 3: lambda a: a[::-1, ::-1], 4: lambda a: a[::-1],
+           5: lambda a: np.swapaxes(a, 0, 1), 6: lambda a: np.rot90(a, -1),
+           7: lambda a: np.rot90(a, 1)[:, ::-1], 8: lambda a: np.rot90(a, 1)}
+    return np.ascontiguousarray(ops[orientation](img)) if orientation in ops else img
+
+
+def _check_size(p: object, w: int, h: int, max_pixels: Optional[int]) -> None:
+    if max_pixels is not None and w * h > max_pixels:
+        raise ImageError(f"{p}: image too large: {w}x{h} pixels ({w * h / 1e6:.4g} megapixels), above the limit "
+                         f"of {max_pixels / 1e6:.4g} megapixels (max_pixels, --max-pixels)")
+
+
+def read_image(path: Union[str, os.PathLike], max_pixels: Optional[int] = DEFAULT_MAX_PIXELS) -> np.ndarray:
     """Read an image file as grayscale ``(H, W)`` float32 in ``[0, 1]`` (see :func:`decode_image`).
 
     Raises:
-        ImageError: missing file, unreadable / truncated / not an image (one line, naming it).
+        ImageError: missing file, unreadable / truncated / not an image, larger than
+            ``max_pixels`` (None: no limit), several pages (one line, naming it).
     """
     p = Path(path)
-    return decode_image(read_file_bytes(p, ImageError, "an image"), p)
+    return decode_image(read_file_bytes(p, ImageError, "an image"), p, max_pixels=max_pixels)
 
 
-def decode_image(data: bytes, name: object = "image") -> np.ndarray:
+def decode_image(data: bytes, name: object = "image", max_pixels: Optional[int] = DEFAULT_MAX_PIXELS) -> np.ndarray:
     """The bytes of an image file (any format OpenCV decodes) as grayscale ``(H, W)`` float32
     in ``[0, 1]``; ``name`` (e.g. the path) starts every error message.
 
     Colour is converted to gray (OpenCV weights); an alpha channel, when present and not
     fully opaque, multiplies the gray value (a transparent background reads as black).
-    8-bit, 16-bit and float images are scaled to ``[0, 1]``.
+    8-bit, 16-bit and float images are scaled to ``[0, 1]``. The header is checked first
+    (module docstring): more than ``max_pixels`` pixels (None: no limit) or several TIFF pages
+    raise :class:`ImageError`; the EXIF orientation is applied.
 
     >>> import cv2
     >>> decode_image(cv2.imencode(".png", np.full((2, 3), 255, np.uint8))[1].tobytes()).tolist()
@@ -43,6 +199,12 @@ def decode_image(data: bytes, name: object = "image") -> np.ndarray:
     raw = np.frombuffer(data, dtype=np.uint8)
     if raw.size == 0:
         raise ImageError(f"{p}: empty file, not an image")
+    head = image_header(data)
+    if head is not None:
+        _check_size(p, head.width, head.height, max_pixels)
+        if head.pages > 1:
+            raise ImageError(f"{p}: multi-page TIFF ({head.pages} pages): only single images are read "
+                             f"(split the pages first)")
     img = None
     log = cv2.utils.logging
     level = log.getLogLevel()
@@ -55,6 +217,9 @@ def decode_image(data: bytes, name: object = "image") -> np.ndarray:
         log.setLogLevel(level)
     if img is None or img.size == 0:
         raise ImageError(f"{p}: not a readable image (unknown format, truncated or corrupt)")
+    _check_size(p, int(img.shape[1]), int(img.shape[0]), max_pixels)
+    if head is not None and head.orientation != 1 and head.format in ("jpeg", "png"):
+        img = _orient(img, head.orientation)        # OpenCV's TIFF decoder applies it itself
     if img.ndim == 3 and img.shape[2] == 1:
         img = img[:, :, 0]
     if img.dtype == np.uint8:

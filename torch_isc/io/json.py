@@ -25,6 +25,8 @@ def jsonable(obj: Any) -> Any:
     if isinstance(obj, dict):
         return {str(k): jsonable(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
+        if _float_pairs(obj):            # fast path: a polyline's points, already plain floats
+            return obj
         return [jsonable(v) for v in obj]
     if isinstance(obj, torch.Tensor):
         return jsonable(obj.detach().cpu().tolist())
@@ -41,6 +43,14 @@ def jsonable(obj: Any) -> Any:
     raise TypeError(f"cannot convert {type(obj).__name__} to JSON")
 
 
+def _float_pairs(obj: Any) -> bool:
+    """``obj`` is a non-empty list of ``[x, y]`` lists of finite Python floats (written as is)."""
+    if not (type(obj) is list and obj and type(obj[0]) is list):
+        return False
+    return all(type(p) is list and len(p) == 2 and type(p[0]) is float and type(p[1]) is float
+               and math.isfinite(p[0]) and math.isfinite(p[1]) for p in obj)
+
+
 def _compact(obj: Any) -> str:
     return json.dumps(obj, separators=(", ", ": "), allow_nan=False)
 
@@ -54,6 +64,8 @@ def _format_json(obj: Any, indent: int, level: int = 0) -> str:
         items = [f"{inner}{json.dumps(str(k))}: {_format_json(v, indent, level + 1)}" for k, v in obj.items()]
         return "{\n" + ",\n".join(items) + "\n" + pad + "}"
     if isinstance(obj, list):
+        if _float_pairs(obj):
+            return "[\n" + ",\n".join(f"{inner}[{p[0]!r}, {p[1]!r}]" for p in obj) + "\n" + pad + "]"
         if not obj or all(not isinstance(v, (list, dict)) for v in obj):
             return _compact(obj)
         items = [inner + _format_json(v, indent, level + 1) for v in obj]

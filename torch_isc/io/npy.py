@@ -21,6 +21,34 @@ def is_npy(raw: bytes) -> bool:
     return raw.startswith(MAGIC)
 
 
+def _check_header(p: Path, raw: bytes) -> None:
+    """Check the declared shape, dtype and size against the bytes present, before numpy
+    allocates anything: a 289-byte file may declare an array of a terabyte."""
+    fmt = np.lib.format
+    fp = _io.BytesIO(raw)
+    try:
+        version = fmt.read_magic(fp)
+        if version == (1, 0):
+            shape, _, dtype = fmt.read_array_header_1_0(fp)
+        elif version == (2, 0):
+            shape, _, dtype = fmt.read_array_header_2_0(fp)
+        else:
+            shape, _, dtype = fmt._read_array_header(fp, version)      # (3, 0): utf-8 header
+    except Exception as e:  # corrupt or unknown headers
+        raise PointFileError(f"{p}: unreadable .npy file ({one_line(e) or type(e).__name__})") from None
+    if dtype.hasobject:
+        raise PointFileError(f"{p}: unreadable .npy file (an object array: pickles are not read)")
+    if not (np.issubdtype(dtype, np.integer) or np.issubdtype(dtype, np.floating)):
+        raise PointFileError(f"{p}: expected a numeric (integer or float) array, got dtype {dtype}")
+    if len(shape) != 2 or shape[1] != 2:
+        raise PointFileError(f"{p}: expected an array of shape (N, 2), got shape {tuple(shape)}")
+    need = int(shape[0]) * int(shape[1]) * int(dtype.itemsize)
+    have = len(raw) - fp.tell()
+    if need > have:
+        raise PointFileError(f"{p}: unreadable .npy file (truncated: its header declares shape {tuple(shape)} of {dtype} "
+                             f"({need} bytes), the file holds {have} bytes of data)")
+
+
 def decode_points(p: Path, raw: bytes) -> Tuple[np.ndarray, Optional[np.ndarray]]:
     """``.npy`` bytes -> ``(points (N, 2) float64, None)`` (no line numbers); ``p`` names the
     file in messages.
@@ -31,6 +59,7 @@ def decode_points(p: Path, raw: bytes) -> Tuple[np.ndarray, Optional[np.ndarray]
     """
     if not is_npy(raw):
         raise PointFileError(f"{p}: not a valid .npy file (no NumPy header)")
+    _check_header(p, raw)
     try:
         arr = np.load(_io.BytesIO(raw), allow_pickle=False)
     except (ValueError, EOFError, OSError) as e:

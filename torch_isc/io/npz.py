@@ -8,6 +8,7 @@ lists, NaN/Inf become null). No pickles: the file loads with ``allow_pickle=Fals
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 from typing import Any, BinaryIO, Dict, Optional, Tuple, Union
 
@@ -98,7 +99,17 @@ def load_npz(path: PathLike, device: Union[str, torch.device, None] = None,
         if device is not None:
             t = {k: v.to(device) for k, v in t.items()}
         mesh = MeshBatch(t["verts"], t["faces"], t["verts_per_item"], t["faces_per_item"])
-        curve = ImplicitCurve(mesh, t["values"], validate=validate)
+        if validate:
+            # orientation is checked in units of a power of 2 near the largest coordinate (exact),
+            # so determinants of extreme magnitudes (1e-300, 1e300) neither underflow nor overflow
+            v = t["verts"]
+            if not bool(torch.isfinite(v).all()):
+                raise InvalidMeshError("vertices hold NaN or Inf")
+            m = float(v.abs().max()) if v.numel() else 0.0
+            unit = math.ldexp(1.0, math.frexp(m)[1]) if m > 0 else 1.0
+            ImplicitCurve(MeshBatch(v / unit, t["faces"], t["verts_per_item"], t["faces_per_item"]),
+                          t["values"], validate=True)
+        curve = ImplicitCurve(mesh, t["values"], validate=False)
     except (InvalidMeshError, InvalidValuesError) as e:
         raise CurveFileError(f"{p}: invalid curve ({one_line(e)})") from None
     return curve, meta

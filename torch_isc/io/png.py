@@ -48,6 +48,14 @@ def _stamp(img: np.ndarray, xy: np.ndarray, radius: int, colour: Tuple[int, int,
         img[y[ok], x[ok]] = colour
 
 
+def _unit(verts: torch.Tensor) -> float:
+    """A power of 2 within a factor 2 of the largest finite coordinate magnitude (1 if none)."""
+    a = verts.detach().double().abs()
+    a = a[torch.isfinite(a)]
+    m = float(a.max()) if a.numel() else 0.0
+    return math.ldexp(1.0, math.frexp(m)[1]) if m > 0 else 1.0
+
+
 def render_curve(curve: ImplicitCurve, points: Optional[torch.Tensor] = None, size: int = 800,
                  draw_mesh: bool = True, draw_signs: bool = True, y_down: bool = False) -> np.ndarray:
     """Draw one curve: a ``(size, size, 3)`` uint8 BGR image.
@@ -70,8 +78,11 @@ def render_curve(curve: ImplicitCurve, points: Optional[torch.Tensor] = None, si
         raise ValueError(f"size must be >= 16 pixels, got {size}")
     cv2 = import_cv2()
     c = curve.detach()
-    verts = c.mesh.verts.double().cpu().numpy()
-    x0, y0, x1, y1 = c.mesh.item_bbox()[0].double().cpu().tolist()
+    # work in units of a power of 2 near the largest coordinate: exact, and no spans or
+    # products that overflow (or underflow) float64 at extreme magnitudes
+    unit = _unit(c.mesh.verts)
+    verts = c.mesh.verts.double().cpu().numpy() / unit
+    x0, y0, x1, y1 = (v / unit for v in c.mesh.item_bbox()[0].double().cpu().tolist())
     span = max(x1 - x0, y1 - y0)
     if not math.isfinite(span) or span <= 0:
         span = 1.0
@@ -101,7 +112,7 @@ def render_curve(curve: ImplicitCurve, points: Optional[torch.Tensor] = None, si
         _stamp(img, px[vals > 0], r, _RED)
     pl = c.zero_set()
     if len(pl):
-        lines = [fixed(to_px(q.double().cpu().numpy())) for q in pl.polyline_list()]
+        lines = [fixed(to_px(q.double().cpu().numpy() / unit)) for q in pl.polyline_list()]
         closed = pl.closed.cpu().tolist()
         lw2 = max(2, int(round(size / 400)))
         cl = [q for q, k in zip(lines, closed) if k]
@@ -112,7 +123,7 @@ def render_curve(curve: ImplicitCurve, points: Optional[torch.Tensor] = None, si
             cv2.polylines(img, op, False, _ORANGE, lw2, cv2.LINE_AA, _SHIFT)
     if points is not None:
         pts = torch.as_tensor(points).detach().double().cpu().numpy().reshape(-1, 2)
-        _stamp(img, to_px(pts), max(1, int(size // 800)), _BLACK)
+        _stamp(img, to_px(pts / unit), max(1, int(size // 800)), _BLACK)
     return img
 
 

@@ -46,7 +46,7 @@ def svg_text(result, margin: float = 0.05, width: int = 800, y_down: bool = Fals
     pls = [(bool(pl["closed"]), pl["points"].detach().double().cpu().numpy()) for pl in result.polylines]
     x0, y0, x1, y1 = _padded_bbox(result.bbox(), margin)
     w, h = x1 - x0, y1 - y0
-    height = max(1, int(round(width * h / w)))
+    height = max(1, min(1 << 20, int(round(width * (h / w)))))      # h / w first: width * h can overflow
     stroke = "vector-effect=\"non-scaling-stroke\""
     closed_d = " ".join("M " + " L ".join(_fmt_xy(p)) + " Z" for c, p in pls if c and len(p))
     out = [

@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any, Dict, Iterable, List, Mapping, Optional, Union
 
 from torch_isc.pipeline.evidence import EvidenceConfig
-from torch_isc.pipeline.knobs import ConfigError, check_section, knob
+from torch_isc.pipeline.knobs import ConfigError, check_bounds, check_section, knob
 from torch_isc.pipeline.noise import NoiseConfig
 from torch_isc.pipeline.relax import RelaxConfig
 from torch_isc.pipeline.signs import TopologyConfig
@@ -29,7 +29,11 @@ from torch_isc.pipeline.values import GeometryConfig
 
 __all__ = ["ReconstructConfig", "ConfigError", "MeshConfig", "LimitsConfig", "RunConfig", "NoiseConfig",
            "EvidenceConfig", "TopologyConfig", "GeometryConfig", "TestConfig", "RelaxConfig", "load_config",
-           "parse_overrides", "from_dict", "flat_keys"]
+           "parse_overrides", "from_dict", "flat_keys", "read_config_mapping", "config_hash", "UPPER_BOUNDS",
+           "MAX_CONFIG_BYTES", "initial_triangles"]
+
+#: The largest config file read (bytes): a config is a few dozen keys.
+MAX_CONFIG_BYTES = 1 << 20
 
 
 @dataclass
@@ -49,7 +53,10 @@ class MeshConfig:
 class LimitsConfig:
     """What bounds the loop."""
     max_level: int = knob(10, gt=0)
+    #: per item, every mesh included the initial one (checked when the config is built)
     max_triangles: int = knob(200_000, gt=0)
+    #: wall-clock seconds per batch call; items still refining then stop with limit "max_seconds" (0: none)
+    max_seconds: float = knob(0.0, ge=0)
 
     def __post_init__(self):
         check_section(self)
@@ -88,6 +95,16 @@ class ReconstructConfig:
         for f in fields(self):
             if not isinstance(getattr(self, f.name), _SECTION_TYPES[f.name]):
                 raise ConfigError(f"config section '{f.name}': expected {_SECTION_TYPES[f.name].__name__}")
+        for f in fields(self):
+            sec = getattr(self, f.name)
+            for k in fields(sec):
+                if k.name in UPPER_BOUNDS:
+                    check_bounds(k.name, getattr(sec, k.name), le=UPPER_BOUNDS[k.name])
+        n0 = initial_triangles(self.mesh)
+        if n0 > self.limits.max_triangles:
+            raise ConfigError(
+                f"config key 'initial_resolution': the initial {self.mesh.initial_mesh} of resolution "
+                f"{self.mesh.initial_resolution} has {n0} triangles, more than max_triangles={self.limits.max_triangles}")
 
     def replace(self, **changes: Any) -> "ReconstructConfig":
         """A copy with ``changes``: flat keys (``tolerance=0.01``) or sections as mappings
@@ -101,6 +118,32 @@ class ReconstructConfig:
     def to_flat_dict(self) -> Dict[str, Any]:
         """``{key: value}`` over all sections (the flat keys of older files)."""
         return {k: v for sec in self.to_dict().values() for k, v in sec.items()}
+
+
+def initial_triangles(mesh: MeshConfig) -> int:
+    """Triangles of the initial mesh: ``6 r^2`` for the hexagon of resolution ``r``, ``2 r^2``
+    for the square."""
+    r = mesh.initial_resolution
+    return (6 if mesh.initial_mesh == "hexagon" else 2) * r * r
+
+
+#: Upper bounds of settings whose field declares only a lower one: magnitudes the solver can
+#: represent (float32 work: a weight of 1e308 overflows), counts torch can index and work that
+#: stays finite. Checked when a :class:`ReconstructConfig` is built, with the key named.
+UPPER_BOUNDS: Dict[str, float] = {
+    "initial_resolution": 10_000, "margin": 1e3,
+    "max_level": 1_000, "max_triangles": 100_000_000, "max_seconds": 1e9,
+    "seed": 2 ** 63 - 1,
+    "min_points_fit": 2 ** 31 - 1, "crossing_reach_slack": 1e6,
+    "noise_neighbours": 1_000, "noise_window": 10_000, "noise_blob_aspect": 1e6, "noise_line_aspect": 1e6,
+    "noise_min_subset": 2 ** 31 - 1,
+    "relax_iterations": 100_000, "kappa_data": 1e6, "kappa_edge": 1e6, "relax_max_backtracks": 64,
+    "empty_weight": 1e6, "anneal_sweeps": 1_000_000, "anneal_t_start": 1e6, "anneal_t_end": 1e6,
+    "anneal_warm_t_start": 1e6, "anneal_replicas": 1_024, "anneal_greedy_sweeps": 1_000_000,
+    "min_island_vertices": 2 ** 31 - 1,
+    "noise_factor": 1e6, "min_points_split": 2 ** 31 - 1, "thin_feature_factor": 1e6, "min_split_size": 1e6,
+    "lbfgs_iterations": 100_000, "lbfgs_history": 1_000, "smoothness": 1e6, "crossing_weight": 1e6,
+}
 
 
 _SECTION_TYPES = {f.name: f.default_factory for f in fields(ReconstructConfig)}      # type: ignore[misc]
@@ -149,43 +192,114 @@ def from_dict(d: Mapping[str, Any], source: str = "config", base: Optional[Recon
         raise ConfigError(f"{source}: {e}") from None
 
 
-def load_config(path: Optional[Union[str, Path]] = None, overrides: Optional[Mapping[str, Any]] = None) -> ReconstructConfig:
-    """Load a YAML file (sections or flat keys of :class:`ReconstructConfig`), then apply ``overrides``."""
+class _AliasError(Exception):
+    pass
+
+
+def _safe_yaml(text: str):
+    """``yaml.safe_load`` without aliases: ``*name`` references are rejected, so a document
+    cannot expand beyond its own size (the "billion laughs" of nested aliases)."""
     import yaml
 
+    class _Loader(yaml.SafeLoader):
+        def compose_node(self, parent, index):
+            if self.check_event(yaml.AliasEvent):
+                raise _AliasError()
+            return super().compose_node(parent, index)
+
+    loader = _Loader(text)
+    try:
+        return loader.get_single_data()
+    finally:
+        loader.dispose()
+
+
+def _parse_yaml(text: str, where: str):
+    import yaml
+
+    try:
+        return _safe_yaml(text)
+    except _AliasError:
+        raise ConfigError(f"{where}: YAML aliases (*name) are not allowed in a config") from None
+    except RecursionError:
+        raise ConfigError(f"{where}: YAML nested too deeply") from None
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{where}: not valid YAML ({_first_line(str(e))})") from None
+
+
+def _first_line(s: str, limit: int = 200) -> str:
+    lines = s.strip().splitlines()
+    first = lines[0] if lines else ""
+    return first if len(first) <= limit else first[:limit - 3] + "..."
+
+
+def read_config_mapping(path: Union[str, Path]) -> Dict[str, Any]:
+    """The mapping a YAML config file holds (``{}`` for an empty file), read with bounds: at
+    most :data:`MAX_CONFIG_BYTES`, UTF-8 text, no aliases.
+
+    Raises:
+        ConfigError: one line naming the file.
+    """
+    p = Path(path)
+    try:
+        with open(p, "rb") as fh:
+            raw = fh.read(MAX_CONFIG_BYTES + 1)
+    except OSError as e:
+        raise ConfigError(f"{path}: cannot read config file ({e.strerror or type(e).__name__})") from None
+    if len(raw) > MAX_CONFIG_BYTES:
+        raise ConfigError(f"{path}: config file larger than {MAX_CONFIG_BYTES} bytes")
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"{path}: not a YAML text file (byte {e.start} is not UTF-8)") from None
+    if "\x00" in text:
+        raise ConfigError(f"{path}: not a YAML text file (contains NUL bytes)")
+    loaded = _parse_yaml(text, str(path))
+    if loaded is None:
+        loaded = {}
+    if not isinstance(loaded, dict):
+        raise ConfigError(f"{path}: expected a mapping of keys to values")
+    return loaded
+
+
+def load_config(path: Optional[Union[str, Path]] = None, overrides: Optional[Mapping[str, Any]] = None) -> ReconstructConfig:
+    """Load a YAML file (sections or flat keys of :class:`ReconstructConfig`), then apply ``overrides``.
+
+    The file is read with bounds (:func:`read_config_mapping`: size, UTF-8, no YAML aliases)."""
     src = "config"
     cfg = ReconstructConfig()
     if path is not None:
         src = str(path)
-        try:
-            text = Path(path).read_text()
-        except OSError as e:
-            raise ConfigError(f"{path}: cannot read config file ({e.strerror})") from None
-        try:
-            loaded = yaml.safe_load(text)
-        except yaml.YAMLError as e:
-            raise ConfigError(f"{path}: not valid YAML ({str(e).splitlines()[0]})") from None
-        if loaded is None:
-            loaded = {}
-        if not isinstance(loaded, dict):
-            raise ConfigError(f"{path}: expected a mapping of keys to values")
-        cfg = from_dict(loaded, src)
+        cfg = from_dict(read_config_mapping(path), src)
     if overrides:
         cfg = from_dict(overrides, src, base=cfg)
     return cfg
 
 
-def parse_overrides(items: Iterable[str]) -> Dict[str, Any]:
-    """``["key=value", ...]`` with YAML scalars (``tolerance=0.01``, ``dtype=float64``)."""
-    import yaml
+def config_hash(cfg: ReconstructConfig, extra: Optional[Mapping[str, Any]] = None) -> str:
+    """sha256 (hex) of the config's settings (and of ``extra``, e.g. image options), in a
+    canonical JSON form: equal settings give equal hashes."""
+    import hashlib
+    import json
 
+    doc = {"config": cfg.to_dict(), "extra": dict(extra or {})}
+    return hashlib.sha256(json.dumps(doc, sort_keys=True, default=repr).encode()).hexdigest()
+
+
+def parse_overrides(items: Iterable[str]) -> Dict[str, Any]:
+    """``["key=value", ...]`` with YAML scalars (``tolerance=0.01``, ``dtype=float64``; no aliases)."""
     out: Dict[str, Any] = {}
     for it in items:
+        shown = repr(it) if len(it) <= 80 else repr(it[:77]) + "..."
         if "=" not in it:
-            raise ConfigError(f"--set {it!r}: expected key=value")
+            raise ConfigError(f"--set {shown}: expected key=value")
         k, v = it.split("=", 1)
+        if len(v) > MAX_CONFIG_BYTES:
+            raise ConfigError(f"--set {shown}: value longer than {MAX_CONFIG_BYTES} characters")
         try:
-            out[k.strip()] = yaml.safe_load(v)
-        except yaml.YAMLError:
-            raise ConfigError(f"--set {it!r}: value is not a YAML scalar") from None
+            out[k.strip()] = _parse_yaml(v, f"--set {shown}")
+        except ConfigError as e:
+            if "aliases" in str(e) or "deeply" in str(e):
+                raise
+            raise ConfigError(f"--set {shown}: value is not a YAML scalar") from None
     return out

@@ -11,7 +11,7 @@ import dataclasses
 import math
 from typing import Any, Optional, Sequence
 
-__all__ = ["ConfigError", "knob", "check_section"]
+__all__ = ["ConfigError", "knob", "check_section", "check_bounds", "INT_LIMIT"]
 
 
 class ConfigError(ValueError):
@@ -19,6 +19,8 @@ class ConfigError(ValueError):
 
 
 _TYPES = {"int": int, "float": float, "str": str, "bool": bool}
+#: Every integer setting must be below this in magnitude: torch holds them as int64.
+INT_LIMIT = 2 ** 63
 
 
 def knob(default: Any, *, gt: Optional[float] = None, ge: Optional[float] = None, lt: Optional[float] = None,
@@ -29,8 +31,30 @@ def knob(default: Any, *, gt: Optional[float] = None, ge: Optional[float] = None
 
 
 def _short(v: Any) -> str:
+    """A bounded description of ``v`` for a message: never the repr of a large container (a
+    YAML alias bomb expands to a value whose repr would take minutes and gigabytes)."""
+    if isinstance(v, (list, tuple, dict, set, frozenset)):
+        return f"({len(v)} items)"
+    if isinstance(v, int) and not isinstance(v, bool) and abs(v) >= 10 ** 30:
+        return f"an integer of {len(str(abs(v))) if abs(v) < 10 ** 4000 else 'over 4000'} digits"
+    if isinstance(v, (str, bytes)) and len(v) > 60:
+        v = v[:57]
+        return repr(v) + "..."
     r = repr(v)
     return r if len(r) <= 60 else r[:57] + "..."
+
+
+_OPS = (("gt", lambda x, b: x <= b, ">"), ("ge", lambda x, b: x < b, ">="),
+        ("lt", lambda x, b: x >= b, "<"), ("le", lambda x, b: x > b, "<="))
+
+
+def check_bounds(name: str, v: Any, gt: Optional[float] = None, ge: Optional[float] = None,
+                 lt: Optional[float] = None, le: Optional[float] = None) -> None:
+    """Raise a :class:`ConfigError` naming ``name`` when ``v`` is outside the bounds."""
+    for op, bad, word in _OPS:
+        b = {"gt": gt, "ge": ge, "lt": lt, "le": le}[op]
+        if b is not None and bad(v, b):
+            raise ConfigError(f"config key '{name}': must be {word} {b:g}, got {_short(v)}")
 
 
 def check_section(obj: Any) -> None:
@@ -51,11 +75,11 @@ def check_section(obj: Any) -> None:
         object.__setattr__(obj, f.name, v)
         if want is float and not math.isfinite(v):
             raise ConfigError(f"config key '{f.name}': must be finite, got {v!r}")
+        if want is int and not -INT_LIMIT < v < INT_LIMIT:
+            raise ConfigError(f"config key '{f.name}': must be below 2**63 in magnitude (a 64-bit integer), "
+                              f"got {_short(v)}")
         m = f.metadata
         if m.get("choices") and v not in m["choices"]:
             raise ConfigError(f"config key '{f.name}': must be one of {', '.join(m['choices'])}, got {_short(v)}")
-        for op, bad, word in (("gt", lambda x, b: x <= b, ">"), ("ge", lambda x, b: x < b, ">="),
-                              ("lt", lambda x, b: x >= b, "<"), ("le", lambda x, b: x > b, "<=")):
-            b = m.get(op)
-            if b is not None and bad(v, b):
-                raise ConfigError(f"config key '{f.name}': must be {word} {b:g}, got {v!r}")
+        if want in (int, float):
+            check_bounds(f.name, v, m.get("gt"), m.get("ge"), m.get("lt"), m.get("le"))

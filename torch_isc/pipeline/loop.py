@@ -17,15 +17,17 @@ normalized per item (bounding box centred, diagonal 1) and all outputs are mappe
 from __future__ import annotations
 
 import math
-from typing import Callable, List, Optional, Sequence, Union
+import time
+import warnings
+from typing import Any, Callable, List, Mapping, Optional, Sequence, Union
 
 import torch
 
 from torch_isc.core.locate import locate_grid
 from torch_isc.core.mesh import MeshBatch, hexagon_mesh, square_mesh
-from torch_isc.core.points import PointBatch, PointSetError, PointsLike, prepare_points
+from torch_isc.core.points import PointBatch, PointSetError, PointsLike, check_extent, prepare_points
 from torch_isc.core.segments import segment_count, segment_sum
-from torch_isc.pipeline.config import MeshConfig, ReconstructConfig
+from torch_isc.pipeline.config import ConfigError, MeshConfig, ReconstructConfig, from_dict, initial_triangles
 from torch_isc.pipeline.evidence import gather_evidence
 from torch_isc.pipeline.noise import noise_and_frames
 from torch_isc.pipeline.relax import relax_stage
@@ -69,6 +71,9 @@ def reconstruct(points: PointsLike, config: Optional[ReconstructConfig] = None, 
             coordinates) to ``(M,)`` booleans, True inside. When given, vertex signs come
             from it instead of topology estimation.
 
+    When ``points`` is a tensor that requires grad (and grad mode is on), the curve's values
+    carry a gradient with respect to the points (see :func:`reconstruct_batch`).
+
     Example:
         >>> t = torch.linspace(0, 2 * math.pi, 101)[:-1]
         >>> res = reconstruct(torch.stack([t.cos(), t.sin()], 1))
@@ -81,8 +86,8 @@ def reconstruct(points: PointsLike, config: Optional[ReconstructConfig] = None, 
 
 def reconstruct_batch(point_sets: Sequence[PointsLike], config: Optional[ReconstructConfig] = None,
                       names: Optional[Sequence[Optional[str]]] = None,
-                      sign_oracles: Union[None, Callable, Sequence[Optional[Callable]]] = None
-                      ) -> List[ReconstructionResult]:
+                      sign_oracles: Union[None, Callable, Sequence[Optional[Callable]]] = None,
+                      packed: bool = False):
     """Reconstruct many point sets in one batched solve; one result per set, in order.
 
     An item's result does not depend on the other items of the batch.
@@ -97,17 +102,76 @@ def reconstruct_batch(point_sets: Sequence[PointsLike], config: Optional[Reconst
             (M,)`` booleans, called once per level with the mesh vertices of every unfinished
             set (``item`` is the set's index in ``point_sets``). Points are float64 in the
             caller's coordinates. Boundary vertices are always outside.
+        packed: also return all the curves as one packed :class:`ImplicitCurve` batch (item
+            ``b`` is set ``b``): ``(results, curve)``.
+
+    Returns the list of :class:`ReconstructionResult` (``(results, curve)`` with ``packed``).
+
+    Gradients: when grad mode is on and a point set is a tensor that requires grad, every
+    result's curve values carry a gradient with respect to its own points (the values are
+    unchanged; the gradient is that of the refit of the magnitudes to the points with mesh
+    and signs frozen, by implicit differentiation, see
+    :func:`torch_isc.pipeline.refit.attach_point_gradients`). Otherwise nothing changes.
     """
-    cfg = config if config is not None else ReconstructConfig()
+    cfg = _as_config(config)
     if len(point_sets) == 0:
-        return []
+        return ([], None) if packed else []
     if sign_oracles is not None and not callable(sign_oracles) and len(sign_oracles) != len(point_sets):
         raise PointSetError(f"sign_oracles: {len(sign_oracles)} oracle(s) for {len(point_sets)} point set(s)")
     dtype = torch.float64 if cfg.run.dtype == "float64" else torch.float32
     batch = prepare_points(point_sets, names, dtype)
+    check_extent(batch, initial_cover(cfg.mesh), dtype)
     source: SignSource = (OracleSigns(sign_oracles) if sign_oracles is not None
                           else IsingSigns(cfg.topology, cfg.evidence, cfg.run.seed))
-    return run_loop(batch, cfg, source, names)
+    results = run_loop(batch, cfg, source, names)
+    if torch.is_grad_enabled() and any(torch.is_tensor(p) and p.requires_grad for p in point_sets):
+        from torch_isc.pipeline.refit import attach_point_gradients
+        results = attach_point_gradients(results, point_sets)
+    if packed:
+        from torch_isc.core.curve import ImplicitCurve
+        return results, ImplicitCurve.cat([r.curve for r in results])
+    return results
+
+
+def _as_config(config: Union[None, ReconstructConfig, Mapping[str, Any]]) -> ReconstructConfig:
+    """The config of a call: defaults, a :class:`ReconstructConfig`, or a mapping of its keys
+    (checked like a file); a :class:`ConfigError` otherwise, or when the initial mesh alone
+    exceeds ``max_triangles`` (a config changed after it was built)."""
+    if config is None:
+        return ReconstructConfig()
+    if isinstance(config, Mapping):
+        config = from_dict(config)
+    if not isinstance(config, ReconstructConfig):
+        raise ConfigError(f"config: expected a ReconstructConfig or a mapping of its keys, got {type(config).__name__}")
+    n0 = initial_triangles(config.mesh)
+    if n0 > config.limits.max_triangles:
+        raise ConfigError(f"config key 'initial_resolution': the initial mesh has {n0} triangles, more than "
+                          f"max_triangles={config.limits.max_triangles}")
+    return config
+
+
+#: The smallest tolerance the working precision resolves, in units of the item's diagonal
+#: (normalized coordinates are within 1 of the origin): 64 ulps. A smaller one is raised to it.
+TOLERANCE_FLOOR_ULPS = 64.0
+#: The largest tolerance used, in units of the diagonal (anything above accepts every mesh alike).
+TOLERANCE_CEILING = 1e6
+
+
+def _tolerance(batch: PointBatch, cfg: ReconstructConfig, dtype) -> torch.Tensor:
+    """``(B,)`` the tolerance of each item in normalized units, within what the working precision
+    resolves (a warning names the items whose tolerance was raised)."""
+    if cfg.test.tolerance_mode == "absolute":
+        tol64 = cfg.test.tolerance / batch.scale
+    else:
+        tol64 = torch.full((batch.num_items,), cfg.test.tolerance, dtype=torch.float64, device=batch.scale.device)
+    floor = TOLERANCE_FLOOR_ULPS * torch.finfo(dtype).eps
+    low = tol64 < floor
+    if bool(low.any()):
+        idx = low.nonzero().squeeze(1).tolist()
+        shown = ", ".join(batch.labels[i] for i in idx[:3]) + (f" and {len(idx) - 3} more" if len(idx) > 3 else "")
+        warnings.warn(f"{shown}: tolerance below what {str(dtype).replace('torch.', '')} resolves "
+                      f"({floor:.3g} of the bounding-box diagonal): raised to it", RuntimeWarning, stacklevel=4)
+    return tol64.clamp(floor, TOLERANCE_CEILING)
 
 
 def _start(batch: PointBatch, cfg: ReconstructConfig, rec: StatsRecorder) -> WorkingSet:
@@ -115,9 +179,7 @@ def _start(batch: PointBatch, cfg: ReconstructConfig, rec: StatsRecorder) -> Wor
     points located in it."""
     B, dtype, device = batch.num_items, batch.points.dtype, batch.points.device
     with torch.no_grad():
-        tol = torch.full((B,), cfg.test.tolerance, dtype=dtype, device=device)
-        if cfg.test.tolerance_mode == "absolute":
-            tol = (cfg.test.tolerance / batch.scale).to(dtype)
+        tol = _tolerance(batch, cfg, dtype).to(dtype)
         est = noise_and_frames(batch.points, batch.point_item, B, cfg.noise)
     mesh = initial_mesh(cfg.mesh, B, device, dtype)
     face, bary = locate_grid(mesh, batch.points, batch.point_item)
@@ -133,6 +195,7 @@ def run_loop(batch: PointBatch, cfg: ReconstructConfig, source: SignSource,
     names = list(names) if names is not None else [None] * B
     rec = StatsRecorder(batch.points.device, B)
     results: List[Optional[ReconstructionResult]] = [None] * B
+    t_start = time.perf_counter()
     ws = _start(batch, cfg, rec)
     for level in range(cfg.limits.max_level + 1):
         ev = gather_evidence(ws)                                       # EstimateTopology
@@ -147,11 +210,17 @@ def run_loop(batch: PointBatch, cfg: ReconstructConfig, source: SignSource,
         marked = verdict.marked if extra is None else verdict.marked | extra
         ws = ws.replace(marked=marked)
         done, n_marked, over = _decide(ws, verdict, cfg, level)
+        timed: set = set()
+        if cfg.limits.max_seconds > 0 and time.perf_counter() - t_start > cfg.limits.max_seconds:
+            timed = set(ws.items[~done].tolist())          # stopped by the clock alone
+            done = torch.ones_like(done)
         rec.tick("test")
         _record(rec, level, ws, verdict, d1, n_marked)
         fin = done.nonzero().squeeze(1)
         if fin.numel():
             for b, res in finish_items(ws, fin, n_marked, over, batch, cfg, rec.per_item, names):
+                if b in timed:
+                    res.converged, res.limit = False, "max_seconds"
                 results[b] = res
         if bool(done.all()):
             rec.close_level()

@@ -95,10 +95,10 @@ def batched_lbfgs(fun: Callable[..., torch.Tensor], x0: torch.Tensor, seg: torch
             break
         d = -_direction(g, S, Y, SY, YY, gamma, seg, B)
         gd = _segdot(g, d, seg, B)
+        # not a descent direction: fall back to steepest descent (no host read: where, always)
         bad = ~(gd < 0)
-        if bool(bad.any()):                     # not a descent direction: fall back to steepest descent
-            d = torch.where(bad[seg], -g * gamma[seg], d)
-            gd = _segdot(g, d, seg, B)
+        d = torch.where(bad[seg], -g * gamma[seg], d)
+        gd = torch.where(bad, _segdot(g, d, seg, B), gd)
         step = torch.ones(B, dtype=dt, device=dev)
         done = ~active
         x_new, f_new, g_new = x, f, g             # replaced (never written) per accepted segment
@@ -107,11 +107,10 @@ def batched_lbfgs(fun: Callable[..., torch.Tensor], x0: torch.Tensor, seg: torch
             searching = ~done
             ft, gt = evaluate(xt, None if bool(searching.all()) else searching)
             ok = searching & torch.isfinite(ft) & (ft <= f + c1 * step * gd)
-            if bool(ok.any()):
-                sel = ok[seg]
-                x_new = torch.where(sel, xt, x_new)
-                g_new = torch.where(sel, gt, g_new)
-                f_new = torch.where(ok, ft, f_new)
+            sel = ok[seg]
+            x_new = torch.where(sel, xt, x_new)
+            g_new = torch.where(sel, gt, g_new)
+            f_new = torch.where(ok, ft, f_new)
             done = done | ok
             if bool(done.all()):
                 break

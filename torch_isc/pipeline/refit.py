@@ -1,26 +1,41 @@
 """Refit the magnitudes of a curve to new points, mesh and signs fixed, differentiable in the
 points by implicit differentiation.
 
-The objective of item ``b`` in the log-magnitudes ``s`` (``F = σ ⊙ exp(s)``, ``σ`` the
+The objective of item ``b`` in the log-magnitudes ``s`` (``F = σ ⊙ (exp(s) + floor)``, ``σ`` the
 curve's signs, so no value can change sign or reach 0) is
 
-    ``E_b(s) = Δ1_b(F) / h_b² + reg · mean_{v ∈ b} (s_v − s0_v)²``
+    ``E_b(s) = Δ1_b(F) / h_b² + smoothness · J_b(F) / S_b(F) + reg · mean_{v ∈ b} (s_v − s0_v)²``
 
 with ``Δ1_b = Σ_t (n_t/n_b) F_tᵀ M_t F_t / |∇f_t|²`` (eq. 3.1, the mean squared first-order
 distance of the item's points to the curve, ``M_t`` from
-:func:`torch_isc.pipeline.signs.triangle_moments`), ``h_b = rel_scale ·`` the item's mesh
+:func:`torch_isc.pipeline.evidence.triangle_moments`), ``h_b = rel_scale ·`` the item's mesh
 bounding-box diagonal (so ``Δ1 / h²`` is O(1) for points a percent of the size off the
-curve), and ``s0`` the curve's own log-magnitudes. ``Δ1`` is invariant to scaling ``F`` and
-ignores vertices of triangles without points: the tiny ``reg`` term fixes that flat
-direction and those vertices, so the minimizer ``s*`` is unique and ``∂²E/∂s²`` invertible.
+curve), and ``s0`` the curve's own log-magnitudes. ``J / S`` is the smoothness term of the
+loop's geometry fit (:class:`~torch_isc.pipeline.values.GeometryObjective`): the
+length-weighted squared jump of ``∇f`` across the interior edges of the band (edges next to a
+triangle with points or a sign change) over the length-weighted mean of ``|∇f|²`` there. It
+makes the fit well posed where a triangle holds one or two points (which a whole family of
+lines fits exactly, so ``Δ1`` alone lets a magnitude run off to 1e10). ``Δ1`` and ``J/S`` are
+invariant to scaling ``F``, and vertices outside the band enter neither: the small ``reg``
+term fixes that flat direction and those vertices (they stay at ``s0`` exactly), so the
+minimizer ``s*`` is unique near ``s0`` and ``∂²E/∂s²`` invertible.
 
-It is minimized tightly by a damped Newton method (Levenberg–Marquardt) on per-item dense
-Hessians (assembled from per-triangle 3×3 Hessians, ``torch.func``), with per-item
-damping and acceptance: an item's iterates never depend on the other items. The backward
-pass does not unroll the iterations: ``∇_s E(s*, M) = 0`` gives
+Solver: a damped Newton method (Levenberg–Marquardt) on per-item dense Hessians over the
+*active* vertices (those of triangles holding points), assembled with one ``index_add_``
+from closed-form per-triangle 3×3 Hessians: with ``q = FᵀMF / d``, ``d = FᵀNF`` (``N = GGᵀ``),
+``∇_F q = 2(MF − qNF)/d`` and ``∇²_F q = (2/d)(M − qN − NF ∇qᵀ − ∇q (NF)ᵀ)``, chained to ``s``
+by ``∂F/∂s = diag(F)``; ``J/S`` is a ratio of quadratic forms too (the same formula, with a
+rank-2 dense part per item). Damping, acceptance and stopping are per item, so an item's iterates
+never depend on the other items. An item stops when its gradient is at rounding level
+relative to its objective (``‖∇E‖∞ ≤ 256 ε E``), or when an accepted undamped Newton step
+is below ``step_tol`` with the damping at most 1e-10 of the mean curvature (quadratic convergence:
+the error left is about its square).
+
+The backward pass does not unroll the iterations: ``∇_s E(s*, M) = 0`` gives
 ``ds*/dM = −H⁻¹ ∂²E/∂s∂M``, so the vector-Jacobian product solves ``H λ = ḡ`` (``H``
-symmetric) and returns ``−(∂²E/∂s∂M)ᵀ λ`` by double backward. The mesh is held fixed
-(no gradient to the vertex positions through the refit).
+symmetric) and returns, per triangle, ``−w (2/d)(sym(μFᵀ) − (μᵀNF/d) FFᵀ)`` with
+``μ = λ_t ⊙ F_t`` (closed form, no double backward; only ``Δ1`` depends on ``M``). The mesh is held fixed (no gradient
+to the vertex positions through the refit).
 """
 from __future__ import annotations
 
@@ -37,111 +52,265 @@ __all__ = ["refit", "attach_point_gradients", "RefitProblem"]
 
 
 class RefitProblem:
-    """The fixed parts of the refit objective of a curve batch and its point partition."""
+    """The fixed parts of the refit objective of a curve batch and its point partition.
 
-    def __init__(self, curve: ImplicitCurve, count: torch.Tensor, reg: float, rel_scale: float):
+    Args:
+        curve: the curve (mesh, signs, starting magnitudes ``exp(s0)``).
+        count: ``(T,)`` points per triangle. reg, rel_scale, smoothness: see the module docstring.
+    """
+
+    def __init__(self, curve: ImplicitCurve, count: torch.Tensor, reg: float, rel_scale: float,
+                 smoothness: float = 0.0, floor: float = 0.0, scale_reg: float = 1.0):
         mesh = curve.mesh.detach()
         self.mesh = mesh
         B, dt, dev = mesh.num_items, mesh.dtype, mesh.device
         with torch.no_grad():
-            v = curve.values.detach()
-            self.sig = torch.sign(v)
-            self.s0 = torch.log(v.abs())
+            v = curve.values.detach().to(dt)
+            V = v.shape[0]
             self.act = (count > 0).nonzero().squeeze(1)              # triangles with points
-            fi = mesh.face_item
-            nb = torch.zeros(B, dtype=dt, device=dev).index_add_(0, fi, count)
+            fi, vi = mesh.face_item, mesh.vert_item
+            nb = torch.zeros(B, dtype=dt, device=dev).index_add_(0, fi, count.to(dt))
             bbox = mesh.item_bbox()
             h = rel_scale * (bbox[:, 2:] - bbox[:, :2]).norm(dim=1)
-            self.w = (count / nb[fi].clamp_min(1) / (h * h)[fi])[self.act]
+            self.w = (count.to(dt) / nb[fi].clamp_min(1) / (h * h)[fi])[self.act]
             self.faces = mesh.faces[self.act]
-            self.G = mesh.bary_gradients()[self.act]
+            self.G = mesh.bary_gradients()[self.act]                   # (A,3,2)
+            self.N = self.G @ self.G.transpose(1, 2)                   # (A,3,3)
             self.tri_item = fi[self.act]
             nv = mesh.verts_per_item.to(dt)
-            self.reg_w = (reg / nv.clamp_min(1))[mesh.vert_item]
-            mean_mag = torch.zeros(B, dtype=dt, device=dev).index_add_(0, mesh.vert_item, v.abs()) / nv.clamp_min(1)
+            self.reg_w = (reg / nv.clamp_min(1))[vi]
+            mean_mag = torch.zeros(B, dtype=dt, device=dev).index_add_(0, vi, v.abs()) / nv.clamp_min(1)
+            self.sig = torch.sign(v)
+            # each magnitude stays above ``floor`` times its start (the start is exactly the curve)
+            self.floor = floor * v.abs()
+            self.s0 = torch.log((1.0 - floor) * v.abs())
             self.guard = ((1e-10 * mean_mag) ** 2)[self.tri_item]
-            self.vmax = int(mesh.verts_per_item.max()) if B else 0
-            self.loc = torch.arange(v.shape[0], device=dev) - mesh.verts_first_idx[mesh.vert_item]
+            # smoothness: interior edges next to a triangle with points or a sign change (the band)
+            self.smoothness = float(smoothness)
+            fneg = self.sig[mesh.faces] < 0
+            band_t = (count > 0) | (fneg.any(1) & ~fneg.all(1))
+            ef = mesh.edge_faces
+            efc = ef.clamp_min(0)
+            band_e = ~mesh.is_boundary_edge & (band_t[efc[:, 0]] | band_t[efc[:, 1]])
+            if self.smoothness <= 0:
+                band_e = torch.zeros_like(band_e)
+            ef = ef[band_e]
+            e = mesh.edges[band_e]
+            vv = mesh.verts
+            el = (vv[e[:, 0]] - vv[e[:, 1]]).norm(dim=1)
+            T = mesh.faces.shape[0]
+            c = torch.zeros(T, dtype=dt, device=dev).index_add_(0, ef[:, 0], 0.5 * el).index_add_(0, ef[:, 1], 0.5 * el)
+            self.sm = (c > 0).nonzero().squeeze(1)                    # the faces of the band edges
+            sm_loc = torch.full((T,), -1, dtype=torch.long, device=dev)
+            sm_loc[self.sm] = torch.arange(self.sm.shape[0], device=dev)
+            self.sm_faces = mesh.faces[self.sm]
+            self.sm_G = mesh.bary_gradients()[self.sm]
+            self.sm_N = self.sm_G @ self.sm_G.transpose(1, 2)
+            self.sm_c = c[self.sm]
+            self.sm_item = fi[self.sm]
+            self.e_faces = sm_loc[ef]                                  # (Eb,2) into the band faces
+            self.e_len = el
+            self.e_item = mesh.edge_item[band_e]
+            # active vertices (of triangles with points or of band edges), numbered per item
+            av = torch.zeros(V, dtype=torch.bool, device=dev)
+            av[self.faces.reshape(-1)] = True
+            av[self.sm_faces.reshape(-1)] = True
+            self.av = av.nonzero().squeeze(1)                          # (Va,) item-contiguous
+            n_act = torch.zeros(B, dtype=torch.long, device=dev).index_add_(0, vi, av.long())
+            start = torch.cumsum(n_act, 0) - n_act
+            self.av_item = vi[self.av]
+            self.av_loc = torch.arange(self.av.shape[0], device=dev) - start[self.av_item]
+            loc = torch.full((V,), -1, dtype=torch.long, device=dev)
+            loc[self.av] = self.av_loc
+            self.face_loc = loc[self.faces]                            # (A,3)
+            self.sm_loc = loc[self.sm_faces]
+            self.amax = int(n_act.max()) if B else 0
+            pad = torch.ones(B, self.amax, dtype=dt, device=dev)
+            pad[self.av_item, self.av_loc] = 0.0
+            self.pad_eye = torch.diag_embed(pad)
+            self.n_act = n_act.to(dt).clamp_min(1.0)
+            self.scale_reg = float(scale_reg)
         self.B, self.dt, self.dev = B, dt, dev
 
     # ----------------------------------------------------------- objective
-    @staticmethod
-    def _tri(s3, M3, G3, sg3, guard):
-        F = sg3 * torch.exp(s3)
-        g = (G3 * F[:, None]).sum(0)
-        return (F @ M3 @ F) / ((g * g).sum() + guard)
+    def terms(self, s: torch.Tensor, M: torch.Tensor, hessian: bool = False):
+        """The objective ``(B,)``, its gradient ``(V,)`` in ``s`` and, with ``hessian``, the
+        per-item dense Hessians ``(B, Amax, Amax)`` over the active vertices (padding:
+        identity). ``M``: the ``(A, 3, 3)`` moments of the active triangles. Closed form."""
+        B, dt, dev = self.B, self.dt, self.dev
+        D = self.sig[self.faces] * torch.exp(s[self.faces])            # (A,3) dF/ds
+        F = D + self.sig[self.faces] * self.floor[self.faces]
+        gf = (self.G * F[..., None]).sum(1)                            # (A,2) ∇f_t
+        NF = (self.G * gf[:, None, :]).sum(2)                          # (A,3)
+        d = (gf * gf).sum(1) + self.guard
+        MF = (M * F[:, None, :]).sum(2)
+        q = (MF * F).sum(1) / d
+        dq = 2.0 * (MF - q[:, None] * NF) / d[:, None]                 # ∇_F q
+        r = s - self.s0
+        E = torch.zeros(B, dtype=dt, device=dev).index_add_(0, self.tri_item, self.w * q)
+        E = E.index_add_(0, self.mesh.vert_item, self.reg_w * r * r)
+        g = (2.0 * self.reg_w) * r
+        # the global scale (a flat direction of Δ1 and J/S): pinned by the mean of r over the active vertices
+        ra = r[self.av]
+        mb = torch.zeros(B, dtype=dt, device=dev).index_add_(0, self.av_item, ra) / self.n_act
+        E = E + self.scale_reg * mb * mb
+        g = g.index_add(0, self.av, (2.0 * self.scale_reg * mb / self.n_act)[self.av_item])
+        g = g.index_add_(0, self.faces.reshape(-1), (self.w[:, None] * D * dq).reshape(-1))
+        sm = self._smooth_terms(s) if self.sm.numel() else None
+        if sm is not None:
+            R, Fs, dR, dS, S, ea, eb = sm
+            E = E + self.smoothness * R
+            g = g.index_add_(0, self.sm_faces.reshape(-1), (self.smoothness * Fs * dR).reshape(-1))   # Fs: dF/ds
+        if not hessian:
+            return E, g, None
+        A = self.amax
+        Hq = (2.0 / d)[:, None, None] * (M - q[:, None, None] * self.N
+                                         - NF[:, :, None] * dq[:, None, :] - dq[:, :, None] * NF[:, None, :])
+        Hs = D[:, :, None] * Hq * D[:, None, :] + torch.diag_embed(D * dq)
+        Hs = self.w[:, None, None] * Hs
+        li = self.face_loc
+        idx = (self.tri_item[:, None, None] * A + li[:, :, None]) * A + li[:, None, :]
+        H = torch.zeros(B * A * A, dtype=dt, device=dev).index_add_(0, idx.reshape(-1), Hs.reshape(-1))
+        di = (self.av_item * A + self.av_loc) * A + self.av_loc
+        H = H.index_add_(0, di, 2.0 * self.reg_w[self.av])
+        ind = 1.0 - torch.diagonal(self.pad_eye, dim1=1, dim2=2)                         # (B,A) active slots
+        H = H + ((2.0 * self.scale_reg / self.n_act ** 2)[:, None, None] * ind[:, :, None] * ind[:, None, :]).reshape(-1)
+        if sm is not None:
+            H = H + self.smoothness * self._smooth_hessian(R, Fs, dR, dS, S, ea, eb)
+        return E, g, H.view(B, A, A) + self.pad_eye
+
+    def _smooth_terms(self, s: torch.Tensor):
+        """(``Fs`` returned is ``∂F/∂s`` on the band faces.) ``R = J / S`` per item with ``J = Σ_e ℓ_e |∇f_a − ∇f_b|²`` over the band edges and
+        ``S = Σ_e ℓ_e (|∇f_a|² + |∇f_b|²)/2 = Σ_t c_t |∇f_t|²``; the per-face gradients
+        ``∂R/∂F_t`` (band faces) of it and of ``S``."""
+        B, dt, dev = self.B, self.dt, self.dev
+        Fs = self.sig[self.sm_faces] * torch.exp(s[self.sm_faces])     # (Ts,3) dF/ds
+        gs = (self.sm_G * (Fs + self.sig[self.sm_faces] * self.floor[self.sm_faces])[..., None]).sum(1)   # (Ts,2)
+        ea, eb = self.e_faces[:, 0], self.e_faces[:, 1]
+        diff = gs[ea] - gs[eb]
+        J = torch.zeros(B, dtype=dt, device=dev).index_add_(0, self.e_item, self.e_len * (diff * diff).sum(1))
+        S = torch.zeros(B, dtype=dt, device=dev).index_add_(0, self.sm_item, self.sm_c * (gs * gs).sum(1))
+        S = S.clamp_min(torch.finfo(dt).tiny)
+        R = J / S
+        dgr = torch.zeros_like(gs).index_add_(0, torch.cat([ea, eb]),
+                                              torch.cat([2 * self.e_len[:, None] * diff, -2 * self.e_len[:, None] * diff]))
+        dJ = (self.sm_G * dgr[:, None, :]).sum(2)                      # (Ts,3) per-face parts of ∇_F J
+        dS = (self.sm_G * (2 * self.sm_c[:, None] * gs)[:, None, :]).sum(2)
+        Si = S[self.sm_item]
+        dR = (dJ - R[self.sm_item, None] * dS) / Si[:, None]
+        return R, Fs, dR, dS, S, ea, eb
+
+    def _smooth_hessian(self, R, Fs, dR, dS, S, ea, eb) -> torch.Tensor:
+        """Flat ``(B·A·A,)`` Hessian of ``R`` in ``s``: ``diag(F) ∇²_F R diag(F) + diag(F ⊙ ∇_F R)``,
+        ``∇²_F R = (∇²J − R ∇²S)/S − (∇R ∇Sᵀ + ∇S ∇Rᵀ)/S`` (the last part rank 2 per item)."""
+        B, dt, dev, A = self.B, self.dt, self.dev, self.amax
+        Si = S[self.sm_item]
+        # ∇²J: per band edge the 6x6 block 2ℓ [G_a; −G_b][G_a; −G_b]ᵀ, in s
+        Dg = torch.cat([self.sm_G[ea], -self.sm_G[eb]], 1)              # (Eb,6,2)
+        F6 = torch.cat([Fs[ea], Fs[eb]], 1)                             # (Eb,6)
+        l6 = torch.cat([self.sm_loc[ea], self.sm_loc[eb]], 1)
+        it = self.e_item
+        blk = (2 * self.e_len / S[it])[:, None, None] * (Dg @ Dg.transpose(1, 2)) * F6[:, :, None] * F6[:, None, :]
+        idx = (it[:, None, None] * A + l6[:, :, None]) * A + l6[:, None, :]
+        H = torch.zeros(B * A * A, dtype=dt, device=dev).index_add_(0, idx.reshape(-1), blk.reshape(-1))
+        # −R ∇²S / S: per face −2 c_t R N_t / S, plus diag(F ⊙ ∇R)
+        fb = (-2 * self.sm_c * R[self.sm_item] / Si)[:, None, None] * self.sm_N * Fs[:, :, None] * Fs[:, None, :]
+        fb = fb + torch.diag_embed(Fs * dR)
+        li = self.sm_loc
+        idx = (self.sm_item[:, None, None] * A + li[:, :, None]) * A + li[:, None, :]
+        H = H.index_add_(0, idx.reshape(-1), fb.reshape(-1))
+        # rank 2: −(v uᵀ + u vᵀ)/S with v = F ⊙ ∇R, u = F ⊙ ∇S (padded per item)
+        flat = self.sm_item[:, None] * A + li
+        v = torch.zeros(B * A, dtype=dt, device=dev).index_add_(0, flat.reshape(-1), (Fs * dR).reshape(-1)).view(B, A)
+        u = torch.zeros(B * A, dtype=dt, device=dev).index_add_(0, flat.reshape(-1), (Fs * dS).reshape(-1)).view(B, A)
+        r2 = (v[:, :, None] * u[:, None, :] + u[:, :, None] * v[:, None, :]) / S[:, None, None]
+        return H - r2.reshape(-1)
+
+    def values(self, s: torch.Tensor) -> torch.Tensor:
+        """``(V,)`` the nodal values ``σ ⊙ (exp(s) + floor)``."""
+        return self.sig * (torch.exp(s) + self.floor)
 
     def energy(self, s: torch.Tensor, M: torch.Tensor) -> torch.Tensor:
-        """``(B,)`` the objective of every item; ``M (T, 3, 3)`` the full moment tensor."""
-        Ma = M[self.act]
-        F = self.sig[self.faces] * torch.exp(s[self.faces])
-        g = (self.G * F[..., None]).sum(1)
-        q = torch.einsum("ti,tij,tj->t", F, Ma, F) / ((g * g).sum(1) + self.guard)
-        E = torch.zeros(self.B, dtype=self.dt, device=self.dev).index_add(0, self.tri_item, self.w * q)
-        r = s - self.s0
-        return E.index_add(0, self.mesh.vert_item, self.reg_w * r * r)
-
-    def grad(self, s: torch.Tensor, M: torch.Tensor):
-        with torch.enable_grad():
-            s_ = s.detach().requires_grad_(True)
-            E = self.energy(s_, M.detach())
-            (g,) = torch.autograd.grad(E.sum(), s_)
-        return E.detach(), g
-
-    def hessian(self, s: torch.Tensor, M: torch.Tensor) -> torch.Tensor:
-        """``(B, Vmax, Vmax)`` per-item dense Hessians (padding: identity)."""
-        B, n = self.B, self.vmax
-        H = torch.zeros(B, n, n, dtype=self.dt, device=self.dev)
-        if self.act.numel():
-            Ht = torch.func.vmap(torch.func.hessian(self._tri))(
-                s.detach()[self.faces], M.detach()[self.act], self.G, self.sig[self.faces], self.guard)
-            Ht = Ht * self.w[:, None, None]
-            li = self.loc[self.faces]                                   # (A,3)
-            it = self.tri_item[:, None, None].expand(-1, 3, 3)
-            H.index_put_((it.reshape(-1), li[:, :, None].expand(-1, 3, 3).reshape(-1),
-                          li[:, None, :].expand(-1, 3, 3).reshape(-1)), Ht.reshape(-1), accumulate=True)
-        vi = self.mesh.vert_item
-        H.index_put_((vi, self.loc, self.loc), 2.0 * self.reg_w, accumulate=True)
-        pad = torch.ones(B, n, dtype=torch.bool, device=self.dev)
-        pad[vi, self.loc] = False
-        return H + torch.diag_embed(pad.to(self.dt))
+        """``(B,)`` the objective; ``M (T, 3, 3)`` the full moment tensor (differentiable by autograd)."""
+        return self.terms(s, M[self.act])[0]
 
     def pad(self, x: torch.Tensor) -> torch.Tensor:
-        out = torch.zeros(self.B, self.vmax, dtype=x.dtype, device=x.device)
-        return out.index_put((self.mesh.vert_item, self.loc), x)
+        """``(V,)`` -> ``(B, Amax)``: the active vertices' entries."""
+        out = torch.zeros(self.B, self.amax, dtype=x.dtype, device=x.device)
+        return out.index_put((self.av_item, self.av_loc), x[self.av])
 
     def unpad(self, X: torch.Tensor) -> torch.Tensor:
-        return X[self.mesh.vert_item, self.loc]
+        """``(B, Amax)`` -> ``(V,)`` (0 at inactive vertices)."""
+        out = torch.zeros(self.s0.shape[0], dtype=X.dtype, device=X.device)
+        return out.index_copy(0, self.av, X[self.av_item, self.av_loc])
 
     # ----------------------------------------------------------- solver
-    def solve(self, M: torch.Tensor, max_iter: int = 100, step_tol: float = 1e-13) -> torch.Tensor:
+    def solve(self, M: torch.Tensor, max_iter: int = 100, step_tol: Optional[float] = None,
+              max_step: float = 2.0, trace: Optional[list] = None) -> torch.Tensor:
+        """``(V,)`` the minimizer ``s*`` (damped Newton, per-item damping and stopping).
+
+        ``M``: the full ``(T, 3, 3)`` moments."""
+        Ma = M[self.act]
         s = self.s0.clone()
-        B, vi = self.B, self.mesh.vert_item
-        mu = torch.full((B,), 1e-6, dtype=self.dt, device=self.dev)
-        E, g = self.grad(s, M)
-        for _ in range(max_iter):
-            H = self.hessian(s, M)
-            diag = torch.diagonal(H, dim1=1, dim2=2)
-            lam = mu * diag.abs().mean(1).clamp_min(torch.finfo(self.dt).tiny)
-            d = self.unpad(torch.linalg.solve(H + lam[:, None, None] * torch.eye(self.vmax, dtype=self.dt, device=self.dev),
-                                              -self.pad(g)[..., None])[..., 0])
-            E2, g2 = self.grad(s + d, M)
-            gn = torch.zeros(B, dtype=self.dt, device=self.dev).scatter_reduce(0, vi, g.abs(), "amax")
-            gn2 = torch.zeros(B, dtype=self.dt, device=self.dev).scatter_reduce(0, vi, g2.abs(), "amax")
-            # near the optimum E changes at rounding level: accept steps that shrink the gradient
-            ok = (E2 < E) | ((E2 <= E + 1e-12 * E.abs()) & (gn2 < gn))
-            okv = ok[vi]
+        B, dt, dev = self.B, self.dt, self.dev
+        self.converged = torch.ones(B, dtype=torch.bool, device=dev)
+        self.item_iterations = torch.zeros(B, dtype=torch.long, device=dev)
+        if self.amax == 0:
+            return s
+        eps = torch.finfo(dt).eps
+        step_tol = 0.1 * eps ** 0.5 if step_tol is None else step_tol
+        avi = self.av_item
+        eye = torch.eye(self.amax, dtype=dt, device=dev)
+        mu = torch.full((B,), 1e-4, dtype=dt, device=dev)
+        done = torch.zeros(B, dtype=torch.bool, device=dev)
+        pad_diag = torch.diagonal(self.pad_eye, dim1=1, dim2=2)
+        n_act = (1.0 - pad_diag).sum(1).clamp_min(1.0)
+        E, g, H = self.terms(s, Ma, hessian=True)
+
+        def gmax(x):
+            return torch.zeros(B, dtype=dt, device=dev).scatter_reduce(0, avi, x[self.av].abs(), "amax")
+
+        gn = gmax(g)
+        E0 = E.abs().clone()
+        self.iterations = 0
+        item_iters = torch.zeros(B, dtype=torch.long, device=dev)
+        for it in range(max_iter):
+            done = done | (gn <= 256 * eps * E.abs())
+            if bool(done.all()):
+                break
+            self.iterations = it + 1
+            lam = mu * (torch.diagonal(H, dim1=1, dim2=2).abs() - pad_diag).sum(1) / n_act
+            d = self.unpad(torch.linalg.solve(H + lam[:, None, None] * eye, -self.pad(g)[..., None])[..., 0])
+            d = torch.where(done[self.mesh.vert_item], torch.zeros_like(d), d)
+            # a trust region in s (a factor e^2 per step): the iterates stay in s0's basin
+            big = gmax(d)
+            d = d * (max_step / big.clamp_min(max_step))[self.mesh.vert_item]
+            E2, g2, H2 = self.terms(s + d, Ma, hessian=True)
+            gn2 = gmax(g2)
+            # near the optimum E changes at rounding level: there accept steps that shrink the gradient
+            ok = ~done & torch.isfinite(E2) & ((E2 < E) | ((E2 <= E + 256 * eps * E.abs()) & (gn2 < gn)))
+            step = gmax(d)
+            okv = ok[self.mesh.vert_item]
             s = torch.where(okv, s + d, s)
             g = torch.where(okv, g2, g)
             E = torch.where(ok, E2, E)
-            mu = torch.where(ok, (mu * 0.25).clamp_min(1e-12), mu * 8.0)
-            step = torch.zeros(B, dtype=self.dt, device=self.dev).scatter_reduce(0, vi, d.abs(), "amax")
-            if bool(((step < step_tol) | (mu > 1e12)).all()):
-                break
+            gn = torch.where(ok, gn2, gn)
+            H = torch.where(ok[:, None, None], H2, H)
+            # an accepted, nearly undamped step this small leaves an error of about its square
+            # a rejected step with the gradient at rounding level relative to the starting objective
+            done = done | (ok & (step < step_tol) & (mu <= 1e-10)) | (~ok & (gn <= 1e4 * eps * E0)) | (mu > 1e12)
+            mu = torch.where(ok, (mu * 0.1).clamp_min(1e-15), mu * 10.0)
+            item_iters = item_iters + (~done).long()
+            if trace is not None:        # debugging: per iteration (E, |g|max, |step|max, mu, accepted)
+                trace.append((E.clone(), gn.clone(), step.clone(), mu.clone(), ok.clone()))
+        #: ``(B,)`` per item: it met a stopping rule (else ``max_iter`` stopped it), and its iterations
+        self.converged = done | (gn <= 256 * eps * E.abs())
+        self.item_iterations = item_iters
         return s
 
-
 class _ImplicitRefit(torch.autograd.Function):
+    """``M (T, 3, 3) -> s* (V,)``; backward by the implicit function theorem (closed form)."""
+
     @staticmethod
     def forward(ctx, M, problem, max_iter):
         s = problem.solve(M.detach(), max_iter)
@@ -154,18 +323,28 @@ class _ImplicitRefit(torch.autograd.Function):
     def backward(ctx, gs):
         M, s = ctx.saved_tensors
         pb = ctx.problem
-        H = pb.hessian(s, M)
-        lam = pb.unpad(torch.linalg.solve(H, pb.pad(gs)[..., None])[..., 0])
-        with torch.enable_grad():
-            M_ = M.detach().requires_grad_(True)
-            s_ = s.detach().requires_grad_(True)
-            (g,) = torch.autograd.grad(pb.energy(s_, M_).sum(), s_, create_graph=True)
-            (gM,) = torch.autograd.grad(g, M_, grad_outputs=lam)
-        return -gM, None, None
+        gM = torch.zeros_like(M)
+        if pb.amax == 0:
+            return gM, None, None
+        Ma = M[pb.act]
+        _, _, H = pb.terms(s, Ma, hessian=True)
+        lam = pb.unpad(torch.linalg.solve(H, pb.pad(gs.to(pb.dt))[..., None])[..., 0])
+        Dv = pb.sig[pb.faces] * torch.exp(s[pb.faces])                 # (A,3) dF/ds
+        F = Dv + pb.sig[pb.faces] * pb.floor[pb.faces]
+        gf = (pb.G * F[..., None]).sum(1)
+        NF = (pb.G * gf[:, None, :]).sum(2)
+        d = (gf * gf).sum(1) + pb.guard
+        mu = lam[pb.faces] * Dv
+        muNF = (mu * NF).sum(1)
+        sym = 0.5 * (mu[:, :, None] * F[:, None, :] + F[:, :, None] * mu[:, None, :])
+        dM = (2.0 * pb.w / d)[:, None, None] * (sym - (muNF / d)[:, None, None] * F[:, :, None] * F[:, None, :])
+        gM[pb.act] = -dM.to(gM.dtype)
+        return gM, None, None
 
 
 def refit(curve: ImplicitCurve, points: torch.Tensor, point_item: Optional[torch.Tensor] = None,
-          reg: float = 1e-4, rel_scale: float = 1e-2, max_iter: int = 500) -> ImplicitCurve:
+          reg: float = 1e-4, rel_scale: float = 1e-2, smoothness: float = 1e-2, floor: float = 0.02,
+          max_iter: int = 100) -> ImplicitCurve:
     """Re-fit the magnitudes of ``curve`` to ``points (N, 2)`` (``point_item (N,)``, default 0),
     mesh and signs held fixed; differentiable in the points (implicit differentiation).
 
@@ -199,9 +378,9 @@ def refit(curve: ImplicitCurve, points: torch.Tensor, point_item: Optional[torch
     p = pts[ok]
     bary = barycentric(mesh.verts, mesh.faces, f, p)                   # differentiable in the points
     mom = triangle_moments(mesh, p, f, bary)
-    problem = RefitProblem(curve, mom.count, reg, rel_scale)
+    problem = RefitProblem(curve, mom.count, reg, rel_scale, smoothness, floor)
     s = _ImplicitRefit.apply(mom.M, problem, max_iter)
-    return ImplicitCurve(curve.mesh, problem.sig * torch.exp(s), validate=False)
+    return ImplicitCurve(curve.mesh, problem.values(s), validate=False)
 
 
 def attach_point_gradients(results_or_curves: Sequence, point_sets: Sequence[torch.Tensor],

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Optional, Tuple
 
 import torch
 
-from torch_isc.core.segments import segment_max, segment_sum
+from torch_isc.core.segments import segment_any, segment_max, segment_sum
 
 from torch_isc.core.locate import barycentric, locate_walk
 from torch_isc.core.mesh import MeshBatch
@@ -141,8 +141,7 @@ def relax_mesh(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor, 
                 vt = v + step[mesh.vert_item][:, None] * d
                 q = mesh.quality(vt)
                 bad_t = (q <= 0) | (q < floor)              # q has the sign of the area
-                bad_item = torch.zeros(B, dtype=torch.bool, device=dev)
-                bad_item[mesh.face_item[bad_t]] = True
+                bad_item = segment_any(bad_t, mesh.face_item, B)
                 mt = mesh.with_verts(vt)
                 searching = ~accepted
                 if bool(searching.all()):
@@ -155,11 +154,8 @@ def relax_mesh(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor, 
                     Ut = mesh_energy(mesh, vt, points[pidx], ft[pidx], kappa_data, kappa_edge, rho, n_points,
                                      min_dist, edge_sel=searching[mesh.edge_item].nonzero().squeeze(1), nu_e=nu_e)
                 ok = ~accepted & ~bad_item & (Ut < U.detach())
-                if bool(ok.any()):
-                    sel_v = ok[mesh.vert_item]
-                    v_new[sel_v] = vt[sel_v]
-                    sel_p = ok[point_item]
-                    face_new[sel_p] = ft[sel_p]
+                v_new = torch.where(ok[mesh.vert_item][:, None], vt, v_new)
+                face_new = torch.where(ok[point_item], ft, face_new)
                 accepted |= ok
                 if bool(accepted.all()):
                     break

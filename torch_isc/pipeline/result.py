@@ -142,16 +142,25 @@ def finish_items(ws: "WorkingSet", fin: torch.Tensor, n_marked: torch.Tensor, ov
         scale, center = ws.scale[fin], ws.center[fin]
         verts64 = sub.verts.double() * scale[vitem, None] + center[vitem]
         vals64 = vals.double() * scale[vitem]
-        first = sub.verts_first_idx.tolist() + [sub.verts.shape[0]]
-        rows = zip(caller.tolist(), n_marked[fin].tolist(), over[fin].tolist(), inside.tolist(), flat.tolist())
-        for jj, (b, mk, ov, has_in, fl) in enumerate(rows):
+        caller_l = caller.tolist()
+        # the caller's precision, at least the working one; cast once per precision, then every
+        # item's curve is a view (no device work per item)
+        odts = [torch.promote_types(batch.raw[b].dtype if batch.raw[b].dtype.is_floating_point else dtype, dtype)
+                for b in caller_l]
+        views = {}
+        for odt in dict.fromkeys(odts):
+            vals_o = vals64.to(odt)
+            meshes = sub.with_verts(verts64.to(odt)).items_list()
+            views[odt] = [(m, vals_o[v0:v0 + m.verts.shape[0]]) for m, v0 in
+                          zip(meshes, sub.verts_first_idx.tolist())]
+        rows = zip(caller_l, n_marked[fin].tolist(), over[fin].tolist(), inside.tolist(), flat.tolist(), odts)
+        for jj, (b, mk, ov, has_in, fl, odt) in enumerate(rows):
             limit = None
             if mk > 0:
                 limit = "max_triangles" if ov else "max_level"
             raw = batch.raw[b]
-            odt = torch.promote_types(raw.dtype if raw.dtype.is_floating_point else dtype, dtype)
-            v0, v1 = first[jj], first[jj + 1]
-            curve = ImplicitCurve(sub[jj].with_verts(verts64[v0:v1].to(odt)), vals64[v0:v1].to(odt), validate=False)
+            m, v = views[odt][jj]
+            curve = ImplicitCurve(m, v, validate=False)
             converged = mk == 0
             if fl or (not has_in and limit is None):
                 # no inside vertex, so no curve: the data did not define one (too few points, or

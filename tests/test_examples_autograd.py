@@ -1,0 +1,34 @@
+"""The autograd examples run (small sizes) and keep their claims."""
+import importlib.util
+from pathlib import Path
+
+import pytest
+
+EX = Path(__file__).resolve().parents[1] / "examples"
+
+
+def load(name):
+    spec = importlib.util.spec_from_file_location(f"ex_{name}", EX / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_fit_mask_example():
+    out = load("fit_mask").main(["--size", "32", "--steps", "100", "--resolution", "7"])
+    assert out["iou_start"] < 0.5 and out["iou_end"] > 0.9
+
+
+def test_shape_opt_example():
+    out = load("shape_opt").main(["--points", "100", "--target-ratio", "1.6"])
+    assert abs(out["area_end"] / out["target"] - 1) < 1e-3
+    assert out["components_start"] == out["components_end"] == 1
+
+
+def test_area_gradient_example(tmp_path):
+    png = tmp_path / "grad.png"
+    out = load("area_gradient").main([str(png), "--points", "60", "--checks", "6"])
+    assert png.exists() and png.stat().st_size > 1000
+    assert out["fd_worst_rel"] < 1e-4
+    assert out["outward_fraction"] == 1.0
+    assert out["grad_norm_sum"] == pytest.approx(out["perimeter"], rel=0.1)

@@ -1,0 +1,14 @@
+"""The ``torch-isc`` command's entry: an interrupt while the libraries load (torch takes a
+second or more) ends the command quietly with status 130, as one later does."""
+from __future__ import annotations
+
+import sys
+
+
+def main() -> int:
+    try:
+        from torch_isc.cli import main as cli_main
+    except KeyboardInterrupt:
+        sys.stderr.write("torch-isc: interrupted\n")
+        return 130
+    return cli_main()

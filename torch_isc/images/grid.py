@@ -1,0 +1,381 @@
+"""Masks as implicit simplicial curves on their pixel-centre grid: topology by construction.
+
+A binary mask is an exact inside/outside function, so nothing has to be estimated about its
+topology. :func:`trace_masks` builds, for a whole batch of masks at once (tensor ops only):
+
+1. **The mesh.** Every mask is padded by one background pixel (the mesh's outer boundary is
+   outside) and stacked into a ``(B, H+2, W+2)`` grid. The vertices are the pixel centres of the
+   2x2 cells that hold both classes (the band around the boundary; uniform cells hold no curve),
+   each such cell split into two triangles along the diagonal chosen by the connectivity rule:
+   with ``connectivity=8`` (OpenCV's: 8-connected foreground, 4-connected background) a cell
+   whose two foreground pixels sit on a diagonal is split along that diagonal, so the
+   foreground is connected through it; a cell with one odd pixel out is split along the
+   diagonal that avoids it (the curve cuts the corner, as marching squares does).
+   ``connectivity=4`` is the other way round. The result is one packed
+   :class:`~torch_isc.core.mesh.MeshBatch`.
+2. **The signs.** A vertex is negative (inside) on a foreground pixel, positive on a background
+   one. Every zero crossing therefore lies on an edge between two pixel centres of different
+   classes: the zero set has exactly the mask's boundaries (one closed curve per border of an
+   8-connected component or of a 4-connected hole, single pixels included) and no point of it
+   is more than a pixel away from the crack-edge boundary.
+3. **The magnitudes.** Only they are fitted. The crossings start at the edge midpoints (the
+   crack-midpoint polygon of marching squares) and are smoothed along each curve by Taubin's
+   non-shrinking lambda|mu filter, each step projected back onto the crossing's own edge and
+   kept within ``reach`` of its midpoint; sharp corners (a turn of 90 degrees or more within
+   two crossings) are held where they are. The vertex log-magnitudes that realise these
+   crossings are then solved along each curve (a cumulative sum, the loop's closing error
+   spread evenly, and a few Jacobi sweeps where a vertex serves several curves).
+4. **The hierarchy.** Outer borders and holes are told apart by their orientation; the border
+   enclosing each one is found by a look to the left along its start row (Suzuki and Abe's
+   rule, with cracks instead of labels), and borders are listed in OpenCV's order (a preorder
+   of the tree, siblings last-found first), for ``RETR_EXTERNAL``, ``RETR_LIST``,
+   ``RETR_CCOMP`` or ``RETR_TREE``.
+
+Everything is in the pixel convention of :mod:`torch_isc.images` (pixel ``(i, j)`` covers
+``[j, j+1] x [i, i+1]``), so the curves stay within ``[0.5, W-0.5] x [0.5, H-0.5]``: inside
+the image frame.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import List, Optional, Sequence, Tuple, Union
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from torch_isc.core.extract import Polylines, extract_zero_set
+from torch_isc.core.mesh import MeshBatch
+
+__all__ = ["GridCurves", "grid_mesh", "trace_masks", "RETR_MODES", "retr_mode"]
+
+#: Retrieval modes by OpenCV's names and constants (``cv2.RETR_EXTERNAL`` = 0, ``RETR_LIST`` = 1,
+#: ``RETR_CCOMP`` = 2, ``RETR_TREE`` = 3).
+RETR_MODES = {"external": 0, "list": 1, "ccomp": 2, "tree": 3}
+
+
+def retr_mode(mode: Union[str, int]) -> str:
+    """``"external" | "list" | "ccomp" | "tree"`` from a name (``"tree"``, ``"RETR_TREE"``,
+    ``"cv2.RETR_TREE"``) or an OpenCV constant (0..3).
+
+    >>> retr_mode(3), retr_mode("RETR_CCOMP"), retr_mode("list")
+    ('tree', 'ccomp', 'list')
+    """
+    if isinstance(mode, (int, np.integer)) and not isinstance(mode, bool):
+        for k, v in RETR_MODES.items():
+            if v == int(mode):
+                return k
+        raise ValueError(f"unknown retrieval mode {mode} (OpenCV's RETR_EXTERNAL=0, RETR_LIST=1, "
+                         f"RETR_CCOMP=2, RETR_TREE=3; RETR_FLOODFILL is not supported)")
+    name = str(mode).lower().rsplit(".", 1)[-1]
+    name = name[5:] if name.startswith("retr_") else name
+    if name not in RETR_MODES:
+        raise ValueError(f"unknown retrieval mode {mode!r} (one of {', '.join(RETR_MODES)} or cv2.RETR_*)")
+    return name
+
+
+def _stack(masks: Sequence[torch.Tensor]) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Masks of any sizes as one ``(B, Hmax+2, Wmax+2)`` bool grid, one background pixel (at
+    least) around each; and ``(B, 2)`` their ``(H, W)``."""
+    sizes = torch.tensor([list(m.shape) for m in masks], dtype=torch.long)
+    H, W = int(sizes[:, 0].max()), int(sizes[:, 1].max())
+    dev = masks[0].device
+    if all(tuple(m.shape) == (H, W) for m in masks):
+        g = F.pad(torch.stack([m.bool() for m in masks]), (1, 1, 1, 1))
+    else:
+        g = torch.zeros((len(masks), H + 2, W + 2), dtype=torch.bool, device=dev)
+        for b, m in enumerate(masks):
+            g[b, 1:1 + m.shape[0], 1:1 + m.shape[1]] = m.bool()
+    return g, sizes
+
+
+def grid_mesh(grid: torch.Tensor, connectivity: int = 8, dtype: torch.dtype = torch.float64
+              ) -> Tuple[MeshBatch, torch.Tensor, torch.Tensor]:
+    """The band mesh of a padded ``(B, H2, W2)`` bool grid (see the module docstring).
+
+    Returns:
+        ``(mesh, fg (V,) bool, pix (V,) long)``: the packed mesh (vertex ``(x, y)`` of padded
+        pixel ``(i, j)`` is ``(j - 0.5, i - 0.5)``, i.e. the unpadded pixel's centre), whether each
+        vertex is a foreground pixel, and its flat index ``(b * H2 + i) * W2 + j`` in the grid.
+
+    >>> g = torch.zeros(1, 4, 4, dtype=torch.bool); g[0, 1:3, 1:3] = True
+    >>> m, fg, _ = grid_mesh(g)
+    >>> m.verts.shape[0], m.faces.shape[0], int(fg.sum()), bool((m.signed_areas() > 0).all())
+    (16, 16, 4, True)
+    """
+    if connectivity not in (4, 8):
+        raise ValueError(f"connectivity must be 8 or 4 (of the foreground), got {connectivity!r}")
+    B, H2, W2 = grid.shape
+    dev = grid.device
+    g = grid if connectivity == 8 else ~grid           # the class that is 8-connected
+    tl, tr, bl, br = g[:, :-1, :-1], g[:, :-1, 1:], g[:, 1:, :-1], g[:, 1:, 1:]
+    s = tl.to(torch.int8) + tr + bl + br
+    mixed = (s > 0) & (s < 4)
+    d1_same8 = tl & br
+    d2_same8 = tr & bl
+    d1_same4 = ~tl & ~br
+    d2_same4 = ~tr & ~bl
+    # the diagonal TR-BL when it joins two pixels of the 8-connected class (and TL-BR does
+    # not), or else joins two of the other class while TL-BR joins neither
+    use_d2 = (d2_same8 & ~d1_same8) | (~d1_same8 & ~d2_same8 & ~d1_same4 & d2_same4)
+    b, i, j = mixed.nonzero(as_tuple=True)
+    d2 = use_d2[b, i, j]
+    used = torch.zeros((B, H2, W2), dtype=torch.bool, device=dev)
+    used[b, i, j] = True
+    used[b, i + 1, j] = True
+    used[b, i, j + 1] = True
+    used[b, i + 1, j + 1] = True
+    flat_used = used.view(-1)
+    pix = flat_used.nonzero().squeeze(1)
+    vid = torch.full((B * H2 * W2,), -1, dtype=torch.long, device=dev)
+    vid[pix] = torch.arange(pix.shape[0], device=dev)
+    base = (b * H2 + i) * W2 + j
+    TL, TR, BL, BR = vid[base], vid[base + 1], vid[base + W2], vid[base + W2 + 1]
+    # positively oriented in (x, y) with y down: (TL, BR, BL), (TL, TR, BR); (TL, TR, BL), (TR, BR, BL)
+    t1 = torch.where(d2[:, None], torch.stack([TL, TR, BL], 1), torch.stack([TL, BR, BL], 1))
+    t2 = torch.where(d2[:, None], torch.stack([TR, BR, BL], 1), torch.stack([TL, TR, BR], 1))
+    faces = torch.stack([t1, t2], 1).reshape(-1, 3)
+    rem = pix % (H2 * W2)
+    verts = torch.stack([(rem % W2).to(dtype) - 0.5, (rem // W2).to(dtype) - 0.5], 1)
+    vpi = torch.bincount(pix // (H2 * W2), minlength=B)
+    fpi = 2 * torch.bincount(b, minlength=B)
+    mesh = MeshBatch(verts, faces, vpi, fpi)
+    return mesh, grid.view(-1)[pix], pix
+
+
+@dataclass
+class GridCurves:
+    """The curves of a batch of masks (:func:`trace_masks`).
+
+    Attributes:
+        mesh: the packed band mesh; values: ``(V,)`` nodal values (negative on foreground).
+        polylines: the zero set, one closed loop per border, loops grouped by item.
+        outer: ``(K,)`` bool, the loop is the outer border of a foreground component (else a hole).
+        parent: ``(K,)`` long, global index of the enclosing loop (the hole around an outer
+            border, the outer border around a hole), -1 for none (RETR_TREE's parent).
+        start: ``(K,)`` long, raster index (in the padded grid of the batch) of the pixel at
+            which OpenCV's scan starts the border: the order of discovery.
+        sizes: ``(B, 2)`` the masks' ``(H, W)``.
+        inner: ``(Q, 2)`` for each point of ``polylines``, the centre of the foreground pixel at
+            the end of its edge (OpenCV's chain of boundary pixels, repeats aside).
+    """
+    mesh: MeshBatch
+    values: torch.Tensor
+    polylines: Polylines
+    outer: torch.Tensor
+    parent: torch.Tensor
+    start: torch.Tensor
+    sizes: torch.Tensor
+    inner: Optional[torch.Tensor] = None
+
+    def loop_ranges(self) -> torch.Tensor:
+        """``(B + 1,)`` the loops of item ``b`` are ``ranges[b]:ranges[b+1]``."""
+        cnt = self.polylines.per_item_counts()
+        return torch.cat([cnt.new_zeros(1), torch.cumsum(cnt, 0)])
+
+
+def _loop_index(first: torch.Tensor, counts: torch.Tensor, n: int):
+    K = first.shape[0]
+    loop = torch.repeat_interleave(torch.arange(K, device=first.device), counts)
+    k = torch.arange(n, device=first.device) - first[loop]
+    nk = counts[loop]
+    prev = first[loop] + (k - 1) % nk
+    nxt = first[loop] + (k + 1) % nk
+    return loop, k, prev, nxt
+
+
+def _smooth(a: torch.Tensor, d: torch.Tensor, prev: torch.Tensor, nxt: torch.Tensor, iters: int,
+            reach: float, cap: Optional[torch.Tensor] = None, lam: float = 0.6307, mu: float = -0.6732) -> torch.Tensor:
+    """Crossing parameters ``t (N,)`` along edges ``a + t d`` (from the foreground end), by
+    Taubin's lambda|mu smoothing of the crossing points along their loops, each step projected
+    on the crossing's edge and clamped to ``|t - 1/2| * |d| <= reach``; sharp corners held."""
+    dd = (d * d).sum(1)
+    length = dd.sqrt()
+    lo = (0.5 - reach / length).clamp(min=0.02)
+    hi = (0.5 + reach / length).clamp(max=0.98)
+    t = torch.full_like(dd, 0.5)
+    p = a + t[:, None] * d
+    # corners: the turn between the chords to the second neighbours on either side
+    p2, n2 = prev[prev], nxt[nxt]
+    u, w = p - p[p2], p[n2] - p
+    cosang = (u * w).sum(1) / (u.norm(dim=1) * w.norm(dim=1)).clamp_min(1e-12)
+    corner = cosang < 0.05
+    # a corner holds its two neighbours in place too (a corner is a feature, not noise)
+    hold = corner | corner[prev] | corner[nxt]
+    free = ~hold
+    for it in range(iters):
+        live = free if cap is None else free & (cap > it)
+        for f in (lam, mu):
+            q = p + f * (0.5 * (p[prev] + p[nxt]) - p)
+            tn = (((q - a) * d).sum(1) / dd).clamp(lo, hi)
+            t = torch.where(live, tn, t)
+            p = a + t[:, None] * d
+    return t
+
+
+def _realize(t: torch.Tensor, fg_v: torch.Tensor, bg_v: torch.Tensor, loop: torch.Tensor, k: torch.Tensor,
+             first: torch.Tensor, counts: torch.Tensor, nxt: torch.Tensor, V: int, sweeps: int = 8) -> torch.Tensor:
+    """Log-magnitudes ``s (V,)`` so that the crossing of node ``n`` (edge from the foreground
+    vertex ``fg_v[n]`` to the background one ``bg_v[n]``) falls at ``t[n]``:
+    ``s[fg] - s[bg] = log(t / (1 - t))``, solved along each loop (see the module docstring)."""
+    dev, dt = t.device, t.dtype
+    rho = torch.log(t / (1 - t))
+    N = t.shape[0]
+    share_fg = fg_v[nxt] == fg_v
+    inc = torch.where(share_fg, torch.zeros_like(rho), rho[nxt] - rho)    # U[next] - U[this]
+    K = first.shape[0]
+    total = torch.zeros(K, dtype=dt, device=dev).index_add_(0, loop, inc)
+    cs = torch.cumsum(inc, 0) - inc                                       # exclusive
+    U = cs - cs[first[loop]]                                              # U at node k, from U[0] = 0
+    U = U - total[loop] * k.to(dt) / counts[loop].to(dt)                  # spread the closing error
+    mean = torch.zeros(K, dtype=dt, device=dev).index_add_(0, loop, U) / counts.to(dt)
+    U = U - mean[loop]
+    s_sum = torch.zeros(V, dtype=dt, device=dev)
+    s_cnt = torch.zeros(V, dtype=dt, device=dev)
+    s_sum.index_add_(0, fg_v, U).index_add_(0, bg_v, U - rho)
+    ones = torch.ones(N, dtype=dt, device=dev)
+    s_cnt.index_add_(0, fg_v, ones).index_add_(0, bg_v, ones)
+    s = s_sum / s_cnt.clamp_min(1)
+    for _ in range(sweeps):      # Jacobi sweeps on sum (s[fg] - s[bg] - rho)^2: settles shared vertices
+        tgt = torch.zeros(V, dtype=dt, device=dev)
+        tgt.index_add_(0, fg_v, s[bg_v] + rho).index_add_(0, bg_v, s[fg_v] - rho)
+        s = torch.where(s_cnt > 0, 0.5 * s + 0.5 * tgt / s_cnt.clamp_min(1), s)
+    return s
+
+
+def trace_masks(masks: Sequence[torch.Tensor], connectivity: int = 8, smooth: int = 12, reach: float = 0.5,
+                dtype: torch.dtype = torch.float64) -> GridCurves:
+    """The curves of a batch of bool masks ``[(H_b, W_b)]``, in one pass (module docstring).
+
+    Args:
+        connectivity: 8 (default, OpenCV's) or 4, of the foreground.
+        smooth: Taubin lambda|mu iterations along the curves (0: the crack-midpoint polygon).
+        reach: how far (pixels) a crossing may move from its edge's midpoint.
+
+    >>> m = torch.zeros(6, 7, dtype=torch.bool); m[1:5, 1:6] = True; m[2:4, 3] = False
+    >>> gc = trace_masks([m])
+    >>> len(gc.polylines), gc.outer.tolist(), gc.parent.tolist()
+    (2, [True, False], [-1, 0])
+    """
+    grid, sizes = _stack(list(masks))
+    B, H2, W2 = grid.shape
+    mesh, fg, pix = grid_mesh(grid, connectivity, dtype)
+    V = mesh.verts.shape[0]
+    base_vals = torch.where(fg, -torch.ones(V, dtype=dtype, device=grid.device),
+                            torch.ones(V, dtype=dtype, device=grid.device))
+    pl = extract_zero_set(mesh, base_vals)
+    dev = grid.device
+    N = pl.edge.shape[0]
+    ends = mesh.edges[pl.edge]                                # (N, 2)
+    a_is_fg = fg[ends[:, 0]]
+    fg_v = torch.where(a_is_fg, ends[:, 0], ends[:, 1])
+    bg_v = torch.where(a_is_fg, ends[:, 1], ends[:, 0])
+    a = mesh.verts[fg_v]
+    d = mesh.verts[bg_v] - a
+    loop, k, prev, nxt = _loop_index(pl.first, pl.counts, N)
+    K = pl.first.shape[0]
+    # small loops (a few pixels) get fewer iterations: their curvature is all signal
+    t = _smooth(a, d, prev, nxt, smooth, reach, pl.counts[loop] // 3) if smooth > 0 else torch.full((N,), 0.5, dtype=dtype, device=dev)
+    s = _realize(t, fg_v, bg_v, loop, k, pl.first, pl.counts, nxt, V)
+    mag = torch.exp(s - s.max().clamp_min(0) if V else s)
+    values = torch.where(fg, -mag, mag)
+    pts = mesh.verts[ends[:, 0]] + (values[ends[:, 0]] / (values[ends[:, 0]] - values[ends[:, 1]]))[:, None] * (
+        mesh.verts[ends[:, 1]] - mesh.verts[ends[:, 0]])
+    pl = Polylines(pts, pl.first, pl.counts, pl.closed, pl.item, pl.edge, pl.num_items)
+
+    # ---- outer border or hole: foreground on the left, so outer loops turn positively
+    p0 = pl.points
+    cross = p0[:, 0] * p0[nxt, 1] - p0[nxt, 0] * p0[:, 1]
+    area2 = torch.zeros(K, dtype=dtype, device=dev).index_add_(0, loop, cross)
+    outer = area2 > 0
+    # ---- the start pixel of OpenCV's scan: the top-left foreground pixel of an outer border,
+    # the foreground pixel left of the top-left pixel of a hole
+    big = torch.iinfo(torch.long).max
+    key_fg = torch.full((K,), big, dtype=torch.long, device=dev).scatter_reduce_(0, loop, pix[fg_v], "amin")
+    key_bg = torch.full((K,), big, dtype=torch.long, device=dev).scatter_reduce_(0, loop, pix[bg_v], "amin")
+    start = torch.where(outer, key_fg, key_bg - 1)
+    # ---- the enclosing border: look left along the start row for the nearest horizontal crack
+    horiz = (pix[fg_v] // W2) == (pix[bg_v] // W2)
+    left = torch.minimum(pix[fg_v], pix[bg_v])[horiz]         # crack between pixel `left` and `left + 1`
+    crack_loop = loop[horiz]
+    order = torch.argsort(left)
+    left, crack_loop = left[order], crack_loop[order]
+    # outer start (i, j): background at j-1, own crack at j-1: nearest crack left < j-1
+    # hole start (i, j): own crack at j: nearest crack left < j
+    limit = torch.where(outer, start - 2, start - 1)
+    idx = torch.searchsorted(left, limit, right=True) - 1
+    ok = idx >= 0
+    idxc = idx.clamp(min=0)
+    same_row = ok & (left[idxc] // W2 == start // W2) if left.numel() else ok & False
+    near = torch.where(same_row, crack_loop[idxc] if left.numel() else idx, torch.full_like(idx, -1))
+    # the nearest loop borders the same region: if it is of the other kind it encloses this
+    # one, else it is a sibling and shares its parent; follow siblings (pointer doubling)
+    has = near >= 0
+    same_kind = has & (outer[near.clamp(min=0)] == outer)
+    ar = torch.arange(K, device=dev)
+    jump = torch.where(same_kind, near, ar)
+    for _ in range(max(1, math.ceil(math.log2(K + 1)) + 1)):
+        jump = jump[jump]
+    term_near = near[jump]
+    parent = torch.where(term_near >= 0, term_near, torch.full_like(term_near, -1))
+    # a loop whose chain ends without a different-kind loop on its left has no parent
+    parent = torch.where((term_near >= 0) & (outer[term_near.clamp(min=0)] != outer), parent,
+                         torch.full_like(parent, -1))
+    return GridCurves(mesh, values, pl, outer, parent, start, sizes, a)
+
+
+def cv_layout(outer: np.ndarray, parent: np.ndarray, start: np.ndarray, mode: str = "tree",
+              keep: Optional[np.ndarray] = None) -> Tuple[np.ndarray, np.ndarray]:
+    """OpenCV's list order and hierarchy of one item's loops.
+
+    Args:
+        outer, parent, start: the item's loops (:class:`GridCurves` fields, ``parent`` as local
+            indices, -1 for none).
+        mode: :func:`retr_mode`.
+
+    Returns:
+        ``(order, hierarchy)``: the loops kept by the mode in OpenCV's order (a preorder of the
+        mode's tree, siblings by decreasing start, i.e. last found first), and the ``(N, 4)``
+        int32 ``[next, prev, first_child, parent]`` in that order.
+    """
+    mode = retr_mode(mode)
+    K = outer.shape[0]
+    par = parent.astype(np.int64).copy()
+    keep = np.ones(K, bool) if keep is None else np.asarray(keep, bool).copy()
+    if mode == "list":
+        par[:] = -1
+    elif mode == "ccomp":
+        par = np.where(outer, -1, par)
+    elif mode == "external":
+        keep &= outer & (parent < 0)
+        par[:] = -1
+    idx = np.nonzero(keep)[0]
+    # children of each loop, by decreasing start
+    srt = idx[np.lexsort((-start[idx], par[idx]))]
+    order: List[int] = []
+    kids: dict = {}
+    for c in srt.tolist():
+        kids.setdefault(int(par[c]), []).append(c)
+    stack = list(reversed(kids.get(-1, [])))
+    while stack:
+        c = stack.pop()
+        order.append(c)
+        stack.extend(reversed(kids.get(c, [])))
+    order_a = np.array(order, np.int64)
+    pos = np.full(K, -1, np.int64)
+    pos[order_a] = np.arange(order_a.size)
+    n = order_a.size
+    h = np.full((n, 4), -1, np.int32)
+    if n:
+        p_new = np.where(par[order_a] >= 0, pos[np.maximum(par[order_a], 0)], -1)
+        h[:, 3] = p_new
+        for plist in kids.values():
+            q = pos[np.array(plist)]
+            h[q[:-1], 0] = q[1:]
+            h[q[1:], 1] = q[:-1]
+        has = p_new >= 0
+        firsts = [pos[plist[0]] for pp, plist in kids.items() if pp >= 0]
+        for f in firsts:
+            h[h[f, 3], 2] = f
+    return order_a, h

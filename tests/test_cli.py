@@ -413,3 +413,25 @@ def test_image_modes_and_threshold(tmp_path, capsys):
     (tmp_path / "empty").mkdir()
     code, out, err = _run(capsys, "reconstruct", tmp_path / "empty", "--out", tmp_path / "o2")
     assert code == 2 and "folder has no point or image file" in err and "Traceback" not in err
+
+
+def test_progress_bar_on_a_terminal_only(tmp_path, capsys, monkeypatch):
+    """tqdm: one bar per run on stderr when it is a terminal, advanced per input; the summary
+    lines still reach stdout; off a terminal no bar, the batch notes instead."""
+    import io
+
+    files = [_write_xy(tmp_path / f"c{i}.xy", _circle(60, seed=i)) for i in range(3)]
+
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+
+    err = Tty()
+    monkeypatch.setattr(sys, "stderr", err)
+    code = cli.main(["reconstruct", *map(str, files), "--out", str(tmp_path / "o"), "--batch-size", "2",
+                 "--formats", "json", *FAST])
+    monkeypatch.undo()
+    out = capsys.readouterr().out
+    assert code == 0 and set(_summaries(out)) == {"c0", "c1", "c2"}
+    text = err.getvalue()
+    assert "3/3" in text and "input" in text and "batch 1:" not in text

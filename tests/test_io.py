@@ -190,7 +190,7 @@ def test_export_unknown_format(tmp_path):
     with pytest.raises(ValueError, match="unknown output format 'obj'"):
         export(_result(_annulus_curve()), tmp_path / "r", ["json", "obj"])
     assert os.listdir(tmp_path) == []
-    assert set(EXPORTERS) == {"json", "npz", "svg", "png", "contours.npz", "overlay.png"}
+    assert set(EXPORTERS) == {"json", "npz", "svg", "png", "contours.npz", "geojson", "overlay.png"}
 
 
 # ----------------------------------------------------------------------------- npz

@@ -15,7 +15,7 @@ from torch_isc.io import (EXPORTERS, LOADERS, ExportContext, chosen_formats, exp
                           read_points)
 
 MAGIC = {"json": b"{\n", "npz": b"PK", "svg": b"<?xml", "png": b"\x89PNG", "contours.npz": b"PK",
-         "overlay.png": b"\x89PNG"}
+         "geojson": b'{"type":"FeatureCollection"', "overlay.png": b"\x89PNG"}
 
 
 @pytest.fixture(scope="module")
@@ -37,7 +37,7 @@ def test_every_exporter_encodes_and_export_writes_the_same_bytes(result, tmp_pat
 
 
 def test_formats_that_need_context(result, tmp_path):
-    assert chosen_formats() == ["json", "npz", "svg", "png", "contours.npz"]
+    assert chosen_formats() == ["json", "npz", "svg", "png", "contours.npz", "geojson"]
     assert formats_needing({"image"}) == ["overlay.png"] and formats_needing(()) == []
     with pytest.raises(ValueError, match="'overlay.png' needs the image"):
         export(result, tmp_path / "r", ["json", "overlay.png"])
@@ -77,11 +77,12 @@ def test_a_loader_per_suffix(tmp_path):
     ("torch_isc.pipeline.loop", ("torch_isc.images", "torch_isc.io", "torch_isc.runner", "torch_isc.cli")),
     ("torch_isc.images", ("torch_isc.io", "torch_isc.runner", "torch_isc.cli")),
     ("torch_isc.io", ("torch_isc.runner", "torch_isc.cli")),
-    ("torch_isc.runner", ("torch_isc.cli",)),
+    ("torch_isc.runner", ("torch_isc.cli", "torch_isc.dataset")),
+    ("torch_isc.dataset", ("torch_isc.cli",)),
     ("torch_isc", ("torch_isc.images", "torch_isc.io", "torch_isc.runner", "torch_isc.cli")),
 ])
 def test_layers_import_only_below(module, forbidden):
-    """core <- pipeline <- images <- io <- runner <- cli: no layer loads one above it."""
+    """core <- pipeline <- images <- io <- runner <- dataset <- cli: no layer loads one above it."""
     import subprocess
     import sys
 

@@ -27,6 +27,13 @@ and redoes it otherwise. Two inputs with the same stem are written as ``<stem>_<
 (``a.xy`` -> ``a_xy``), whatever their order; images larger than ``--max-pixels`` (from the
 header, before decoding) are refused.
 
+Datasets (:mod:`torch_isc.dataset`): an INPUT may also be a glob (``'scans/**/*.png'``, sorted) or a
+``.parquet`` manifest, ``--manifest FILE`` adds the paths of a text/CSV/Parquet manifest,
+``--table out.parquet`` writes the results table (a row per input), and ``--engine ray`` runs the
+batches on a Ray cluster (``--address``; default a local one) in ``--actors`` solver actors, each
+with ``--cpus-per-actor`` CPUs and ``--gpus-per-actor`` GPUs; the outputs are the same bytes. A
+progress bar (tqdm, on stderr) shows on a terminal; elsewhere each batch is one log line.
+
 Exit status: 0 every input done (or skipped because its complete outputs exist), 1 some inputs failed
 (each with one ``torch-isc: error: <file>: <problem>`` line on stderr), 2 usage or
 configuration error (nothing was reconstructed). A user mistake never prints a traceback;
@@ -36,7 +43,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
 from pathlib import Path
 from typing import List, Optional, Sequence, TextIO
 
@@ -48,7 +54,7 @@ from torch_isc._helpers import one_line
 from torch_isc.io import chosen_formats
 from torch_isc.pipeline.config import ConfigError, flat_keys, load_config, parse_overrides, read_config_mapping
 from torch_isc.images.read import DEFAULT_MAX_PIXELS
-from torch_isc.runner import ImageOptions, Record, RunError, expand_inputs, run_inputs, shown
+from torch_isc.runner import ImageOptions, Record, RunError, run_inputs, shown
 
 DEFAULT_IMAGE_FORMATS = "json,contours.npz"
 
@@ -120,6 +126,25 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--example", action="store_true",
                      help="also reconstruct the built-in example (4 nested closed curves); no INPUT needed")
     rec.add_argument("--debug", action="store_true", help="print the traceback of an unexpected internal error")
+    ds = rec.add_argument_group("datasets (torch_isc.dataset)")
+    ds.add_argument("--manifest", action="append", default=[], metavar="FILE",
+                    help="more inputs: a text file of paths (one a line), or a CSV/Parquet file with a column of "
+                         "paths (--manifest-column); relative paths are relative to the manifest (repeatable)")
+    ds.add_argument("--manifest-column", default="path", metavar="NAME",
+                    help="the column of paths in a CSV/Parquet manifest (default: path)")
+    ds.add_argument("--table", metavar="FILE.parquet",
+                    help="also write the results table: one Parquet row per input (status, error, counts, "
+                         "convergence, levels, seconds, polylines)")
+    ds.add_argument("--engine", choices=("local", "ray"), default="local",
+                    help="local: this process (default); ray: Ray Data over the inputs, batches solved by a pool "
+                         "of actors (pip install 'torch_isc[ray]')")
+    ds.add_argument("--address", metavar="ADDR",
+                    help="ray: the cluster to use (auto, HOST:6379, ray://HOST:10001); default: start a local one")
+    ds.add_argument("--actors", type=int, default=2, metavar="N", help="ray: solver actors (default: 2)")
+    ds.add_argument("--cpus-per-actor", type=float, default=1.0, metavar="C",
+                    help="ray: CPUs of each actor, also its torch threads (default: 1)")
+    ds.add_argument("--gpus-per-actor", type=float, default=0.0, metavar="G",
+                    help="ray: GPUs of each actor; an actor given one solves on it (default: 0)")
     return parser
 
 
@@ -154,13 +179,40 @@ def _config_keys(path: Optional[str]) -> List[str]:
     return flat_keys(d)
 
 
-def _bar(done: int, total: int, t0: float, width: int = 24) -> str:
-    frac = done / total if total else 1.0
-    fill = int(round(width * frac))
-    rate = done / max(time.perf_counter() - t0, 1e-9)
-    eta = (total - done) / rate if rate > 0 and done else float("nan")
-    eta_s = "--:--" if eta != eta else f"{int(eta) // 60:02d}:{int(eta) % 60:02d}"
-    return f"|{'#' * fill}{'.' * (width - fill)}| {100 * frac:3.0f}% {rate:.1f}/s ETA {eta_s}"
+class _Progress:
+    """One tqdm bar per run on stderr, advanced per input; off when stderr is not a terminal
+    (then the batch notes are the log). Lines printed while it shows go through ``tqdm.write``."""
+
+    def __init__(self, total: int):
+        self.bar = None
+        try:
+            from tqdm import tqdm
+        except ImportError:  # pragma: no cover - tqdm is a dependency
+            return
+        bar = tqdm(total=total, unit="input", file=sys.stderr, disable=None, dynamic_ncols=True, leave=True)
+        if not bar.disable:
+            self.bar, self._write = bar, tqdm.write
+        else:
+            bar.close()
+
+    @property
+    def visible(self) -> bool:
+        return self.bar is not None
+
+    def print(self, line: str, file: TextIO) -> None:
+        if self.bar is not None:
+            self._write(line, file=file)
+            file.flush()
+        else:
+            print(line, file=file, flush=True)
+
+    def advance(self) -> None:
+        if self.bar is not None:
+            self.bar.update(1)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
 
 
 def _summary(record: Record) -> str:
@@ -205,8 +257,13 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
         torch.empty(0, device=device)
     except (RuntimeError, AssertionError) as e:
         raise UsageError(f"--device {args.device}: {one_line(e, type(e).__name__)}") from None
+    if args.engine == "ray" and args.actors < 1:
+        raise UsageError(f"--actors must be >= 1, got {args.actors}")
+    from torch_isc.dataset import resolve_inputs
+
     try:
-        sources = expand_inputs([str(s) for s in args.inputs], errors={})   # unlistable folders: failed inputs
+        sources = resolve_inputs([str(s) for s in args.inputs], args.manifest or None, args.manifest_column,
+                                 errors={})    # unlistable folders: failed inputs
     except RunError as e:
         raise UsageError(str(e)) from None
     if args.example:
@@ -229,32 +286,52 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
                                  use_oracle=not args.no_oracle, canny=(low, high), sigma=args.sigma,
                                  max_pixels=int(args.max_pixels) or None, connectivity=args.connectivity)
 
-    t0 = time.perf_counter()
+    bar = _Progress(len(sources))
 
     def progress(record: Record) -> None:
+        bar.advance()
         if record.status == "skipped":
-            print(f"{shown(record.stem)}: skipped, outputs exist in {shown(out_dir)} (use --overwrite to redo)", flush=True)
+            bar.print(f"{shown(record.stem)}: skipped, outputs exist in {shown(out_dir)} (use --overwrite to redo)",
+                      sys.stdout)
         elif record.status == "failed":
-            _err(record.error)            # the message already starts with the file name
+            bar.print(f"{PROG}: error: {record.error}", sys.stderr)   # the message already starts with the file name
             if args.debug and record.traceback:
-                print(record.traceback, end="", file=sys.stderr, flush=True)
+                bar.print(record.traceback.rstrip("\n"), sys.stderr)
         else:
-            print(_summary(record), flush=True)
+            bar.print(_summary(record), sys.stdout)
 
     def on_batch(stage: str, batch: int, size: int, done: int, total: int) -> None:
-        if total <= 1:
+        if total <= 1 or bar.visible:
             return
         if stage == "start":
-            _note(f"[{done}/{total}] batch {batch}: reconstructing {size} input(s) {_bar(done, total, t0)}")
+            _note(f"[{done}/{total}] batch {batch}: reconstructing {size} input(s), {100 * done // total}% done")
         elif done == total:
-            _note(f"[{done}/{total}] {_bar(done, total, t0)}")
+            _note(f"[{done}/{total}] 100% done")
 
-    report = run_inputs(sources, config, out_dir, formats, image_formats, overwrite=args.overwrite,
-                        batch_size=args.batch_size, image_options=image_options, image_config=image_config,
-                        device=device, progress=progress, on_batch=on_batch, on_note=_note)
-    failed, n = report.failed, len(report.records)
-    if report.batches > 1 or failed:
-        _note(f"done: {n - failed} of {n} input(s) ok, {failed} failed")
+    try:
+        if args.engine == "local" and args.table is None:
+            report = run_inputs(sources, config, out_dir, formats, image_formats, overwrite=args.overwrite,
+                                batch_size=args.batch_size, image_options=image_options, image_config=image_config,
+                                device=device, progress=progress, on_batch=on_batch, on_note=_note)
+        else:
+            from torch_isc.dataset import reconstruct_dataset
+
+            try:
+                report = reconstruct_dataset(
+                    sources, out_dir, config, args.engine, formats=formats, image_formats=image_formats,
+                    overwrite=args.overwrite, batch_size=args.batch_size, image_options=image_options,
+                    image_config=image_config, device=None if args.device == "cpu" and args.gpus_per_actor
+                    else args.device, table=args.table, address=args.address, actors=args.actors,
+                    cpus_per_actor=args.cpus_per_actor, gpus_per_actor=args.gpus_per_actor,
+                    progress=progress, on_note=_note, keep_records=False)
+            except RunError as e:
+                raise UsageError(str(e)) from None
+    finally:
+        bar.close()
+    failed, n = report.failed, len(sources)
+    if getattr(report, "batches", 0) > 1 or failed:
+        _note(f"done: {n - failed} of {n} input(s) ok, {failed} failed"
+              + (f"; table: {args.table}" if args.table else ""))
     return 1 if failed else 0
 
 

@@ -299,7 +299,7 @@ class _Run:
     """One call of :func:`run_inputs`: the resolved options and the callbacks."""
 
     def __init__(self, config, image_config, out_dir, formats, image_formats, batch_size, image_opts, device,
-                 progress, on_batch, on_note):
+                 progress, on_batch, on_note, on_result=None):
         self.config = config
         self.image_config = image_config
         self.out_dir = out_dir
@@ -313,6 +313,7 @@ class _Run:
         self.progress = progress or (lambda record: None)
         self.on_batch = on_batch or (lambda *a: None)
         self.note = on_note or (lambda msg: None)
+        self.on_result = on_result or (lambda record, result: None)
         self.done = 0
         self.total = 0
         self.batches = 0
@@ -526,6 +527,7 @@ class _Run:
                 nb = getattr(res, "boundaries", job.n_boundaries)
                 job.record.summary["boundaries"] = nb
                 job.record.summary["count_ok"] = nb is None or (res.num_closed == nb and res.num_open == 0)
+            self.on_result(job.record, res)
             self.finish(job, "done")
         self.on_batch("end", self.batches, len(batch), self.done, self.total)
 
@@ -536,7 +538,9 @@ def run_inputs(inputs: Iterable[PathLike], config: ReconstructConfig, out_dir: P
                image_config: Optional[ReconstructConfig] = None, device: Union[str, torch.device] = "cpu",
                progress: Optional[Callable[[Record], None]] = None,
                on_batch: Optional[Callable[[str, int, int, int, int], None]] = None,
-               on_note: Optional[Callable[[str], None]] = None) -> RunReport:
+               on_note: Optional[Callable[[str], None]] = None,
+               stems: Optional[Sequence[str]] = None,
+               on_result: Optional[Callable[[Record, Any], None]] = None) -> RunReport:
     """Reconstruct every input and write its outputs (see the module docstring).
 
     Args:
@@ -559,6 +563,12 @@ def run_inputs(inputs: Iterable[PathLike], config: ReconstructConfig, out_dir: P
             before and ``"end"`` after each batch (``done`` of ``total`` inputs not skipped).
         on_note: ``on_note(message)`` for remarks that are not errors (renamed outputs, an
             all-foreground mask).
+        stems: the output stem of each input (already expanded: one per file), instead of
+            :func:`unique_stems` of this call's inputs; a caller that splits one run into
+            several calls (:mod:`torch_isc.dataset`) passes the stems of the whole run.
+        on_result: ``on_result(record, result)`` for each input done, after its outputs are
+            written and before ``progress``: the :class:`~torch_isc.ReconstructionResult`
+            itself (the results table of :mod:`torch_isc.dataset` reads its polylines).
 
     A folder that cannot be listed is one failed input (its record says why).
 
@@ -584,8 +594,12 @@ def run_inputs(inputs: Iterable[PathLike], config: ReconstructConfig, out_dir: P
     if image_config is None:
         image_config = images.image_config(config, mode=image_options.mode)
     run = _Run(config, image_config, out, list(formats), list(image_formats), batch_size, image_options,
-               torch.device(device), progress, on_batch, on_note)
-    jobs = [_Job(Record(src, stem), _is_image(src)) for src, stem in zip(sources, unique_stems(sources, run.note))]
+               torch.device(device), progress, on_batch, on_note, on_result)
+    if stems is None:
+        stems = unique_stems(sources, run.note)
+    elif len(stems) != len(sources):
+        raise RunError(f"{len(stems)} stem(s) given for {len(sources)} input(s)")
+    jobs = [_Job(Record(src, stem), _is_image(src)) for src, stem in zip(sources, stems)]
 
     # ---- folders that cannot be listed; finished inputs (a manifest that matches) are skipped
     todo: List[_Job] = []

@@ -3,7 +3,7 @@
 One module per file format, each encoding or decoding only: ``points_text`` (``x y`` text and
 CSV), ``npy`` (point arrays), ``npz`` (the lossless curve format), ``json`` (the result as JSON),
 ``svg``, ``png`` (the curve drawn), ``overlay`` (the curve over its image), ``contours``
-(OpenCV contours ``.npz``). ``files`` holds the reading of bytes and the one atomic writer;
+(OpenCV contours ``.npz``), ``geojson`` (the regions as a GeoJSON FeatureCollection). ``files`` holds the reading of bytes and the one atomic writer;
 ``registry`` maps suffixes to loaders (:data:`LOADERS`) and format names to exporters
 (:data:`EXPORTERS`), and :func:`export` writes several formats next to each other.
 
@@ -20,6 +20,7 @@ from __future__ import annotations
 from torch_isc.io.contours import encode_contours, load_contours, write_contours
 from torch_isc.io.errors import CurveFileError, PointFileError
 from torch_isc.io.files import atomic_write, read_file_bytes
+from torch_isc.io.geojson import encode_geojson, geojson_dict, geojson_feature, write_geojson
 from torch_isc.io.json import encode_json, json_dumps, result_json_dict, write_json
 from torch_isc.io.npz import NPZ_FORMAT, encode_npz, load_npz, save_npz, write_npz
 from torch_isc.io.overlay import encode_overlay, render_overlay, write_overlay
@@ -34,5 +35,6 @@ __all__ = [
     "svg_text", "render_curve", "render_png", "write_png", "render_overlay", "write_overlay", "write_contours",
     "load_contours", "encode_json", "encode_npz", "encode_svg", "encode_png", "encode_overlay",
     "encode_contours", "Loader", "LOADERS", "loader_for", "ExportContext", "Exporter", "EXPORTERS",
-    "chosen_formats", "formats_needing", "export",
+    "chosen_formats", "formats_needing", "export", "encode_geojson", "geojson_dict", "geojson_feature",
+    "write_geojson",
 ]

@@ -9,7 +9,7 @@ that needs a context field (``needs``) is written only where the context has it.
 
 Example:
     >>> sorted(EXPORTERS)[:3], LOADERS[".npy"].kind, LOADERS[".png"].kind
-    (['contours.npz', 'json', 'npz'], 'points', 'image')
+    (['contours.npz', 'geojson', 'json'], 'points', 'image')
 """
 from __future__ import annotations
 
@@ -25,6 +25,7 @@ from torch_isc.io import npy, points_text
 from torch_isc.io.contours import encode_contours
 from torch_isc.io.errors import PointFileError
 from torch_isc.io.files import PathLike, atomic_write, read_file_bytes
+from torch_isc.io.geojson import encode_geojson
 from torch_isc.io.json import encode_json
 from torch_isc.io.npz import encode_npz
 from torch_isc.io.overlay import encode_overlay
@@ -145,6 +146,10 @@ def _png(result, fh: BinaryIO, context: ExportContext) -> None:
     encode_png(result, fh, y_down=context.y_down)
 
 
+def _geojson(result, fh: BinaryIO, context: ExportContext) -> None:
+    encode_geojson(result, fh)
+
+
 def _contours(result, fh: BinaryIO, context: ExportContext) -> None:
     encode_contours(result, fh)
 
@@ -160,6 +165,7 @@ EXPORTERS: Dict[str, Exporter] = {
     "svg": Exporter(_svg),
     "png": Exporter(_png),
     "contours.npz": Exporter(_contours),
+    "geojson": Exporter(_geojson),
     "overlay.png": Exporter(_overlay, needs=("image",)),
 }
 

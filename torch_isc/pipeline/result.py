@@ -4,9 +4,11 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Dict, Iterator, List, Optional, Sequence, Tuple
 
+import numpy as np
 import torch
 
 from torch_isc.core.curve import ImplicitCurve
+from torch_isc.core.nesting import polygons_with_holes, signed_area
 from torch_isc.pipeline.config import ReconstructConfig
 from torch_isc.pipeline.stats import LevelStats
 
@@ -74,6 +76,39 @@ class ReconstructionResult:
             return [0.0, 0.0, 0.0, 0.0]
         lo, hi = pts.min(0).values, pts.max(0).values
         return [float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])]
+
+    def polygons(self) -> List[Tuple[np.ndarray, List[np.ndarray]]]:
+        """The regions the closed curves bound, from their nesting: ``[(exterior, [holes])]``
+        of ``(n, 2)`` float64 rings (caller's coordinates, last vertex not repeated). A curve
+        at even depth is an exterior, one at odd depth a hole of its nearest enclosing curve;
+        an island in a hole is an exterior again. Exteriors are counter-clockwise and holes
+        clockwise (positive / negative shoelace area in the coordinates as given); open chains
+        are left out."""
+        rings = []
+        for pl in self.polylines:
+            if not pl["closed"]:
+                continue
+            a = pl["points"].detach().double().cpu().numpy().reshape(-1, 2)
+            if a.shape[0] >= 2 and np.array_equal(a[0], a[-1]):
+                a = a[:-1]
+            if a.shape[0] >= 3:
+                rings.append(a)
+
+        def oriented(a: np.ndarray, ccw: bool) -> np.ndarray:
+            return a if (signed_area(a) > 0) == ccw else np.ascontiguousarray(a[::-1])
+
+        return [(oriented(rings[e], True), [oriented(rings[h], False) for h in holes])
+                for e, holes in polygons_with_holes(rings)]
+
+    def to_shapely(self):
+        """The regions as a ``shapely.MultiPolygon`` (:meth:`polygons`: even depth = exterior,
+        odd depth = hole of its nearest enclosing curve), in the caller's coordinates; empty
+        when there is no closed curve. Needs shapely (``pip install shapely``)."""
+        try:
+            import shapely
+        except ImportError as e:  # pragma: no cover - depends on the environment
+            raise ImportError("to_shapely() needs shapely: pip install shapely") from e
+        return shapely.MultiPolygon([shapely.Polygon(ext, holes) for ext, holes in self.polygons()])
 
     def to_json_dict(self, with_stats: bool = True) -> Dict[str, Any]:
         """The stable JSON schema: ``{"polylines": [{"closed", "points"}], "num_components",

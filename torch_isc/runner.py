@@ -463,12 +463,13 @@ class _Run:
         written: List[Path] = []
         try:
             for f in formats:
-                written += export(res, self.out_dir / job.stem, [f], context=ctx)
+                # no fsync: the manifest hashes every file, so a set torn by a power loss is redone
+                written += export(res, self.out_dir / job.stem, [f], context=ctx, fsync=False)
             files = [{"name": p.name, "sha256": file_sha256(p), "bytes": p.stat().st_size} for p in written]
             doc = {"manifest_format": MANIFEST_FORMAT, "torch_isc": torch_isc.__version__,
                    "input": {"path": os.fspath(job.source), "sha256": job.input_sha256},
                    "config_sha256": self.config_sha[job.is_image], "formats": list(formats), "files": files}
-            atomic_write(man, json.dumps(doc, indent=1) + "\n")
+            atomic_write(man, json.dumps(doc, indent=1) + "\n", fsync=False)
         except Exception:
             for p in written:
                 try:

@@ -204,13 +204,17 @@ def _smooth(a: torch.Tensor, d: torch.Tensor, prev: torch.Tensor, nxt: torch.Ten
     # a corner holds its two neighbours in place too (a corner is a feature, not noise)
     hold = corner | corner[prev] | corner[nxt]
     free = ~hold
+    # a step moves p = a + t d to p + f (mid - p), mid = (p[prev] + p[nxt]) / 2, and projects it
+    # on the edge: t' = t + f ((mid - p) . d) / |d|^2, which is affine in t, t[prev], t[nxt]:
+    # t' = t + f (c0 + cp t[prev] + cn t[nxt] - t), so the loop runs on (N,) scalars only
+    c0 = ((0.5 * (a[prev] + a[nxt]) - a) * d).sum(1) / dd
+    cp = 0.5 * (d[prev] * d).sum(1) / dd
+    cn = 0.5 * (d[nxt] * d).sum(1) / dd
     for it in range(iters):
         live = free if cap is None else free & (cap > it)
         for f in (lam, mu):
-            q = p + f * (0.5 * (p[prev] + p[nxt]) - p)
-            tn = (((q - a) * d).sum(1) / dd).clamp(lo, hi)
+            tn = torch.addcmul(torch.addcmul(c0 - t, cp, t[prev]), cn, t[nxt]).mul_(f).add_(t).clamp_(lo, hi)
             t = torch.where(live, tn, t)
-            p = a + t[:, None] * d
     return t
 
 

@@ -16,11 +16,11 @@ __all__ = ["encode_contours", "write_contours", "load_contours"]
 
 def encode_contours(result, fh: BinaryIO, mode: str = "tree") -> None:
     """The contours of ``result`` (``mode``: ``"tree"`` or ``"ccomp"``) as ``.npz`` into ``fh``."""
-    np.savez_compressed(fh, **contour_arrays(result, mode))
+    np.savez(fh, **contour_arrays(result, mode))
 
 
 def write_contours(path: PathLike, result, mode: str = "tree") -> Path:
     """:func:`encode_contours` into ``path`` (atomic write); :func:`load_contours` gives
     ``(contours, hierarchy)`` back as ``cv2.findContours`` returns them."""
     arrays = contour_arrays(result, mode)
-    return atomic_write(path, lambda fh: np.savez_compressed(fh, **arrays))
+    return atomic_write(path, lambda fh: np.savez(fh, **arrays))

@@ -178,7 +178,7 @@ def formats_needing(available: Iterable[str]) -> List[str]:
 
 def export(result, path_stem: PathLike, formats: Iterable[str] = ("json", "npz", "svg", "png"),
            y_down: bool = False, image: Optional[ImageLike] = None,
-           context: Optional[ExportContext] = None) -> List[Path]:
+           context: Optional[ExportContext] = None, fsync: bool = True) -> List[Path]:
     """Write ``result`` as ``<path_stem>.<fmt>`` for every format, each write atomic.
 
     Args:
@@ -186,6 +186,7 @@ def export(result, path_stem: PathLike, formats: Iterable[str] = ("json", "npz",
             without flipping y, so they look like the image.
         image: the source image, for ``overlay.png``.
         context: an :class:`ExportContext` instead of ``y_down`` and ``image``.
+        fsync: sync each file to disk before its move (see :func:`~torch_isc.io.files.atomic_write`).
 
     Returns:
         the written paths, in the order of ``formats``.
@@ -207,5 +208,5 @@ def export(result, path_stem: PathLike, formats: Iterable[str] = ("json", "npz",
     out = []
     for f in formats:
         enc = EXPORTERS[f].encode
-        out.append(atomic_write(Path(f"{stem}.{f}"), lambda fh, enc=enc: enc(result, fh, ctx)))
+        out.append(atomic_write(Path(f"{stem}.{f}"), lambda fh, enc=enc: enc(result, fh, ctx), fsync))
     return out

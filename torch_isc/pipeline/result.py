@@ -75,12 +75,16 @@ class ReconstructionResult:
         lo, hi = pts.min(0).values, pts.max(0).values
         return [float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])]
 
-    def to_json_dict(self, with_stats: bool = True) -> Dict[str, Any]:
+    def to_json_dict(self, with_stats: bool = True, arrays: bool = False) -> Dict[str, Any]:
         """The stable JSON schema: ``{"polylines": [{"closed", "points"}], "num_components",
-        "bbox"}``, plus ``"stats"`` (levels, convergence, limit) when asked."""
+        "bbox"}``, plus ``"stats"`` (levels, convergence, limit) when asked; with ``arrays`` the
+        points are ``(n, 2)`` float64 numpy arrays instead of lists (for a fast JSON writer)."""
+        def pts(p):
+            a = p.detach().double().cpu()
+            return a.numpy() if arrays else a.tolist()
+
         d: Dict[str, Any] = {
-            "polylines": [{"closed": bool(p["closed"]), "points": p["points"].detach().double().cpu().tolist()}
-                          for p in self.polylines],
+            "polylines": [{"closed": bool(p["closed"]), "points": pts(p["points"])} for p in self.polylines],
             "num_components": self.num_components,
             "bbox": self.bbox(),
         }

@@ -131,6 +131,34 @@ def test_many_inputs_in_batches_npy_and_seed(tmp_path, capsys):
         assert abs((bbox[2] - bbox[0]) - 2 * r) < 0.1 * r
 
 
+def test_progress_bar_advances_per_input_within_a_batch(tmp_path, capsys):
+    files = [_write_xy(tmp_path / f"c{i}.xy", _circle(60, r=1 + i, seed=i)) for i in range(3)]
+    code, out, err = _run(capsys, "reconstruct", *files, "--out", tmp_path / "o", "--batch-size", "3",
+                          "--formats", "json", *FAST)
+    assert code == 0, err
+    lines = [ln for ln in err.splitlines() if re.match(r"torch-isc: \[\d/3\] \|", ln)]
+    assert [ln.split()[1] for ln in lines] == ["[1/3]", "[2/3]", "[3/3]"]    # one batch, three steps
+    assert "100%" in lines[-1]
+
+
+def test_progress_bar_on_a_terminal_redraws_in_place():
+    import io
+
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+
+    s = Tty()
+    bar = cli._Progress(3, s)
+    for _ in range(3):
+        bar.clear()
+        bar.advance()
+    bar.close()
+    text = s.getvalue()
+    assert text.count("\r\033[K") >= 3 and text.endswith("\n") and text.count("\n") == 1
+    assert "[3/3]" in text and "100%" in text
+
+
 def test_same_input_same_json_bytes(tmp_path, capsys):
     f = _write_xy(tmp_path / "circle.xy", _circle())
     assert _run(capsys, "reconstruct", f, "--out", tmp_path / "a", "--formats", "json", *FAST)[0] == 0

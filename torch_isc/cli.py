@@ -163,6 +163,49 @@ def _bar(done: int, total: int, t0: float, width: int = 24) -> str:
     return f"|{'#' * fill}{'.' * (width - fill)}| {100 * frac:3.0f}% {rate:.1f}/s ETA {eta_s}"
 
 
+class _Progress:
+    """The progress bar on stderr, advanced once per input as soon as it is final (done,
+    skipped or failed), not once per batch. On a terminal it is one line redrawn in place (and
+    cleared while other lines are printed); otherwise a line is printed at each whole percent
+    (at most about 100 lines), and the last one at the end."""
+
+    def __init__(self, total: int, stream: Optional[TextIO] = None):
+        self.total, self.done, self.t0 = total, 0, time.perf_counter()
+        self.stream = stream or sys.stderr
+        try:
+            self.tty = self.stream.isatty()
+        except (AttributeError, ValueError):
+            self.tty = False
+        self.shown = False
+        self.last_pct = -1
+
+    def _line(self) -> str:
+        return f"{PROG}: [{self.done}/{self.total}] {_bar(self.done, self.total, self.t0)}"
+
+    def clear(self) -> None:
+        if self.tty and self.shown:
+            print("\r\033[K", end="", file=self.stream, flush=True)
+            self.shown = False
+
+    def advance(self) -> None:
+        self.done += 1
+        if self.total <= 1:
+            return
+        if self.tty:
+            print("\r\033[K" + self._line(), end="", file=self.stream, flush=True)
+            self.shown = True
+            return
+        pct = 100 * self.done // self.total
+        if pct != self.last_pct:
+            self.last_pct = pct
+            print(self._line(), file=self.stream, flush=True)
+
+    def close(self) -> None:
+        if self.tty and self.shown:
+            print(file=self.stream, flush=True)
+            self.shown = False
+
+
 def _summary(record: Record) -> str:
     """The stdout line of a done input."""
     r = record.summary
@@ -229,9 +272,10 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
                                  use_oracle=not args.no_oracle, canny=(low, high), sigma=args.sigma,
                                  max_pixels=int(args.max_pixels) or None, connectivity=args.connectivity)
 
-    t0 = time.perf_counter()
+    bar = _Progress(len(sources))
 
     def progress(record: Record) -> None:
+        bar.clear()
         if record.status == "skipped":
             print(f"{shown(record.stem)}: skipped, outputs exist in {shown(out_dir)} (use --overwrite to redo)", flush=True)
         elif record.status == "failed":
@@ -240,18 +284,17 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
                 print(record.traceback, end="", file=sys.stderr, flush=True)
         else:
             print(_summary(record), flush=True)
+        bar.advance()
 
     def on_batch(stage: str, batch: int, size: int, done: int, total: int) -> None:
-        if total <= 1:
-            return
-        if stage == "start":
-            _note(f"[{done}/{total}] batch {batch}: reconstructing {size} input(s) {_bar(done, total, t0)}")
-        elif done == total:
-            _note(f"[{done}/{total}] {_bar(done, total, t0)}")
+        if total > 1 and stage == "start":
+            bar.clear()
+            _note(f"[{done}/{total}] batch {batch}: reconstructing {size} input(s) {_bar(done, total, bar.t0)}")
 
     report = run_inputs(sources, config, out_dir, formats, image_formats, overwrite=args.overwrite,
                         batch_size=args.batch_size, image_options=image_options, image_config=image_config,
                         device=device, progress=progress, on_batch=on_batch, on_note=_note)
+    bar.close()
     failed, n = report.failed, len(report.records)
     if report.batches > 1 or failed:
         _note(f"done: {n - failed} of {n} input(s) ok, {failed} failed")

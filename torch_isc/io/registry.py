@@ -106,9 +106,13 @@ class ExportContext:
     Attributes:
         y_down: the coordinates are image pixels (y pointing down): drawings are not flipped.
         image: the source image (gray ``(H, W)`` or BGR ``(H, W, 3)``) of an image input.
+        zoom, region: of ``overlay.png``: an integer zoom, and the part of the image shown
+            (``(x0, y0, x1, y1)`` pixels, None: all; :func:`~torch_isc.io.render_overlay`).
     """
     y_down: bool = False
     image: Optional[ImageLike] = None
+    zoom: int = 1
+    region: Optional[Tuple[int, int, int, int]] = None
 
 
 @dataclass(frozen=True)
@@ -150,7 +154,7 @@ def _contours(result, fh: BinaryIO, context: ExportContext) -> None:
 
 
 def _overlay(result, fh: BinaryIO, context: ExportContext) -> None:
-    encode_overlay(result, fh, context.image)
+    encode_overlay(result, fh, context.image, scale=context.zoom, region=context.region)
 
 
 #: Format name -> :class:`Exporter`; :func:`export` writes ``<stem>.<format>``.

@@ -224,8 +224,8 @@ def _corner_tips(a: torch.Tensor, d: torch.Tensor, t: torch.Tensor, prev: torch.
                  min_loop: int = 64, min_side: float = 2.0, max_cos_smooth: float = 0.8) -> torch.Tensor:
     """Crossing parameters ``t`` with the sharp corners restored: at each corner of the loops
     (a turn of the chords 3 nodes either side with cosine below ``max_cos`` on the crack
-    midpoints, at its sharpest node, and below ``max_cos_smooth`` on the smoothed crossings), a line is fitted to the smoothed
-    crossings of either side (nodes ``side[0]..side[1]`` steps away, kept only when the fit is
+    midpoints, at its sharpest node, and below ``max_cos_smooth`` on the smoothed crossings),
+    a line is fitted to the smoothed crossings of either side (nodes ``side[0]..side[1]`` steps away, kept only when the fit is
     straight: RMS residual below ``straight`` px, and at least ``min_side`` px long; loops of
     ``min_loop`` crossings or more), the two lines are intersected, and the crossings
     within ``zone`` steps and ``radius`` px of that tip move along their edges to where the edges
@@ -240,19 +240,23 @@ def _corner_tips(a: torch.Tensor, d: torch.Tensor, t: torch.Tensor, prev: torch.
     # the turn between the chords to the nodes `span` steps away on either side, its sharpest
     # node within `span` steps: a corner candidate
     span = 3
-    bk, fw = [torch.arange(t.shape[0], device=t.device)], [torch.arange(t.shape[0], device=t.device)]
-    for _ in range(span):
-        bk.append(prev[bk[-1]])
-        fw.append(nxt[fw[-1]])
-    u, w = m - m[bk[-1]], m[fw[-1]] - m
+    p3 = prev[prev[prev]]
+    n3 = nxt[nxt[nxt]]
+    u, w = m - m[p3], m[n3] - m
     cosang = (u * w).sum(1) / (u.norm(dim=1) * w.norm(dim=1)).clamp_min(1e-12)
-    # ... where the smoothed curve turns too (a staircase step on a smooth curve does not)
-    us, ws = p - p[bk[-1]], p[fw[-1]] - p
+    c = ((cosang < max_cos) & (n_loop >= min_loop)).nonzero().squeeze(1)      # candidates (few)
+    if c.numel() == 0:
+        return t
+    # ... where the smoothed curve turns too (a staircase step on a smooth curve does not), at
+    # the sharpest node within `span` steps
+    us, ws = p[c] - p[p3[c]], p[n3[c]] - p[c]
     cos_s = (us * ws).sum(1) / (us.norm(dim=1) * ws.norm(dim=1)).clamp_min(1e-12)
-    sharpest = (cosang < max_cos) & (cos_s < max_cos_smooth) & (n_loop >= min_loop)
-    for j in range(1, span + 1):
-        sharpest &= (cosang < cosang[bk[j]]) & (cosang <= cosang[fw[j]])
-    c = sharpest.nonzero().squeeze(1)
+    keep = cos_s < max_cos_smooth
+    cb, cf, cc = c, c, cosang[c]
+    for _ in range(span):
+        cb, cf = prev[cb], nxt[cf]
+        keep &= (cc < cosang[cb]) & (cc <= cosang[cf])
+    c = c[keep]
     if c.numel() == 0:
         return t
     steps = max(side[1], zone)

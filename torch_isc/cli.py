@@ -14,12 +14,14 @@ the points (``--mode edges``, topology estimated); their coordinates are pixels 
 down, pixel (0, 0) covering [0,1]x[0,1]), the settings are those of
 :func:`torch_isc.images.image_config` unless the config sets them, and they also get
 ``<stem>.overlay.png`` (the curve over the image) and, by default, ``<stem>.contours.npz``
-(OpenCV contours with their hierarchy). A folder INPUT stands for its point and image files,
-sorted by name.
+(OpenCV contours with their hierarchy). ``--zoom N`` and ``--region X0,Y0,X1,Y1`` draw the
+overlay of that part of the image at that zoom (pixels as NxN blocks under the sub-pixel curve).
+A folder INPUT stands for its point and image files, sorted by name.
 
 Inputs go through :func:`torch_isc.reconstruct_batch` in batches of ``--batch-size``, read only
 when their batch fills (bounded memory, a folder of any size streams through); a batch that
-raises is retried item by item so one bad input cannot sink the others.
+raises is retried item by item so one bad input cannot sink the others. The progress bar on
+stderr advances once per input as soon as it is final (in place on a terminal).
 
 Each input's outputs end with ``OUT/<stem>.manifest.json`` (written last: the sha256 of the input,
 of the config and of every output file); a rerun skips an input only when its manifest matches,

@@ -5,6 +5,7 @@ Run from the repository root:
     OMP_NUM_THREADS=1 .venv/bin/python scripts/evaluate_masks.py
     OMP_NUM_THREADS=1 .venv/bin/python scripts/evaluate_masks.py --out out/masks     # + overlays
     OMP_NUM_THREADS=1 .venv/bin/python scripts/evaluate_masks.py --no-oracle          # topology estimated
+    OMP_NUM_THREADS=1 .venv/bin/python scripts/evaluate_masks.py --grid               # the grid path
 
 For each distinct truth of ``../shared/cases`` (the truth curves are the same at every noise
 level, so there are 6 shapes), the region bounded by the true curves (even-odd) is rendered as
@@ -15,6 +16,8 @@ the analytic truth mapped into the image, in pixels (the pixel convention of
 
 - torch_isc: ``torch_isc.images.reconstruct_masks`` on all masks in one batch (boundary points
   on the pixel cracks, 1 pixel apart, signs from the mask), default image settings;
+  with ``--grid``, ``torch_isc.images.grid_results`` instead (the mask mode of the CLI: the
+  pixel-centre grid, signs from the mask, crossings smoothed; no boundary points, no solve);
 - ``cv2.findContours(RETR_CCOMP, CHAIN_APPROX_NONE)``: a contour point ``(u, v)`` (a boundary
   pixel's centre in OpenCV's coordinates) is ``(u + 0.5, v + 0.5)`` here;
 - ``skimage.measure.find_contours(mask, level=0.5)`` (marching squares between pixel centres): a
@@ -155,6 +158,8 @@ def main(argv=None) -> int:
     ap.add_argument("--no-oracle", action="store_true", help="estimate the topology instead of reading the mask")
     ap.add_argument("--interpolation", default="bilinear", choices=("bilinear", "nearest"),
                     help="how the mask oracle samples the mask (default bilinear)")
+    ap.add_argument("--grid", action="store_true",
+                    help="torch_isc's grid path (images.grid_results, the CLI's mask mode) instead of the point solve")
     ap.add_argument("--config", default=None, help="YAML config file (keys of ReconstructConfig)")
     ap.add_argument("--set", nargs="+", action="extend", default=[], metavar="KEY=VALUE",
                     help="config overrides on top of the image defaults")
@@ -171,9 +176,12 @@ def main(argv=None) -> int:
         s["mask"] = render(s["truth_px"], args.size, args.supersample, args.direct)
 
     t0 = time.perf_counter()
-    results = images.reconstruct_masks([s["mask"] for s in shapes], cfg, spacing=args.spacing,
-                                       use_oracle=not args.no_oracle, names=[s["name"] for s in shapes],
-                                       interpolation=args.interpolation)
+    if args.grid:
+        results = images.grid_results([s["mask"] > 127 for s in shapes], [s["name"] for s in shapes], config=cfg)
+    else:
+        results = images.reconstruct_masks([s["mask"] for s in shapes], cfg, spacing=args.spacing,
+                                           use_oracle=not args.no_oracle, names=[s["name"] for s in shapes],
+                                           interpolation=args.interpolation)
     seconds = time.perf_counter() - t0
 
     rows = []
@@ -191,9 +199,12 @@ def main(argv=None) -> int:
             write_overlay(out / f"{s['name']}.overlay.png", s["mask"] // 2 + 64, res, scale=4, points=True)
 
     render_how = "one plain fillPoly" if args.direct else f"fillPoly at {args.supersample}x, majority per pixel"
-    print(f"{len(rows)} masks {args.size}x{args.size} ({render_how}); torch_isc "
-          f"{'topology estimated' if args.no_oracle else 'signs from the mask (' + args.interpolation + ')'}, "
-          f"spacing {args.spacing:g} px, tolerance {cfg.tolerance:g} ({cfg.tolerance_mode}); "
+    if args.grid:
+        how = "grid path (images.grid_results: pixel-centre grid, signs from the mask, smoothed crossings)"
+    else:
+        how = (f"{'topology estimated' if args.no_oracle else 'signs from the mask (' + args.interpolation + ')'}, "
+               f"spacing {args.spacing:g} px, tolerance {cfg.test.tolerance:g} ({cfg.test.tolerance_mode})")
+    print(f"{len(rows)} masks {args.size}x{args.size} ({render_how}); torch_isc {how}; "
           f"{seconds:.2f} s for the batch\n")
     print("| shape | truth curves | closed: torch_isc / cv2 / skimage | Chamfer px: torch_isc | cv2.findContours "
           "| skimage find_contours | Hausdorff px: torch_isc | cv2 | skimage | count ok | Chamfer lowest |")

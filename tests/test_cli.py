@@ -131,6 +131,27 @@ def test_many_inputs_in_batches_npy_and_seed(tmp_path, capsys):
         assert abs((bbox[2] - bbox[0]) - 2 * r) < 0.1 * r
 
 
+def test_progress_bar_advances_per_input_within_a_batch(tmp_path, monkeypatch):
+    """On a terminal the tqdm bar steps once per input as each one is final, also inside a batch
+    of three (not once per batch)."""
+    import io
+
+    files = [_write_xy(tmp_path / f"c{i}.xy", _circle(60, r=1 + i, seed=i)) for i in range(3)]
+
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+
+    err = Tty()
+    monkeypatch.setattr(sys, "stderr", err)
+    code = cli.main(["reconstruct", *map(str, files), "--out", str(tmp_path / "o"), "--batch-size", "3",
+                     "--formats", "json", *FAST])
+    monkeypatch.undo()
+    assert code == 0
+    steps = re.findall(r"(\d)/3", err.getvalue())
+    assert {"1", "2", "3"} <= set(steps)
+
+
 def test_same_input_same_json_bytes(tmp_path, capsys):
     f = _write_xy(tmp_path / "circle.xy", _circle())
     assert _run(capsys, "reconstruct", f, "--out", tmp_path / "a", "--formats", "json", *FAST)[0] == 0

@@ -123,3 +123,27 @@ def test_accuracy_corners_mean(name):
     d, ds = _dist(ours, truth), _dist(sk, truth)
     assert d["a_to_b_mean"] < ds["a_to_b_mean"] + 0.01
     assert d["hausdorff"] <= ds["hausdorff"] + 0.25
+
+
+@pytest.mark.parametrize("name, bound", [("square 20 deg", 0.70), ("square axis", 0.36), ("triangle", 0.85),
+                                         ("star (notches)", 1.55)])
+def test_corner_tips_restored(name, bound):
+    """Sharp corners are drawn from their extended sides: the maximum distance is at most
+    marching squares' (the star's 36-degree tips lie beyond the band's reach), and better than
+    without the corner step where the tip is within reach."""
+    from skimage import measure
+    m, _, truth = shape_mask(name)
+    d = _dist([p.numpy() for p in images.trace_masks([torch.from_numpy(m)]).polylines.polyline_list()], truth)
+    d0 = _dist([p.numpy() for p in images.trace_masks([torch.from_numpy(m)], corners=False).polylines.polyline_list()],
+               truth)
+    ds = _dist([c[:, ::-1] + 0.5 for c in measure.find_contours(m.astype(float), 0.5)], truth)
+    assert d["hausdorff"] <= bound and d["hausdorff"] <= ds["hausdorff"] + 1e-3
+    assert d["hausdorff"] <= d0["hausdorff"] + 1e-3 and d["a_to_b_mean"] <= d0["a_to_b_mean"] + 0.002
+
+
+def test_corner_step_leaves_smooth_shapes_alone():
+    for name in [n for n in SHAPES if "square" not in n and "triangle" not in n and "star" not in n]:
+        m, _, _ = shape_mask(name)
+        a = images.trace_masks([torch.from_numpy(m)]).polylines.points
+        b = images.trace_masks([torch.from_numpy(m)], corners=False).polylines.points
+        assert torch.equal(a, b), name

@@ -14,12 +14,14 @@ the points (``--mode edges``, topology estimated); their coordinates are pixels 
 down, pixel (0, 0) covering [0,1]x[0,1]), the settings are those of
 :func:`torch_isc.images.image_config` unless the config sets them, and they also get
 ``<stem>.overlay.png`` (the curve over the image) and, by default, ``<stem>.contours.npz``
-(OpenCV contours with their hierarchy). A folder INPUT stands for its point and image files,
-sorted by name.
+(OpenCV contours with their hierarchy). ``--zoom N`` and ``--region X0,Y0,X1,Y1`` draw the
+overlay of that part of the image at that zoom (pixels as NxN blocks under the sub-pixel curve).
+A folder INPUT stands for its point and image files, sorted by name.
 
 Inputs go through :func:`torch_isc.reconstruct_batch` in batches of ``--batch-size``, read only
 when their batch fills (bounded memory, a folder of any size streams through); a batch that
-raises is retried item by item so one bad input cannot sink the others.
+raises is retried item by item so one bad input cannot sink the others. The progress bar on
+stderr advances once per input as soon as it is final (in place on a terminal).
 
 Each input's outputs end with ``OUT/<stem>.manifest.json`` (written last: the sha256 of the input,
 of the config and of every output file); a rerun skips an input only when its manifest matches,
@@ -119,6 +121,12 @@ def build_parser() -> argparse.ArgumentParser:
     img.add_argument("--max-pixels", type=float, default=float(DEFAULT_MAX_PIXELS), metavar="N",
                      help=f"the largest image read, in pixels (width x height, from the header, before decoding; "
                           f"default: {DEFAULT_MAX_PIXELS:.0e}; 0: no limit)")
+    img.add_argument("--zoom", type=int, default=1, metavar="N",
+                     help="overlay.png: an integer zoom, each pixel drawn as an NxN block under the sub-pixel curve "
+                          "(vertices marked from 8 on), to see sub-pixel defects; adds overlay.png to the image formats")
+    img.add_argument("--region", default=None, metavar="X0,Y0,X1,Y1",
+                     help="overlay.png: show only this part of the image (pixels, x right, y down, clipped to the "
+                          "image); adds overlay.png to the image formats")
     rec.add_argument("--device", default="cpu", help="torch device for the reconstruction (default: cpu)")
     rec.add_argument("--overwrite", action="store_true",
                      help="redo inputs whose output set is complete (by default they are skipped; a set is "
@@ -250,6 +258,18 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
         raise UsageError(f"--canny: expected 0 < LOW < HIGH, got {args.canny!r}")
     if not args.sigma > 0 or args.sigma > 1e3:
         raise UsageError(f"--sigma must be in (0, 1000], got {args.sigma}")
+    if not 1 <= args.zoom <= 64:
+        raise UsageError(f"--zoom must be an integer in [1, 64], got {args.zoom}")
+    region = None
+    if args.region is not None:
+        try:
+            region = tuple(int(v) for v in args.region.split(","))
+        except ValueError:
+            region = ()
+        if len(region) != 4 or not (region[0] < region[2] and region[1] < region[3]) or min(region[2:]) <= 0:
+            raise UsageError(f"--region expects X0,Y0,X1,Y1 (integer pixels, X0 < X1, Y0 < Y1), got {args.region!r}")
+    if (args.zoom != 1 or region is not None) and "overlay.png" not in image_formats:
+        image_formats.append("overlay.png")
     if not 0 <= args.max_pixels < 2 ** 62:
         raise UsageError(f"--max-pixels must be >= 0, got {args.max_pixels}")
     try:
@@ -284,7 +304,8 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
     image_config = images.image_config(config, keep=sorted(keep), mode=args.mode)
     image_options = ImageOptions(mode=args.mode, threshold=args.threshold, spacing=args.spacing,
                                  use_oracle=not args.no_oracle, canny=(low, high), sigma=args.sigma,
-                                 max_pixels=int(args.max_pixels) or None, connectivity=args.connectivity)
+                                 max_pixels=int(args.max_pixels) or None, connectivity=args.connectivity,
+                                 zoom=args.zoom, region=region)
 
     bar = _Progress(len(sources))
 

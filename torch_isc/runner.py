@@ -94,6 +94,8 @@ class ImageOptions:
         max_pixels: the largest image read (width x height, from its header, before decoding);
             None: no limit.
         connectivity: mask mode: 8 (OpenCV's) or 4, of the foreground.
+        zoom, region: of ``overlay.png``: an integer zoom and the part of the image shown
+            (``(x0, y0, x1, y1)`` pixels, None: all); see :func:`torch_isc.io.render_overlay`.
     """
     mode: str = "mask"
     threshold: Optional[float] = None
@@ -103,6 +105,8 @@ class ImageOptions:
     sigma: float = 1.0
     max_pixels: Optional[int] = DEFAULT_MAX_PIXELS
     connectivity: int = 8
+    zoom: int = 1
+    region: Optional[Tuple[int, int, int, int]] = None
 
 
 @dataclass
@@ -319,6 +323,9 @@ class _Run:
         self.batches = 0
         # what an output set must have been made with (the manifest's config hash)
         opts = {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(image_opts).items() if k != "max_pixels"}
+        for k, default in (("zoom", 1), ("region", None)):      # the overlay's view: hashed when set
+            if opts.get(k) == default:
+                opts.pop(k, None)
         self.config_sha = {False: config_hash(config, {"kind": "points"}),
                            True: config_hash(image_config, {"kind": "image", **opts})}
 
@@ -460,16 +467,17 @@ class _Run:
             man.unlink()
         except FileNotFoundError:
             pass
-        ctx = ExportContext(y_down=job.is_image, image=image)
+        ctx = ExportContext(y_down=job.is_image, image=image, zoom=self.opts.zoom, region=self.opts.region)
         written: List[Path] = []
         try:
             for f in formats:
-                written += export(res, self.out_dir / job.stem, [f], context=ctx)
+                # no fsync: the manifest hashes every file, so a set torn by a power loss is redone
+                written += export(res, self.out_dir / job.stem, [f], context=ctx, fsync=False)
             files = [{"name": p.name, "sha256": file_sha256(p), "bytes": p.stat().st_size} for p in written]
             doc = {"manifest_format": MANIFEST_FORMAT, "torch_isc": torch_isc.__version__,
                    "input": {"path": os.fspath(job.source), "sha256": job.input_sha256},
                    "config_sha256": self.config_sha[job.is_image], "formats": list(formats), "files": files}
-            atomic_write(man, json.dumps(doc, indent=1) + "\n")
+            atomic_write(man, json.dumps(doc, indent=1) + "\n", fsync=False)
         except Exception:
             for p in written:
                 try:

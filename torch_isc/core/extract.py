@@ -127,9 +127,12 @@ def extract_zero_set(mesh: MeshBatch, values: torch.Tensor) -> Polylines:
         iters = max(1, math.ceil(math.log2(N + 1)) + 1)
         # chains: every node reaches its tail; loops never reach a tail
         j = jump.clone()
-        for _ in range(iters):
-            j = j[j]
-        on_chain = is_tail[j]
+        if bool(is_tail.any()):
+            for _ in range(iters):
+                j = j[j]
+            on_chain = is_tail[j]
+        else:                       # closed loops only (a mask's curves): no tail to reach
+            on_chain = torch.zeros_like(is_tail)
         # loops: label by the smallest node of the loop
         mn, jj = ar.clone(), jump.clone()
         for _ in range(iters):

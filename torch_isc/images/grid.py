@@ -204,14 +204,115 @@ def _smooth(a: torch.Tensor, d: torch.Tensor, prev: torch.Tensor, nxt: torch.Ten
     # a corner holds its two neighbours in place too (a corner is a feature, not noise)
     hold = corner | corner[prev] | corner[nxt]
     free = ~hold
+    # a step moves p = a + t d to p + f (mid - p), mid = (p[prev] + p[nxt]) / 2, and projects it
+    # on the edge: t' = t + f ((mid - p) . d) / |d|^2, which is affine in t, t[prev], t[nxt]:
+    # t' = t + f (c0 + cp t[prev] + cn t[nxt] - t), so the loop runs on (N,) scalars only
+    c0 = ((0.5 * (a[prev] + a[nxt]) - a) * d).sum(1) / dd
+    cp = 0.5 * (d[prev] * d).sum(1) / dd
+    cn = 0.5 * (d[nxt] * d).sum(1) / dd
     for it in range(iters):
         live = free if cap is None else free & (cap > it)
         for f in (lam, mu):
-            q = p + f * (0.5 * (p[prev] + p[nxt]) - p)
-            tn = (((q - a) * d).sum(1) / dd).clamp(lo, hi)
+            tn = torch.addcmul(torch.addcmul(c0 - t, cp, t[prev]), cn, t[nxt]).mul_(f).add_(t).clamp_(lo, hi)
             t = torch.where(live, tn, t)
-            p = a + t[:, None] * d
     return t
+
+
+def _corner_tips(a: torch.Tensor, d: torch.Tensor, t: torch.Tensor, prev: torch.Tensor, nxt: torch.Tensor,
+                 n_loop: torch.Tensor, side: Tuple[int, int] = (2, 7), zone: int = 3, radius: float = 2.0,
+                 straight: float = 0.16, min_turn: float = 0.35, max_cos: float = 0.5,
+                 min_loop: int = 64, min_side: float = 2.0, max_cos_smooth: float = 0.8) -> torch.Tensor:
+    """Crossing parameters ``t`` with the sharp corners restored: at each corner of the loops
+    (a turn of the chords 3 nodes either side with cosine below ``max_cos`` on the crack
+    midpoints, at its sharpest node, and below ``max_cos_smooth`` on the smoothed crossings),
+    a line is fitted to the smoothed crossings of either side (nodes ``side[0]..side[1]`` steps away, kept only when the fit is
+    straight: RMS residual below ``straight`` px, and at least ``min_side`` px long; loops of
+    ``min_loop`` crossings or more), the two lines are intersected, and the crossings
+    within ``zone`` steps and ``radius`` px of that tip move along their edges to where the edges
+    meet the wedge of the two extended sides (convex corners: the intersection of the two
+    foreground half-planes; notches: the union). The tip a mask cuts off is drawn again, to
+    within the edges' reach; smooth curves have no such corner (their sides are not straight or
+    meet at too small a turn, ``sin`` below ``min_turn``) and are left as they are."""
+    if t.numel() == 0:
+        return t
+    p = a + t[:, None] * d
+    m = a + 0.5 * d
+    # the turn between the chords to the nodes `span` steps away on either side, its sharpest
+    # node within `span` steps: a corner candidate
+    span = 3
+    p3 = prev[prev[prev]]
+    n3 = nxt[nxt[nxt]]
+    u, w = m - m[p3], m[n3] - m
+    cosang = (u * w).sum(1) / (u.norm(dim=1) * w.norm(dim=1)).clamp_min(1e-12)
+    c = ((cosang < max_cos) & (n_loop >= min_loop)).nonzero().squeeze(1)      # candidates (few)
+    if c.numel() == 0:
+        return t
+    # ... where the smoothed curve turns too (a staircase step on a smooth curve does not), at
+    # the sharpest node within `span` steps
+    us, ws = p[c] - p[p3[c]], p[n3[c]] - p[c]
+    cos_s = (us * ws).sum(1) / (us.norm(dim=1) * ws.norm(dim=1)).clamp_min(1e-12)
+    keep = cos_s < max_cos_smooth
+    cb, cf, cc = c, c, cosang[c]
+    for _ in range(span):
+        cb, cf = prev[cb], nxt[cf]
+        keep &= (cc < cosang[cb]) & (cc <= cosang[cf])
+    c = c[keep]
+    if c.numel() == 0:
+        return t
+    steps = max(side[1], zone)
+    back, fwd = [c], [c]
+    for _ in range(steps):
+        back.append(prev[back[-1]])
+        fwd.append(nxt[fwd[-1]])
+
+    def fit(idx, forward):
+        q = p[idx]                                                    # (C, K, 2) in travel order
+        mu = q.mean(1)
+        x = q - mu[:, None]
+        sxx, syy, sxy = (x[..., 0] ** 2).mean(1), (x[..., 1] ** 2).mean(1), (x[..., 0] * x[..., 1]).mean(1)
+        th = 0.5 * torch.atan2(2 * sxy, sxx - syy)
+        v = torch.stack([torch.cos(th), torch.sin(th)], 1)
+        travel = q[:, -1] - q[:, 0]
+        v = torch.where(((v * travel).sum(1) < 0)[:, None], -v, v)
+        resid = ((x[..., 0] * v[:, None, 1] - x[..., 1] * v[:, None, 0]) ** 2).mean(1).sqrt()
+        return mu, v, torch.where(travel.norm(dim=1) >= min_side, resid, torch.full_like(resid, float("inf")))
+
+    K = range(side[0], side[1] + 1)
+    mu1, v1, r1 = fit(torch.stack([back[j] for j in reversed(K)], 1), False)     # before the corner
+    mu2, v2, r2 = fit(torch.stack([fwd[j] for j in K], 1), True)                 # after it
+    den = v1[:, 0] * v2[:, 1] - v1[:, 1] * v2[:, 0]                             # > 0: a left turn, convex
+    dm = mu2 - mu1
+    sol = (dm[:, 0] * v2[:, 1] - dm[:, 1] * v2[:, 0]) / torch.where(den.abs() > 1e-9, den, torch.ones_like(den))
+    tip = mu1 + sol[:, None] * v1
+    ok = (den.abs() > min_turn) & (r1 < straight) & (r2 < straight) & ((tip - p[c]).norm(dim=1) < radius + 0.5)
+    if not bool(ok.any()):
+        return t
+    # the zone's nodes, (C, 2 zone + 1)
+    nodes = torch.stack([back[j] for j in range(zone, 0, -1)] + [c] + [fwd[j] for j in range(1, zone + 1)], 1)
+    C, Z = nodes.shape
+    T = tip[:, None].expand(C, Z, 2)
+    convex = (den > 0)[:, None].expand(C, Z)
+    n1 = torch.stack([v1[:, 1], -v1[:, 0]], 1)[:, None].expand(C, Z, 2)          # outward (background) normals
+    n2 = torch.stack([v2[:, 1], -v2[:, 0]], 1)[:, None].expand(C, Z, 2)
+    an, dn = a[nodes], d[nodes]
+    sgn = torch.where(convex, 1.0, -1.0).to(a.dtype)[..., None]
+    x0 = torch.where(convex[..., None], an, an + dn)                 # start inside the convex region
+    e = torch.where(convex[..., None], dn, -dn)
+    inf = torch.full((C, Z), float("inf"), dtype=a.dtype, device=a.device)
+    exits, inside = [], torch.ones((C, Z), dtype=torch.bool, device=a.device)
+    for nrm in (n1, n2):
+        mm = sgn * nrm                                                # the convex region: mm . (x - T) <= 0
+        h0 = (mm * (x0 - T)).sum(-1)
+        me = (mm * e).sum(-1)
+        inside &= h0 <= 1e-9
+        exits.append(torch.where(me > 1e-12, -h0 / torch.where(me > 1e-12, me, torch.ones_like(me)), inf))
+    s = torch.minimum(exits[0], exits[1])
+    tn = torch.where(convex, s, 1 - s)
+    near = (p[nodes] - T).norm(dim=-1) < radius
+    use = ok[:, None] & inside & (s <= 1) & near
+    out = t.clone()
+    out[nodes[use]] = tn[use].clamp(0.02, 0.98)
+    return out
 
 
 def _realize(t: torch.Tensor, fg_v: torch.Tensor, bg_v: torch.Tensor, loop: torch.Tensor, k: torch.Tensor,
@@ -245,13 +346,14 @@ def _realize(t: torch.Tensor, fg_v: torch.Tensor, bg_v: torch.Tensor, loop: torc
 
 
 def trace_masks(masks: Sequence[torch.Tensor], connectivity: int = 8, smooth: int = 12, reach: float = 0.5,
-                dtype: torch.dtype = torch.float64) -> GridCurves:
+                dtype: torch.dtype = torch.float64, corners: bool = True) -> GridCurves:
     """The curves of a batch of bool masks ``[(H_b, W_b)]``, in one pass (module docstring).
 
     Args:
         connectivity: 8 (default, OpenCV's) or 4, of the foreground.
         smooth: Taubin lambda|mu iterations along the curves (0: the crack-midpoint polygon).
         reach: how far (pixels) a crossing may move from its edge's midpoint.
+        corners: restore sharp corners from their extended sides (:func:`_corner_tips`).
 
     >>> m = torch.zeros(6, 7, dtype=torch.bool); m[1:5, 1:6] = True; m[2:4, 3] = False
     >>> gc = trace_masks([m])
@@ -277,6 +379,8 @@ def trace_masks(masks: Sequence[torch.Tensor], connectivity: int = 8, smooth: in
     K = pl.first.shape[0]
     # small loops (a few pixels) get fewer iterations: their curvature is all signal
     t = _smooth(a, d, prev, nxt, smooth, reach, pl.counts[loop] // 3) if smooth > 0 else torch.full((N,), 0.5, dtype=dtype, device=dev)
+    if corners and smooth > 0:
+        t = _corner_tips(a, d, t, prev, nxt, pl.counts[loop])
     s = _realize(t, fg_v, bg_v, loop, k, pl.first, pl.counts, nxt, V)
     mag = torch.exp(s - s.max().clamp_min(0) if V else s)
     values = torch.where(fg, -mag, mag)

@@ -25,7 +25,7 @@ def jsonable(obj: Any) -> Any:
     if isinstance(obj, dict):
         return {str(k): jsonable(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        if _float_pairs(obj):            # fast path: a polyline's points, already plain floats
+        if type(obj) is list and _plain_dump(obj) is not None:   # fast path: plain numbers already
             return obj
         return [jsonable(v) for v in obj]
     if isinstance(obj, torch.Tensor):
@@ -43,12 +43,59 @@ def jsonable(obj: Any) -> Any:
     raise TypeError(f"cannot convert {type(obj).__name__} to JSON")
 
 
-def _float_pairs(obj: Any) -> bool:
-    """``obj`` is a non-empty list of ``[x, y]`` lists of finite Python floats (written as is)."""
-    if not (type(obj) is list and obj and type(obj[0]) is list):
-        return False
-    return all(type(p) is list and len(p) == 2 and type(p[0]) is float and type(p[1]) is float
-               and math.isfinite(p[0]) and math.isfinite(p[1]) for p in obj)
+def _plain_dump(obj: list) -> Any:
+    """The compact JSON text of ``obj`` when it holds only lists and JSON scalars other than
+    strings (finite numbers, booleans, null): then :func:`jsonable` leaves it as it is and
+    every part of the text is what the slow path would write; else None. One C-level
+    ``json.dumps`` instead of a Python walk over every point of a polyline."""
+    try:
+        text = json.dumps(obj, separators=(", ", ": "), allow_nan=False)
+    except (TypeError, ValueError):
+        return None
+    if '"' in text or "{" in text:
+        return None
+    return text
+
+
+class _Rows:
+    """A finite float matrix ready to print: its compact JSON text (rows of numbers)."""
+    __slots__ = ("text",)
+
+    def __init__(self, text: str):
+        self.text = text
+
+
+def _float_matrix(obj: Any) -> Any:
+    """A floating ``(n, k)`` tensor or array (``n, k >= 1``, all finite) as :class:`_Rows`: its
+    values as Python floats printed by the C JSON encoder (``repr`` of each, as the slow path
+    writes them, without a Python loop over the rows); None for anything else."""
+    if isinstance(obj, torch.Tensor):
+        if not (obj.dtype.is_floating_point and obj.dim() == 2 and obj.shape[0] > 0 and obj.shape[1] > 0):
+            return None
+        a = obj.detach().cpu().double().numpy()
+    elif isinstance(obj, np.ndarray):
+        if not (obj.dtype.kind == "f" and obj.ndim == 2 and obj.shape[0] > 0 and obj.shape[1] > 0):
+            return None
+        a = obj.astype(np.float64, copy=False)
+    else:
+        return None
+    if not np.isfinite(a).all():
+        return None
+    return _Rows(json.dumps(a.tolist(), separators=(", ", ": ")))
+
+
+def _prepare(obj: Any) -> Any:
+    """:func:`jsonable`, but floating matrices become :class:`_Rows` (printed as is)."""
+    rows = _float_matrix(obj)
+    if rows is not None:
+        return rows
+    if isinstance(obj, dict):
+        return {str(k): _prepare(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        if type(obj) is list and _plain_dump(obj) is not None:
+            return obj
+        return [_prepare(v) for v in obj]
+    return jsonable(obj)
 
 
 def _compact(obj: Any) -> str:
@@ -63,10 +110,15 @@ def _format_json(obj: Any, indent: int, level: int = 0) -> str:
             return "{}"
         items = [f"{inner}{json.dumps(str(k))}: {_format_json(v, indent, level + 1)}" for k, v in obj.items()]
         return "{\n" + ",\n".join(items) + "\n" + pad + "}"
+    if type(obj) is _Rows:
+        return "[\n" + inner + obj.text[1:-1].replace("], [", "],\n" + inner + "[") + "\n" + pad + "]"
     if isinstance(obj, list):
-        if _float_pairs(obj):
-            return "[\n" + ",\n".join(f"{inner}[{p[0]!r}, {p[1]!r}]" for p in obj) + "\n" + pad + "]"
-        if not obj or all(not isinstance(v, (list, dict)) for v in obj):
+        if obj and type(obj[0]) is list and all(type(v) is list for v in obj):
+            # a list of flat lists of numbers (a polyline's points): one per line, from one dump
+            text = _plain_dump(obj)
+            if text is not None and text.count("[") == len(obj) + 1:
+                return "[\n" + inner + text[1:-1].replace("], [", "],\n" + inner + "[") + "\n" + pad + "]"
+        if not obj or all(not isinstance(v, (list, dict, _Rows)) for v in obj):
             return _compact(obj)
         items = [inner + _format_json(v, indent, level + 1) for v in obj]
         return "[\n" + ",\n".join(items) + "\n" + pad + "]"
@@ -85,13 +137,16 @@ def json_dumps(obj: Any, indent: int = 1) -> str:
      ]
     }
     """
-    return _format_json(jsonable(obj), indent) + "\n"
+    return _format_json(_prepare(obj), indent) + "\n"
 
 
 def result_json_dict(result, timings: bool = False) -> Dict[str, Any]:
     """``result.to_json_dict()`` without the per-level ``seconds`` unless ``timings``: wall
     times differ from run to run, and without them the same input gives a byte-identical file."""
-    d = result.to_json_dict()
+    try:
+        d = result.to_json_dict(arrays=True)        # points as arrays: printed without a Python list
+    except TypeError:
+        d = result.to_json_dict()
     if not timings and isinstance(d.get("stats"), dict) and isinstance(d["stats"].get("levels"), list):
         d["stats"] = dict(d["stats"])
         d["stats"]["levels"] = [{k: v for k, v in lv.items() if k not in ("seconds", "stage_seconds")} if isinstance(lv, dict) else lv

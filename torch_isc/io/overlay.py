@@ -13,7 +13,7 @@ from torch_isc.images import ImageLike, polyline_dicts
 from torch_isc.io.files import PathLike, atomic_write
 from torch_isc.io.png import png_bytes
 
-__all__ = ["render_overlay", "encode_overlay", "write_overlay"]
+__all__ = ["render_overlay", "encode_overlay", "write_overlay", "overlay_region", "MAX_OVERLAY_PIXELS"]
 
 
 def _bgr(image: ImageLike) -> np.ndarray:
@@ -29,27 +29,71 @@ def _bgr(image: ImageLike) -> np.ndarray:
     return np.ascontiguousarray(a[:, :, :3])
 
 
-def render_overlay(image: ImageLike, result, points: bool = False, scale: int = 1) -> np.ndarray:
+#: The largest overlay drawn, in output pixels (a zoom of a large region is refused above it).
+MAX_OVERLAY_PIXELS = 100_000_000
+
+
+def overlay_region(shape, region=None):
+    """``(x0, y0, x1, y1)`` integer pixel bounds of the part of an image of ``shape`` (H, W)
+    that an overlay shows: ``region`` clipped to the image (None: all of it).
+
+    Raises:
+        ValueError: an empty region, or one outside the image.
+
+    >>> overlay_region((10, 20), (5, -3, 30, 4))
+    (5, 0, 20, 4)
+    """
+    H, W = int(shape[0]), int(shape[1])
+    if region is None:
+        return 0, 0, W, H
+    x0, y0, x1, y1 = (int(v) for v in region)
+    if not (x0 < x1 and y0 < y1):
+        raise ValueError(f"overlay region {x0},{y0},{x1},{y1}: expected x0 < x1 and y0 < y1")
+    c = max(0, x0), max(0, y0), min(W, x1), min(H, y1)
+    if not (c[0] < c[2] and c[1] < c[3]):
+        raise ValueError(f"overlay region {x0},{y0},{x1},{y1} lies outside the {W}x{H} image")
+    return c
+
+
+def render_overlay(image: ImageLike, result, points: bool = False, scale: int = 1,
+                   region=None) -> np.ndarray:
     """The curves of ``result`` drawn over ``image`` (gray ``(H, W)`` or BGR ``(H, W, 3)``):
-    a ``(scale*H, scale*W, 3)`` uint8 BGR image, closed curves green, open chains orange,
+    a ``(scale*h, scale*w, 3)`` uint8 BGR image, closed curves green, open chains orange,
     anti-aliased at sub-pixel precision (``cv2.polylines`` with a fixed-point shift).
     ``result``: any form of :func:`~torch_isc.images.polyline_dicts` (a result, its JSON dict...).
     ``points`` also marks a result's data points in red.
 
+    ``scale`` (an integer zoom, each pixel a ``scale x scale`` block) and ``region``
+    (``(x0, y0, x1, y1)`` in pixels, the part of the image shown, clipped to it;
+    :func:`overlay_region`) let sub-pixel defects be seen: at a zoom of 8 or more the curve's
+    vertices are also marked. The curve keeps its sub-pixel position in the zoomed frame: a
+    point ``(x, y)`` is drawn at ``((x - x0) * scale, (y - y0) * scale)`` output pixels.
+
     >>> img = np.zeros((20, 20), np.uint8)
     >>> render_overlay(img, {"polylines": [{"closed": True, "points": [[5, 5], [15, 5], [15, 15]]}]}).shape
     (20, 20, 3)
+    >>> render_overlay(img, {"polylines": []}, scale=4, region=(2, 3, 12, 8)).shape
+    (20, 40, 3)
     """
     cv2 = import_cv2()
+    scale = int(scale)
+    if scale < 1:
+        raise ValueError(f"overlay zoom must be an integer >= 1, got {scale}")
     img = _bgr(image)
+    x0, y0, x1, y1 = overlay_region(img.shape, region)
+    if (x1 - x0) * (y1 - y0) * scale * scale > MAX_OVERLAY_PIXELS:
+        raise ValueError(f"overlay of {x1 - x0}x{y1 - y0} px at zoom {scale} is larger than "
+                         f"{MAX_OVERLAY_PIXELS:.0e} pixels (choose a smaller --region or --zoom)")
+    img = np.ascontiguousarray(img[y0:y1, x0:x1])
     if scale != 1:
         img = cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
     shift = 4
     pls = polyline_dicts(result)
+    origin = np.array([x0, y0], np.float64)
 
     def fixed(p):
         a = p.detach().double().cpu().numpy() if isinstance(p, torch.Tensor) else np.asarray(p, np.float64)
-        return np.rint((a.reshape(-1, 2) * scale - 0.5) * (1 << shift)).astype(np.int32)
+        return np.rint(((a.reshape(-1, 2) - origin) * scale - 0.5) * (1 << shift)).astype(np.int32)
 
     closed = [fixed(pl["points"]) for pl in pls if pl["closed"]]
     opened = [fixed(pl["points"]) for pl in pls if not pl["closed"]]
@@ -57,9 +101,16 @@ def render_overlay(image: ImageLike, result, points: bool = False, scale: int = 
         cv2.polylines(img, closed, True, (0, 200, 0), 1, cv2.LINE_AA, shift)
     if opened:
         cv2.polylines(img, opened, False, (0, 140, 255), 1, cv2.LINE_AA, shift)
+    if scale >= 8:                          # the vertices, where the zoom leaves room for them
+        for poly, colour in ((closed, (0, 255, 255)), (opened, (0, 255, 255))):
+            for q in poly:
+                inside = (q[:, 0] >= -(8 << shift)) & (q[:, 1] >= -(8 << shift)) & \
+                         (q[:, 0] < (img.shape[1] + 8) << shift) & (q[:, 1] < (img.shape[0] + 8) << shift)
+                for c in q[inside]:
+                    cv2.circle(img, (int(c[0]), int(c[1])), 1 << shift, colour, -1, cv2.LINE_AA, shift)
     if points and isinstance(getattr(result, "points", None), torch.Tensor):
         pts = result.points.detach().double().cpu().numpy().reshape(-1, 2)
-        for c in np.rint((pts * scale - 0.5) * (1 << shift)).astype(np.int32):   # a figure option, not a hot path
+        for c in np.rint(((pts - origin) * scale - 0.5) * (1 << shift)).astype(np.int32):   # a figure option
             cv2.circle(img, (int(c[0]), int(c[1])), 1 << shift, (0, 0, 255), -1, cv2.LINE_AA, shift)
     return img
 

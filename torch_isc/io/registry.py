@@ -107,9 +107,13 @@ class ExportContext:
     Attributes:
         y_down: the coordinates are image pixels (y pointing down): drawings are not flipped.
         image: the source image (gray ``(H, W)`` or BGR ``(H, W, 3)``) of an image input.
+        zoom, region: of ``overlay.png``: an integer zoom, and the part of the image shown
+            (``(x0, y0, x1, y1)`` pixels, None: all; :func:`~torch_isc.io.render_overlay`).
     """
     y_down: bool = False
     image: Optional[ImageLike] = None
+    zoom: int = 1
+    region: Optional[Tuple[int, int, int, int]] = None
 
 
 @dataclass(frozen=True)
@@ -155,7 +159,7 @@ def _contours(result, fh: BinaryIO, context: ExportContext) -> None:
 
 
 def _overlay(result, fh: BinaryIO, context: ExportContext) -> None:
-    encode_overlay(result, fh, context.image)
+    encode_overlay(result, fh, context.image, scale=context.zoom, region=context.region)
 
 
 #: Format name -> :class:`Exporter`; :func:`export` writes ``<stem>.<format>``.
@@ -184,7 +188,7 @@ def formats_needing(available: Iterable[str]) -> List[str]:
 
 def export(result, path_stem: PathLike, formats: Iterable[str] = ("json", "npz", "svg", "png"),
            y_down: bool = False, image: Optional[ImageLike] = None,
-           context: Optional[ExportContext] = None) -> List[Path]:
+           context: Optional[ExportContext] = None, fsync: bool = True) -> List[Path]:
     """Write ``result`` as ``<path_stem>.<fmt>`` for every format, each write atomic.
 
     Args:
@@ -192,6 +196,7 @@ def export(result, path_stem: PathLike, formats: Iterable[str] = ("json", "npz",
             without flipping y, so they look like the image.
         image: the source image, for ``overlay.png``.
         context: an :class:`ExportContext` instead of ``y_down`` and ``image``.
+        fsync: sync each file to disk before its move (see :func:`~torch_isc.io.files.atomic_write`).
 
     Returns:
         the written paths, in the order of ``formats``.
@@ -213,5 +218,5 @@ def export(result, path_stem: PathLike, formats: Iterable[str] = ("json", "npz",
     out = []
     for f in formats:
         enc = EXPORTERS[f].encode
-        out.append(atomic_write(Path(f"{stem}.{f}"), lambda fh, enc=enc: enc(result, fh, ctx)))
+        out.append(atomic_write(Path(f"{stem}.{f}"), lambda fh, enc=enc: enc(result, fh, ctx), fsync))
     return out

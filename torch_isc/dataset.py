@@ -221,7 +221,7 @@ class BatchReconstructor:
         self.on_note = on_note
 
     def __call__(self, batch) -> Any:
-        pa = _pa()
+        _pa()                                # pyarrow is needed here: a clear error if missing
         cols = batch.to_pydict() if hasattr(batch, "to_pydict") else {k: list(v) for k, v in batch.items()}
         index = [int(i) for i in cols["index"]]
         sources, stems = [str(s) for s in cols["source"]], [str(s) for s in cols["stem"]]

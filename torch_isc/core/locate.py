@@ -22,6 +22,7 @@ from typing import Optional, Tuple
 import torch
 
 from torch_isc.core.mesh import MeshBatch
+from torch_isc.core.segments import expand_in_chunks
 from torch_isc.core.simplex import TRIANGLES
 
 __all__ = ["barycentric", "locate_grid", "locate_children", "locate_walk", "inside_tolerance"]
@@ -118,22 +119,13 @@ def locate_grid(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor,
         face = torch.full((P,), -1, dtype=torch.long, device=dev)
         score = torch.full((P,), float("-inf"), dtype=dt, device=dev)
         # chunk over points to bound the candidate list
-        csum = torch.cumsum(ncand, 0)
-        i0 = 0
-        while i0 < P:
-            base = int(csum[i0 - 1]) if i0 > 0 else 0
-            i1 = int(torch.searchsorted(csum, torch.tensor(base + _MAX_CANDIDATES, device=dev), right=True))
-            i1 = min(max(i1, i0 + 1), P)
+        for i0, i1, cp, off in expand_in_chunks(ncand, _MAX_CANDIDATES):
             sl = slice(i0, i1)
-            n = ncand[sl]
-            cp = torch.repeat_interleave(torch.arange(i0, i1, device=dev), n)
-            off = torch.arange(cp.shape[0], device=dev) - torch.repeat_interleave(torch.cumsum(n, 0) - n, n)
             cf = pf[start[cp] + off]
             bc = barycentric(v, mesh.faces, cf, pts[cp])
             s = bc.min(1).values
             f_, b_ = _best_candidate(cp - i0, cf, s, i1 - i0)
             face[sl], score[sl] = f_, b_
-            i0 = i1
         face[score < -inside_tolerance(dt)] = -1
         return face, barycentric(v, mesh.faces, face, pts)
 

@@ -19,6 +19,8 @@ from typing import NamedTuple, Optional
 
 import torch
 
+from torch_isc.core.segments import expand_in_chunks
+
 __all__ = ["area", "length", "centroid", "curvature", "point_curve_distance", "TriangleSegments",
            "triangle_segments"]
 
@@ -247,10 +249,7 @@ def point_curve_distance(curve, points: torch.Tensor, point_item: Optional[torch
     pts = points.to(mesh.dtype)
     N = pts.shape[0]
     dev = pts.device
-    if point_item is None:
-        if mesh.num_items != 1:
-            raise ValueError("point_item is required for a batch of more than one curve")
-        point_item = torch.zeros(N, dtype=torch.long, device=dev)
+    point_item = curve._point_item(pts, point_item)
     seg = triangle_segments(mesh, curve.values)
     with torch.no_grad():
         B = mesh.num_items
@@ -259,15 +258,7 @@ def point_curve_distance(curve, points: torch.Tensor, point_item: Optional[torch
         ns = cnt[point_item]
         best = torch.full((N,), -1, dtype=torch.long, device=dev)
         a, b, p = seg.a.detach(), seg.b.detach(), pts.detach()
-        csum = torch.cumsum(ns, 0)
-        i0 = 0
-        while i0 < N:
-            base = int(csum[i0 - 1]) if i0 > 0 else 0
-            i1 = int(torch.searchsorted(csum, torch.tensor(base + _MAX_PAIRS, device=dev), right=True))
-            i1 = min(max(i1, i0 + 1), N)
-            n = ns[i0:i1]
-            cp = torch.repeat_interleave(torch.arange(i0, i1, device=dev), n)
-            off = torch.arange(cp.shape[0], device=dev) - torch.repeat_interleave(torch.cumsum(n, 0) - n, n)
+        for i0, i1, cp, off in expand_in_chunks(ns, _MAX_PAIRS):
             cs = sfirst[point_item[cp]] + off
             d2 = _point_segment_dist2(p[cp], a[cs], b[cs])
             mn = torch.full((i1 - i0,), float("inf"), dtype=d2.dtype, device=dev)
@@ -277,7 +268,6 @@ def point_curve_distance(curve, points: torch.Tensor, point_item: Optional[torch
             bs = torch.full((i1 - i0,), big, dtype=torch.long, device=dev)
             bs = bs.scatter_reduce(0, (cp - i0)[hit], cs[hit], "amin")
             best[i0:i1] = torch.where(bs == big, torch.full_like(bs, -1), bs)
-            i0 = i1
         has = best >= 0
     bc = best.clamp_min(0)
     if seg.a.shape[0] == 0:

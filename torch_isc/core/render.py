@@ -21,14 +21,6 @@ from torch_isc.core.measures import point_curve_distance
 __all__ = ["soft_inside", "rasterize", "pixel_centers"]
 
 
-def _items(curve, points, point_item):
-    if point_item is None:
-        if curve.num_items != 1:
-            raise ValueError("point_item is required for a batch of more than one curve")
-        point_item = torch.zeros(points.shape[0], dtype=torch.long, device=points.device)
-    return point_item
-
-
 def soft_inside(curve, points: torch.Tensor, tau: float, point_item: Optional[torch.Tensor] = None,
                 mode: str = "distance") -> torch.Tensor:
     """``(N,)`` soft occupancy in ``(0, 1)`` of ``points (N, 2)`` (``point_item (N,)``, default 0).
@@ -47,7 +39,7 @@ def soft_inside(curve, points: torch.Tensor, tau: float, point_item: Optional[to
     """
     mesh = curve.mesh
     pts = points.to(mesh.dtype)
-    point_item = _items(curve, pts, point_item)
+    point_item = curve._point_item(pts, point_item)
     with torch.no_grad():
         face, _ = locate_grid(mesh, pts, point_item)
         on = face >= 0

@@ -14,13 +14,13 @@ Example:
 """
 from __future__ import annotations
 
-from typing import Optional, Tuple
+from typing import Iterator, Optional, Tuple
 
 import torch
 
 __all__ = ["segment_sum", "segment_max", "segment_min", "segment_count", "segment_mean", "segment_any",
            "segment_median", "first_index", "local_index", "mix32", "hash_keys", "hash_to_unit", "hash_uniform",
-           "sym2_eigvals", "sym2_eigvec"]
+           "sym2_eigvals", "sym2_eigvec", "expand_in_chunks"]
 
 
 def segment_sum(x: torch.Tensor, seg: torch.Tensor, n: int) -> torch.Tensor:
@@ -130,3 +130,29 @@ def sym2_eigvec(a: torch.Tensor, b: torch.Tensor, d: torch.Tensor, lam: torch.Te
     v1 = torch.stack([b, lam - a], 1)
     v2 = torch.stack([lam - d, b], 1)
     return torch.where((v1.norm(dim=1) >= v2.norm(dim=1))[:, None], v1, v2)
+
+
+def expand_in_chunks(counts: torch.Tensor, budget: int) -> Iterator[Tuple[int, int, torch.Tensor, torch.Tensor]]:
+    """Expand rows ``i`` into ``counts[i]`` candidate pairs, in consecutive row ranges
+    ``[i0, i1)`` of at most ``budget`` pairs (at least one row each), so memory stays bounded.
+
+    Yields ``(i0, i1, row, slot)``: for every pair of the range its row ``(M,)`` and its index
+    ``(M,)`` among that row's candidates.
+
+    Example:
+        >>> [(a, b, r.tolist(), s.tolist()) for a, b, r, s in expand_in_chunks(torch.tensor([2, 0, 3]), 4)]
+        [(0, 2, [0, 0], [0, 1]), (2, 3, [2, 2, 2], [0, 1, 2])]
+    """
+    dev = counts.device
+    csum = torch.cumsum(counts, 0)
+    P = counts.shape[0]
+    i0 = 0
+    while i0 < P:
+        base = int(csum[i0 - 1]) if i0 > 0 else 0
+        i1 = int(torch.searchsorted(csum, torch.tensor(base + budget, device=dev), right=True))
+        i1 = min(max(i1, i0 + 1), P)
+        n = counts[i0:i1]
+        row = torch.repeat_interleave(torch.arange(i0, i1, device=dev), n)
+        slot = torch.arange(row.shape[0], device=dev) - torch.repeat_interleave(torch.cumsum(n, 0) - n, n)
+        yield i0, i1, row, slot
+        i0 = i1

@@ -9,9 +9,7 @@ from typing import Dict, List, Optional, Tuple, Union
 import numpy as np
 
 from torch_isc.images.arrays import ImageLike
-from torch_isc.images.masks import reconstruct_masks
 from torch_isc.images.polylines import closed_polygons
-from torch_isc.pipeline.config import ReconstructConfig
 
 __all__ = ["contour_hierarchy", "to_cv_contours", "find_contours", "CONTOURS_FORMAT", "contour_arrays",
            "load_contours"]
@@ -215,7 +213,7 @@ def find_contours_batch(masks, mode=3, method=1, offset=None, *, connectivity: i
     """:func:`find_contours` of many masks, solved together: one ``(contours, hierarchy)`` per mask.
     ``batch_pixels`` bounds the pixels of one solve (masks are split into such batches)."""
     from torch_isc.images.arrays import binarize, image_list
-    from torch_isc.images.grid import cv_layout, retr_mode, trace_masks
+    from torch_isc.images.grid import retr_mode, trace_masks
 
     mode = retr_mode(mode)
     method = _chain_method(method)

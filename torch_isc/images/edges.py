@@ -4,7 +4,7 @@ from __future__ import annotations
 import math
 from typing import Dict, List, Optional, Sequence, Tuple, Union
 
-import numpy as np
+import numpy as np  # noqa: F401  (the doctests use it)
 import torch
 
 from torch_isc.images.arrays import ImageError, ImageLike, default_names, image_list

@@ -478,7 +478,6 @@ def cv_layout(outer: np.ndarray, parent: np.ndarray, start: np.ndarray, mode: st
             q = pos[np.array(plist)]
             h[q[:-1], 0] = q[1:]
             h[q[1:], 1] = q[:-1]
-        has = p_new >= 0
         firsts = [pos[plist[0]] for pp, plist in kids.items() if pp >= 0]
         for f in firsts:
             h[h[f, 3], 2] = f

@@ -6,7 +6,7 @@ import os
 from pathlib import Path
 from typing import Union
 
-__all__ = ["one_line", "import_cv2", "read_file_bytes"]
+__all__ = ["one_line", "import_cv2", "read_file_bytes", "decode_text"]
 
 
 def one_line(msg: object, default: str = "") -> str:
@@ -38,3 +38,15 @@ def read_file_bytes(path: Union[str, os.PathLike], error: type, what: str) -> by
         raise error(f"{p}: is a directory, not {what}") from None
     except OSError as e:
         raise error(f"{p}: cannot read ({e.strerror or e})") from None
+
+
+def decode_text(raw: bytes, label: str, what: str, error: type) -> str:
+    """``raw`` as UTF-8 text (a BOM allowed), or ``error`` saying ``"<label>: not a <what>"``
+    and why (a byte that is not UTF-8, NUL bytes: a binary file)."""
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise error(f"{label}: not a {what} (byte {e.start} is not UTF-8)") from None
+    if "\x00" in text:
+        raise error(f"{label}: not a {what} (contains NUL bytes)")
+    return text

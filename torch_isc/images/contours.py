@@ -158,16 +158,9 @@ CHAIN_METHODS = {"none": 1, "simple": 2, "tc89_l1": 3, "tc89_kcos": 4}
 
 
 def _chain_method(method) -> str:
-    if isinstance(method, (int, np.integer)) and not isinstance(method, bool):
-        for k, v in CHAIN_METHODS.items():
-            if v == int(method):
-                return "none" if k == "none" else "simple"
-        raise ValueError(f"unknown contour approximation method {method} (cv2.CHAIN_APPROX_NONE=1, SIMPLE=2, "
-                         f"TC89_L1=3, TC89_KCOS=4)")
-    name = str(method).lower().rsplit(".", 1)[-1]
-    name = name[13:] if name.startswith("chain_approx_") else name
-    if name not in CHAIN_METHODS:
-        raise ValueError(f"unknown contour approximation method {method!r} (none, simple or cv2.CHAIN_APPROX_*)")
+    from torch_isc.images.grid import cv_option
+    name = cv_option(method, CHAIN_METHODS, "chain_approx_", "contour approximation method",
+                     "none, simple or cv2.CHAIN_APPROX_NONE=1, SIMPLE=2, TC89_L1=3, TC89_KCOS=4")
     return "none" if name == "none" else "simple"
 
 

@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import List, Optional, Sequence, Tuple, Union
+from typing import Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 import torch
@@ -62,16 +62,22 @@ def retr_mode(mode: Union[str, int]) -> str:
     >>> retr_mode(3), retr_mode("RETR_CCOMP"), retr_mode("list")
     ('tree', 'ccomp', 'list')
     """
-    if isinstance(mode, (int, np.integer)) and not isinstance(mode, bool):
-        for k, v in RETR_MODES.items():
-            if v == int(mode):
+    return cv_option(mode, RETR_MODES, "retr_", "retrieval mode",
+                     "OpenCV's RETR_EXTERNAL=0, RETR_LIST=1, RETR_CCOMP=2, RETR_TREE=3; RETR_FLOODFILL is not supported")
+
+
+def cv_option(value: Union[str, int], table: Dict[str, int], prefix: str, what: str, known: str) -> str:
+    """The name in ``table`` of an OpenCV option given as its constant (``cv2.RETR_TREE``) or a
+    name (``"RETR_TREE"``, ``"tree"``); a ValueError saying ``known`` otherwise."""
+    if isinstance(value, (int, np.integer)) and not isinstance(value, bool):
+        for k, v in table.items():
+            if v == int(value):
                 return k
-        raise ValueError(f"unknown retrieval mode {mode} (OpenCV's RETR_EXTERNAL=0, RETR_LIST=1, "
-                         f"RETR_CCOMP=2, RETR_TREE=3; RETR_FLOODFILL is not supported)")
-    name = str(mode).lower().rsplit(".", 1)[-1]
-    name = name[5:] if name.startswith("retr_") else name
-    if name not in RETR_MODES:
-        raise ValueError(f"unknown retrieval mode {mode!r} (one of {', '.join(RETR_MODES)} or cv2.RETR_*)")
+        raise ValueError(f"unknown {what} {value} ({known})")
+    name = str(value).lower().rsplit(".", 1)[-1]
+    name = name[len(prefix):] if name.startswith(prefix) else name
+    if name not in table:
+        raise ValueError(f"unknown {what} {value!r} ({known})")
     return name
 
 

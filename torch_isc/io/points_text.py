@@ -10,6 +10,7 @@ from typing import List, Optional, Tuple
 
 import numpy as np
 
+from torch_isc._helpers import decode_text
 from torch_isc.io.errors import PointFileError
 
 __all__ = ["SUFFIXES", "decode_points"]
@@ -42,12 +43,7 @@ def decode_points(p: Path, raw: bytes) -> Tuple[np.ndarray, Optional[np.ndarray]
     >>> decode_points(Path("a.xy"), b"x,y\\n1,2\\n3 4  # comment\\n")[0].tolist()
     [[1.0, 2.0], [3.0, 4.0]]
     """
-    try:
-        text = raw.decode("utf-8-sig")
-    except UnicodeDecodeError as e:
-        raise PointFileError(f"{p}: not a text point file (byte {e.start} is not UTF-8)") from None
-    if "\x00" in text:
-        raise PointFileError(f"{p}: not a text point file (contains NUL bytes)")
+    text = decode_text(raw, str(p), "text point file", PointFileError)
     text = _COMMENT.sub("", text.replace("\r\n", "\n").replace("\r", "\n"))
     first = _FIRST_LINE.search(text)
     if first is None:

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Dict, Iterable, List, Mapping, Optional, Union
 
+from torch_isc._helpers import decode_text
 from torch_isc.pipeline.evidence import EvidenceConfig
 from torch_isc.pipeline.knobs import ConfigError, check_bounds, check_section, knob
 from torch_isc.pipeline.noise import NoiseConfig
@@ -248,12 +249,7 @@ def read_config_mapping(path: Union[str, Path]) -> Dict[str, Any]:
         raise ConfigError(f"{path}: cannot read config file ({e.strerror or type(e).__name__})") from None
     if len(raw) > MAX_CONFIG_BYTES:
         raise ConfigError(f"{path}: config file larger than {MAX_CONFIG_BYTES} bytes")
-    try:
-        text = raw.decode("utf-8-sig")
-    except UnicodeDecodeError as e:
-        raise ConfigError(f"{path}: not a YAML text file (byte {e.start} is not UTF-8)") from None
-    if "\x00" in text:
-        raise ConfigError(f"{path}: not a YAML text file (contains NUL bytes)")
+    text = decode_text(raw, str(path), "YAML text file", ConfigError)
     loaded = _parse_yaml(text, str(path))
     if loaded is None:
         loaded = {}

@@ -162,57 +162,58 @@ def locate_children(mesh: MeshBatch, points: torch.Tensor, parent_face: torch.Te
 
 def locate_walk(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor,
                 start_face: torch.Tensor, max_steps: int = 16,
-                return_bary: bool = True) -> Tuple[torch.Tensor, Optional[torch.Tensor]]:
+                return_bary: bool = True, check_every: int = 2) -> Tuple[torch.Tensor, Optional[torch.Tensor]]:
     """Re-locate points after the mesh vertices moved a little.
 
     Each point starts at its old triangle and steps across the edge opposite its most
     negative barycentric coordinate; points that do not settle within ``max_steps``
     (or that started outside) are located on the grid. With ``return_bary=False`` the
     barycentrics are not computed (None is returned in their place).
+
+    Every step covers the whole point set (a settled point recomputes the same
+    coordinates and stays), so the steps have fixed shapes; the host reads whether
+    anything still moves only every ``check_every`` steps, and once more only when some
+    points need the grid.
     """
     with torch.no_grad():
         v = mesh.verts.detach()
         pts = points.detach().to(v.dtype)
         tol = inside_tolerance(v.dtype)
+        frames = TRIANGLES.barycentric_frames(v[mesh.faces])     # (T,13): a step is one gather
+        nbr = mesh.face_neighbors.reshape(-1)
         face = start_face.clone()
-        nbr = mesh.face_neighbors
-        # smallest barycentric of each point in the triangle it settled in
-        settled_min = torch.full((face.shape[0],), -1.0, dtype=v.dtype, device=v.device)
-        active = (face >= 0).nonzero().squeeze(1)
-        for _ in range(max_steps):
-            if active.numel() == 0:
-                break
-            bc = barycentric(v, mesh.faces, face[active], pts[active])
+        off = face < 0                                     # started outside, or walked off the mesh
+        moving = ~off
+        unresolved = torch.ones_like(off)
+        need_grid = True                                   # with no step every point needs it
+        for s in range(max_steps):
+            fc = face.clamp_min(0)
+            bc = TRIANGLES.barycentric_from_frames(frames[fc], pts)
             mn, arg = bc.min(1)
-            moving = mn < -tol
-            stay = ~moving
-            settled_min[active[stay]] = mn[stay]
-            nxt = nbr[face[active[moving]], arg[moving]]
-            face[active[moving]] = nxt                          # -1 when it walked off the mesh
-            active = active[moving][nxt >= 0]
-        unresolved = face < 0
-        if active.numel():
-            unresolved[active] = True
-        # a point that settled on (or within tolerance of) an edge may tie with the triangle
-        # across it: apply the tie rule (largest min-barycentric, lowest index) to the two;
-        # near a vertex (two small coordinates) more triangles compete, so the grid decides
-        near = ((settled_min <= tol) & ~unresolved).nonzero().squeeze(1)
-        if near.numel():
-            bc = barycentric(v, mesh.faces, face[near], pts[near])
+            moving = (mn < -tol) & ~off
+            face = torch.where(moving, nbr[fc * 3 + arg], face)   # -1 when it walked off the mesh
+            off = face < 0
+            if (s + 1) % max(1, check_every) and s + 1 < max_steps:
+                continue
+            # a point that settled on (or within tolerance of) an edge may tie with the triangle
+            # across it: apply the tie rule (largest min-barycentric, lowest index) to the two;
+            # near a vertex (two small coordinates) more triangles compete, so the grid decides
             small = bc <= tol
             one = small.sum(1) == 1
-            k = torch.argmax(small.to(torch.int8), 1)
-            other = nbr[face[near], k]
-            ok2 = one & (other >= 0)
-            if bool(ok2.any()):
-                j = near[ok2]
-                m1 = bc[ok2].min(1).values
-                m2 = barycentric(v, mesh.faces, other[ok2], pts[j]).min(1).values
-                f1, f2 = face[j], other[ok2]
-                face[j] = torch.where((m2 > m1) | ((m2 == m1) & (f2 < f1)), f2, f1)
-            unresolved[near[~one]] = True
-        if unresolved.any():
+            near = ~moving & ~off & (mn <= tol)
+            other = nbr[fc * 3 + torch.argmax(small.to(torch.int8), 1)]
+            tie = near & one & (other >= 0)
+            m2 = TRIANGLES.barycentric_from_frames(frames[other.clamp_min(0)], pts).min(1).values
+            unresolved = off | moving | (near & ~one)
+            go_on, need_grid = torch.stack([moving.any(), unresolved.any()]).tolist()
+            if not go_on or s + 1 == max_steps:
+                face = torch.where(tie & ((m2 > mn) | ((m2 == mn) & (other < face))), other, face)
+                break
+        if need_grid:
             idx = unresolved.nonzero().squeeze(1)
             f2, _ = locate_grid(mesh, pts[idx], point_item[idx])
             face[idx] = f2
-        return face, (barycentric(v, mesh.faces, face, pts) if return_bary else None)
+        if not return_bary:
+            return face, None
+        bary = TRIANGLES.barycentric_from_frames(frames[face.clamp_min(0)], pts)
+        return face, torch.where((face >= 0)[:, None], bary, torch.full_like(bary, float("nan")))

@@ -32,6 +32,8 @@ class SimplexKernel(Protocol):
     def bary_gradients(self, corners: torch.Tensor) -> torch.Tensor: ...
     def quality(self, corners: torch.Tensor) -> torch.Tensor: ...
     def barycentric(self, corners: torch.Tensor, points: torch.Tensor) -> torch.Tensor: ...
+    def barycentric_frames(self, corners: torch.Tensor) -> torch.Tensor: ...
+    def barycentric_from_frames(self, frames: torch.Tensor, points: torch.Tensor) -> torch.Tensor: ...
     def longest_edge(self, corners: torch.Tensor) -> torch.Tensor: ...
     def hyperplane_fit(self, scatter: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]: ...
     def principal_spread(self, scatter: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]: ...
@@ -88,6 +90,24 @@ class Triangles:
         l1 = _cross(a - c, points - c)
         l2 = _cross(b - a, points - a)
         return torch.stack([l0, l1, l2], 1) / det[:, None]
+
+    def barycentric_frames(self, corners: torch.Tensor) -> torch.Tensor:
+        """``(T, 13)`` what :meth:`barycentric` needs of each triangle, computed once for
+        many points: the origin and the edge of each coordinate's cross product and the
+        determinant. :meth:`barycentric_from_frames` then gives the same bits."""
+        a, b, c = corners[:, 0], corners[:, 1], corners[:, 2]
+        det = _cross(b - a, c - a)
+        origin = torch.stack([b, c, a], 1).flatten(1)
+        edge = torch.stack([c - b, a - c, b - a], 1).flatten(1)
+        return torch.cat([origin, edge, det[:, None]], 1)
+
+    def barycentric_from_frames(self, frames: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+        """``(P, 3)`` barycentric coordinates of ``points (P, 2)`` from the
+        :meth:`barycentric_frames` rows ``frames (P, 13)`` of their triangles."""
+        origin = frames[:, :6].view(-1, 3, 2)
+        edge = frames[:, 6:12].view(-1, 3, 2)
+        w = points[:, None, :] - origin
+        return (edge[..., 0] * w[..., 1] - edge[..., 1] * w[..., 0]) / frames[:, 12:]
 
     def longest_edge(self, corners: torch.Tensor) -> torch.Tensor:
         """``(T,)`` the length of each simplex's longest edge."""

@@ -61,11 +61,12 @@ def mesh_energy(mesh: MeshBatch, verts: torch.Tensor, points: torch.Tensor, face
     B = mesh.num_items
     dt = verts.dtype
     ok = face >= 0
-    p, f = points[ok].to(dt), face[ok]
+    f = face.clamp_min(0)                                           # ignored points add 0
     vid = mesh.faces[f]                                             # (P,3)
     it = mesh.face_item[f]
-    dist = (verts[vid] - p[:, None, :]).norm(dim=2)
+    dist = (verts[vid] - points.to(dt)[:, None, :]).norm(dim=2)
     inv = 1.0 / torch.maximum(dist, min_dist[it][:, None])
+    inv = torch.where(ok[:, None], inv, torch.zeros_like(inv))
     phi = segment_sum(inv.reshape(-1), vid.reshape(-1), verts.shape[0])
     phi = phi / n_points[mesh.vert_item].clamp_min(1)
     e, ei = mesh.edges, mesh.edge_item
@@ -92,76 +93,89 @@ def relax_mesh(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor, 
                cfg: Optional[RelaxConfig] = None) -> Tuple[MeshBatch, torch.Tensor, torch.Tensor]:
     """Relax the interior of every item's mesh: ``cfg.relax_iterations`` steps.
 
+    Each step tries the step lengths ``s, s/2, s/4, ...`` in turn and takes the first that
+    passes the mesh checks (orientation, quality floor) and lowers ``U``. The mesh checks of
+    all lengths are one stacked evaluation; only the first length that passes them is
+    re-located and measured (a further round for the items whose ``U`` went up), so the host
+    reads a few flags per step, whatever the batch.
+
     Returns the relaxed mesh, the points' new triangles ``(P,)`` and barycentrics ``(P, 3)``.
     """
     cfg = RelaxConfig() if cfg is None else cfg
     iterations, kappa_data, kappa_edge, min_quality = (cfg.relax_iterations, cfg.kappa_data, cfg.kappa_edge,
                                                        cfg.min_quality)
-    max_move, max_backtracks = cfg.relax_max_move, cfg.relax_max_backtracks
+    max_move, K = cfg.relax_max_move, int(cfg.relax_max_backtracks)
     B = mesh.num_items
     dev, dt = mesh.device, mesh.dtype
     with torch.no_grad():
         v = mesh.verts.detach().clone()
+        V, T = v.shape[0], mesh.faces.shape[0]
+        vi = mesh.vert_item
         bbox = mesh.item_bbox()
         rho = (bbox[:, 2:] - bbox[:, :2]).norm(dim=1)
-        n_points = torch.bincount(point_item[face >= 0], minlength=B).to(dt)
+        n_points = segment_sum((face >= 0).to(dt), point_item, B)
         min_dist = 1e-4 * rho
-        corner = mesh.is_corner_vert
-        side = mesh.is_boundary_vert & ~corner
+        corner = mesh.is_corner_vert[:, None]
+        side = (mesh.is_boundary_vert[:, None] & ~corner)
         sdir = mesh.boundary_edge_dir
         e = mesh.edges
         el = (v[e[:, 0]] - v[e[:, 1]]).norm(dim=1)
         # shortest incident edge per vertex bounds its move
-        short = torch.full((v.shape[0],), float("inf"), dtype=dt, device=dev)
+        short = torch.full((V,), float("inf"), dtype=dt, device=dev)
         short = short.scatter_reduce(0, torch.cat([e[:, 0], e[:, 1]]), torch.cat([el, el]), "amin")
         mesh.face_neighbors                       # cached here, so the trial meshes share it
         nu_e = degree_weights(mesh)
         q0 = mesh.quality(v)
         floor = torch.minimum(q0, torch.full_like(q0, min_quality))
+        # trial k of item b is row k * B + b of the stacked mesh checks
+        stack_item = (mesh.face_item[None, :] + B * torch.arange(K, device=dev)[:, None]).reshape(-1)
+        trial = torch.arange(K, device=dev)[:, None]
+        vrow = torch.arange(V, device=dev)
         active = torch.ones(B, dtype=torch.bool, device=dev)
     for _ in range(int(iterations)):
-        if not bool(active.any()):
-            break
         vv = v.clone().requires_grad_(True)
         with torch.enable_grad():
             U = mesh_energy(mesh, vv, points, face, kappa_data, kappa_edge, rho, n_points, min_dist, nu_e=nu_e)
             g, = torch.autograd.grad(U.sum(), vv)
         with torch.no_grad():
+            U = U.detach()
             d = -g
-            d[corner] = 0
-            d[side] = (d[side] * sdir[side]).sum(1, keepdim=True) * sdir[side]
-            d[~active[mesh.vert_item]] = 0
+            d = torch.where(side, (d * sdir).sum(1, keepdim=True) * sdir, d)
+            d = torch.where(corner | ~active[vi][:, None], torch.zeros_like(d), d)
             # step so that the largest move is max_move of the vertex's shortest edge
             ratio = d.norm(dim=1) / short
-            worst = segment_max(ratio, mesh.vert_item, B, fill=0)
+            worst = segment_max(ratio, vi, B, fill=0)
             step = torch.where(worst > 0, max_move / worst.clamp_min(torch.finfo(dt).tiny), torch.zeros_like(worst))
-            accepted = ~active
-            v_new, face_new = v.clone(), face.clone()
-            for _ in range(max_backtracks):
-                vt = v + step[mesh.vert_item][:, None] * d
-                q = mesh.quality(vt)
-                bad_t = (q <= 0) | (q < floor)              # q has the sign of the area
-                bad_item = segment_any(bad_t, mesh.face_item, B)
-                mt = mesh.with_verts(vt)
-                searching = ~accepted
-                if bool(searching.all()):
-                    ft, _ = locate_walk(mt, points, point_item, face, return_bary=False)
-                    Ut = mesh_energy(mesh, vt, points, ft, kappa_data, kappa_edge, rho, n_points, min_dist, nu_e=nu_e)
-                else:                   # re-locate and measure only the points of the items still searching
-                    pidx = searching[point_item].nonzero().squeeze(1)
-                    ft = torch.full_like(face, -1)
-                    ft[pidx] = locate_walk(mt, points[pidx], point_item[pidx], face[pidx], return_bary=False)[0]
-                    Ut = mesh_energy(mesh, vt, points[pidx], ft[pidx], kappa_data, kappa_edge, rho, n_points,
-                                     min_dist, edge_sel=searching[mesh.edge_item].nonzero().squeeze(1), nu_e=nu_e)
-                ok = ~accepted & ~bad_item & (Ut < U.detach())
-                v_new = torch.where(ok[mesh.vert_item][:, None], vt, v_new)
+            lengths = [step]
+            for _k in range(1, K):
+                lengths.append(0.5 * lengths[-1])
+            lengths = torch.stack(lengths)                                  # (K,B) the halvings
+            vt = v + lengths[:, vi, None] * d                               # (K,V,2)
+            q = mesh.kernel.quality(vt[:, mesh.faces].reshape(K * T, 3, 2))
+            bad = segment_any((q <= 0) | (q < floor.repeat(K)), stack_item, K * B).view(K, B)  # q has the sign of the area
+            passes = ~bad & active                                          # (K,B)
+            accepted = torch.zeros_like(active)
+            v_new, face_new = v, face
+            if not bool(passes.any()):
+                break                                   # no item can move: every later step is the same
+            while True:                 # round: each item's first untried length that passes the checks
+                has = passes.any(0)
+                k = torch.argmax(passes.to(torch.int8), 0)
+                vk = torch.where(has[vi][:, None], vt[k[vi], vrow], v)
+                ft, _ = locate_walk(mesh.with_verts(vk), points, point_item, face, return_bary=False)
+                Ut = mesh_energy(mesh, vk, points, ft, kappa_data, kappa_edge, rho, n_points, min_dist, nu_e=nu_e)
+                ok = has & (Ut < U)
+                v_new = torch.where(ok[vi][:, None], vk, v_new)
                 face_new = torch.where(ok[point_item], ft, face_new)
                 accepted |= ok
-                if bool(accepted.all()):
+                passes = passes & (trial > k) & ~ok                         # the lengths left to try
+                again, moved = torch.stack([passes.any(), accepted.any()]).tolist()
+                if not again:
                     break
-                step = torch.where(accepted, step, 0.5 * step)
             active = active & accepted & (step > 0)
             v, face = v_new, face_new
+            if not moved:
+                break
     with torch.no_grad():
         # quality floor for the next level: never below what relaxation was handed
         out = mesh.with_verts(v)

@@ -47,9 +47,24 @@ def barycentric(verts: torch.Tensor, faces: torch.Tensor, face_idx: torch.Tensor
         >>> barycentric(v, f, torch.tensor([0]), torch.tensor([[0.25, 0.25]]))
         tensor([[0.5000, 0.2500, 0.2500]])
     """
-    ok = face_idx >= 0
-    out = TRIANGLES.barycentric(verts[faces[face_idx.clamp_min(0)]], points)
-    return torch.where(ok[:, None], out, torch.full_like(out, float("nan")))
+    fc = face_idx.clamp_min(0)
+    grad = torch.is_grad_enabled() and (verts.requires_grad or points.requires_grad)
+    if not grad and face_idx.shape[0] >= faces.shape[0]:
+        # many points per triangle: the per-triangle part once (the same bits)
+        out = TRIANGLES.barycentric_from_frames(TRIANGLES.barycentric_frames(verts[faces])[fc], points)
+    else:
+        out = TRIANGLES.barycentric(verts[faces[fc]], points)
+    return _nan_outside(out, face_idx)
+
+
+def _nan_outside(bary: torch.Tensor, face_idx: torch.Tensor) -> torch.Tensor:
+    return torch.where((face_idx >= 0)[:, None], bary, torch.full_like(bary, float("nan")))
+
+
+def _frames_bary(frames: torch.Tensor, face_idx: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """:func:`barycentric` from :meth:`~torch_isc.core.simplex.Triangles.barycentric_frames`
+    of the mesh (no NaN rows: ``face_idx`` must be >= 0)."""
+    return TRIANGLES.barycentric_from_frames(frames[face_idx], points)
 
 
 def _best_candidate(point_of_cand: torch.Tensor, face_of_cand: torch.Tensor, score: torch.Tensor,
@@ -118,16 +133,17 @@ def locate_grid(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor,
 
         face = torch.full((P,), -1, dtype=torch.long, device=dev)
         score = torch.full((P,), float("-inf"), dtype=dt, device=dev)
+        frames = TRIANGLES.barycentric_frames(tri)
         # chunk over points to bound the candidate list
         for i0, i1, cp, off in expand_in_chunks(ncand, _MAX_CANDIDATES):
             sl = slice(i0, i1)
             cf = pf[start[cp] + off]
-            bc = barycentric(v, mesh.faces, cf, pts[cp])
+            bc = _frames_bary(frames, cf, pts[cp])
             s = bc.min(1).values
             f_, b_ = _best_candidate(cp - i0, cf, s, i1 - i0)
             face[sl], score[sl] = f_, b_
-        face[score < -inside_tolerance(dt)] = -1
-        return face, barycentric(v, mesh.faces, face, pts)
+        face = torch.where(score < -inside_tolerance(dt), torch.full_like(face, -1), face)
+        return face, _nan_outside(_frames_bary(frames, face.clamp_min(0), pts), face)
 
 
 def locate_children(mesh: MeshBatch, points: torch.Tensor, parent_face: torch.Tensor,
@@ -147,17 +163,19 @@ def locate_children(mesh: MeshBatch, points: torch.Tensor, parent_face: torch.Te
         v = mesh.verts.detach()
         pts = points.detach().to(v.dtype)
         cand = children[parent_face.clamp_min(0)]             # (P,4)
-        cand[parent_face < 0] = -1
+        cand = torch.where((parent_face < 0)[:, None], torch.full_like(cand, -1), cand)
         P = pts.shape[0]
         k = cand.shape[1]
-        bc = barycentric(v, mesh.faces, cand.reshape(-1), pts.repeat_interleave(k, 0)).view(P, k, 3)
+        frames = TRIANGLES.barycentric_frames(v[mesh.faces])
+        bc = _frames_bary(frames, cand.clamp_min(0).reshape(-1), pts[:, None, :].expand(P, k, 2).reshape(-1, 2))
+        bc = bc.view(P, k, 3)
         s = bc.min(2).values
         s = torch.where(cand >= 0, s, torch.full_like(s, float("-inf")))
         j = torch.argmax(s, 1)                                 # first max: children are ascending
         face = cand.gather(1, j[:, None]).squeeze(1)
         best = s.gather(1, j[:, None]).squeeze(1)
-        face[~(best >= -inside_tolerance(v.dtype))] = -1
-        return face, barycentric(v, mesh.faces, face, pts)
+        face = torch.where(best >= -inside_tolerance(v.dtype), face, torch.full_like(face, -1))
+        return face, _nan_outside(bc.gather(1, j[:, None, None].expand(P, 1, 3)).squeeze(1), face)
 
 
 def locate_walk(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor,
@@ -188,7 +206,7 @@ def locate_walk(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor,
         need_grid = True                                   # with no step every point needs it
         for s in range(max_steps):
             fc = face.clamp_min(0)
-            bc = TRIANGLES.barycentric_from_frames(frames[fc], pts)
+            bc = _frames_bary(frames, fc, pts)
             mn, arg = bc.min(1)
             moving = (mn < -tol) & ~off
             face = torch.where(moving, nbr[fc * 3 + arg], face)   # -1 when it walked off the mesh
@@ -203,7 +221,7 @@ def locate_walk(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor,
             near = ~moving & ~off & (mn <= tol)
             other = nbr[fc * 3 + torch.argmax(small.to(torch.int8), 1)]
             tie = near & one & (other >= 0)
-            m2 = TRIANGLES.barycentric_from_frames(frames[other.clamp_min(0)], pts).min(1).values
+            m2 = _frames_bary(frames, other.clamp_min(0), pts).min(1).values
             unresolved = off | moving | (near & ~one)
             go_on, need_grid = torch.stack([moving.any(), unresolved.any()]).tolist()
             if not go_on or s + 1 == max_steps:
@@ -215,5 +233,4 @@ def locate_walk(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor,
             face[idx] = f2
         if not return_bary:
             return face, None
-        bary = TRIANGLES.barycentric_from_frames(frames[face.clamp_min(0)], pts)
-        return face, torch.where((face >= 0)[:, None], bary, torch.full_like(bary, float("nan")))
+        return face, _nan_outside(_frames_bary(frames, face.clamp_min(0), pts), face)

@@ -478,9 +478,11 @@ def test_locate_walk_equals_brute_force(seed, device, dtype):
                                exact=True, inside_tol=inside_tolerance(dtype))
             assert want.cpu().tolist() == [r[0] for r in ref]
         assert bool((want == -1).any()) and bool((want >= 0).any())
-        for steps, every in ((16, 2), (16, 1), (3, 2), (1, 2), (0, 2)):
-            f, b = locate_walk(mesh, pts, items, start, max_steps=steps, check_every=every)
-            assert torch.equal(f, want), (exact, steps, int((f != want).sum()))
+        # the default buffer, one holding every point, one of 5 rows (the rest by the grid)
+        for steps, every, cap in ((16, 2, None), (16, 1, pts.shape[0]), (16, 2, 5), (3, 2, None),
+                                  (1, 2, None), (0, 2, None)):
+            f, b = locate_walk(mesh, pts, items, start, max_steps=steps, check_every=every, capacity=cap)
+            assert torch.equal(f, want), (exact, steps, cap, int((f != want).sum()))
             torch.testing.assert_close(b, barycentric(mesh.verts, mesh.faces, f, pts), equal_nan=True)
             f2, none = locate_walk(mesh, pts, items, start, max_steps=steps, return_bary=False)
             assert none is None and torch.equal(f2, want)

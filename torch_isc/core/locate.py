@@ -179,8 +179,8 @@ def locate_children(mesh: MeshBatch, points: torch.Tensor, parent_face: torch.Te
 
 
 def locate_walk(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor,
-                start_face: torch.Tensor, max_steps: int = 16,
-                return_bary: bool = True, check_every: int = 2) -> Tuple[torch.Tensor, Optional[torch.Tensor]]:
+                start_face: torch.Tensor, max_steps: int = 16, return_bary: bool = True,
+                check_every: int = 2, capacity: Optional[int] = None) -> Tuple[torch.Tensor, Optional[torch.Tensor]]:
     """Re-locate points after the mesh vertices moved a little.
 
     Each point starts at its old triangle and steps across the edge opposite its most
@@ -188,45 +188,39 @@ def locate_walk(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor,
     (or that started outside) are located on the grid. With ``return_bary=False`` the
     barycentrics are not computed (None is returned in their place).
 
-    Every step covers the whole point set (a settled point recomputes the same
-    coordinates and stays), so the steps have fixed shapes; the host reads whether
-    anything still moves only every ``check_every`` steps, and once more only when some
-    points need the grid.
+    Shapes are fixed and the host reads two flags every ``check_every`` steps: the first
+    step covers all points; those not strictly inside their old triangle (moved, or near
+    an edge) go on in a buffer of ``capacity`` rows (default ``P/4 + 64``; points beyond
+    it are located on the grid) whose steps cover the whole buffer.
     """
     with torch.no_grad():
         v = mesh.verts.detach()
         pts = points.detach().to(v.dtype)
         tol = inside_tolerance(v.dtype)
+        P = pts.shape[0]
         frames = TRIANGLES.barycentric_frames(v[mesh.faces])     # (T,13): a step is one gather
         nbr = mesh.face_neighbors.reshape(-1)
         face = start_face.clone()
-        off = face < 0                                     # started outside, or walked off the mesh
-        moving = ~off
-        unresolved = torch.ones_like(off)
-        need_grid = True                                   # with no step every point needs it
-        for s in range(max_steps):
-            fc = face.clamp_min(0)
-            bc = _frames_bary(frames, fc, pts)
-            mn, arg = bc.min(1)
-            moving = (mn < -tol) & ~off
-            face = torch.where(moving, nbr[fc * 3 + arg], face)   # -1 when it walked off the mesh
-            off = face < 0
-            if (s + 1) % max(1, check_every) and s + 1 < max_steps:
-                continue
-            # a point that settled on (or within tolerance of) an edge may tie with the triangle
-            # across it: apply the tie rule (largest min-barycentric, lowest index) to the two;
-            # near a vertex (two small coordinates) more triangles compete, so the grid decides
-            small = bc <= tol
-            one = small.sum(1) == 1
-            near = ~moving & ~off & (mn <= tol)
-            other = nbr[fc * 3 + torch.argmax(small.to(torch.int8), 1)]
-            tie = near & one & (other >= 0)
-            m2 = _frames_bary(frames, other.clamp_min(0), pts).min(1).values
-            unresolved = off | moving | (near & ~one)
-            go_on, need_grid = torch.stack([moving.any(), unresolved.any()]).tolist()
-            if not go_on or s + 1 == max_steps:
-                face = torch.where(tie & ((m2 > mn) | ((m2 == mn) & (other < face))), other, face)
-                break
+        if max_steps <= 0 or P == 0:
+            unresolved = torch.ones_like(face, dtype=torch.bool)
+            need_grid = P > 0
+        else:
+            mn0 = _frames_bary(frames, face.clamp_min(0), pts).min(1).values
+            rest = ~((mn0 > tol) & (face >= 0))                    # the others are settled: done
+            C = min(P, P // 4 + 64) if capacity is None else max(1, min(P, int(capacity)))
+            rank = torch.cumsum(rest, 0) - 1
+            fits = rest & (rank < C)
+            slot = torch.where(fits, rank, torch.full_like(rank, C))
+            ar = torch.arange(P, device=face.device)
+            idx = torch.full((C + 1,), P, dtype=torch.long, device=face.device).scatter_(0, slot, ar)[:C]
+            live = idx < P
+            sub = idx.clamp_max(P - 1)
+            bf, bun, need_grid = _walk_buffer(frames, nbr, pts[sub], torch.where(live, face[sub], -1), live,
+                                              rest & ~fits, max_steps, check_every, tol)
+            back = torch.where(live, idx, P)                       # row P: a dummy for empty slots
+            face = torch.cat([face, face[:1]]).scatter_(0, back, bf)[:P]
+            unresolved = (rest & ~fits) | torch.zeros(P + 1, dtype=torch.bool, device=face.device).scatter_(
+                0, back, bun & live)[:P]
         if need_grid:
             idx = unresolved.nonzero().squeeze(1)
             f2, _ = locate_grid(mesh, pts[idx], point_item[idx])
@@ -234,3 +228,36 @@ def locate_walk(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor,
         if not return_bary:
             return face, None
         return face, _nan_outside(_frames_bary(frames, face.clamp_min(0), pts), face)
+
+
+def _walk_buffer(frames: torch.Tensor, nbr: torch.Tensor, pts: torch.Tensor, face: torch.Tensor,
+                 live: torch.Tensor, overflow: torch.Tensor, max_steps: int, check_every: int,
+                 tol: float) -> Tuple[torch.Tensor, torch.Tensor, bool]:
+    """The walk of :func:`locate_walk` over a buffer of points (``live`` rows): every step
+    covers the whole buffer, a settled point recomputes the same coordinates and stays.
+    Returns the faces, which rows need the grid, and whether any row (or ``overflow``) does."""
+    off = face < 0                                         # started outside, or walked off the mesh
+    for s in range(max_steps):
+        fc = face.clamp_min(0)
+        bc = _frames_bary(frames, fc, pts)
+        mn, arg = bc.min(1)
+        moving = (mn < -tol) & ~off
+        face = torch.where(moving, nbr[fc * 3 + arg], face)       # -1 when it walked off the mesh
+        off = face < 0
+        if (s + 1) % max(1, check_every) and s + 1 < max_steps:
+            continue
+        # near a vertex (two small coordinates) several triangles compete: the grid decides
+        small = bc <= tol
+        one = small.sum(1) == 1
+        near = ~moving & ~off & (mn <= tol)
+        unresolved = (off | moving | (near & ~one)) & live
+        go_on, need_grid = torch.stack([moving.any(), unresolved.any() | overflow.any()]).tolist()
+        if not go_on:
+            break
+    # a point that settled on (or within tolerance of) an edge may tie with the triangle across
+    # it: the tie rule (largest min-barycentric, lowest index) between the two
+    other = nbr[fc * 3 + torch.argmax(small.to(torch.int8), 1)]
+    tie = near & one & (other >= 0)
+    m2 = _frames_bary(frames, other.clamp_min(0), pts).min(1).values
+    face = torch.where(tie & ((m2 > mn) | ((m2 == mn) & (other < face))), other, face)
+    return face, unresolved, need_grid

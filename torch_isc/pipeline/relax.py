@@ -60,13 +60,13 @@ def mesh_energy(mesh: MeshBatch, verts: torch.Tensor, points: torch.Tensor, face
     """
     B = mesh.num_items
     dt = verts.dtype
-    ok = face >= 0
-    f = face.clamp_min(0)                                           # ignored points add 0
+    f = face.clamp_min(0)
     vid = mesh.faces[f]                                             # (P,3)
-    it = mesh.face_item[f]
+    # an ignored point's guard is infinite: it adds 1/inf = 0
+    guard = torch.cat([min_dist[mesh.face_item], min_dist.new_full((1,), float("inf"))])
+    guard = guard[torch.where(face >= 0, f, mesh.faces.shape[0])]
     dist = (verts[vid] - points.to(dt)[:, None, :]).norm(dim=2)
-    inv = 1.0 / torch.maximum(dist, min_dist[it][:, None])
-    inv = torch.where(ok[:, None], inv, torch.zeros_like(inv))
+    inv = 1.0 / torch.maximum(dist, guard[:, None])
     phi = segment_sum(inv.reshape(-1), vid.reshape(-1), verts.shape[0])
     phi = phi / n_points[mesh.vert_item].clamp_min(1)
     e, ei = mesh.edges, mesh.edge_item
@@ -132,13 +132,22 @@ def relax_mesh(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor, 
         trial = torch.arange(K, device=dev)[:, None]
         vrow = torch.arange(V, device=dev)
         active = torch.ones(B, dtype=torch.bool, device=dev)
+    rounds: list = []       # (positions, energy with its graph, accepted) of the last step's trials
     for _ in range(int(iterations)):
-        vv = v.clone().requires_grad_(True)
-        with torch.enable_grad():
-            U = mesh_energy(mesh, vv, points, face, kappa_data, kappa_edge, rho, n_points, min_dist, nu_e=nu_e)
-            g, = torch.autograd.grad(U.sum(), vv)
-        with torch.no_grad():
+        if not rounds:
+            vv = v.clone().requires_grad_(True)
+            with torch.enable_grad():
+                U = mesh_energy(mesh, vv, points, face, kappa_data, kappa_edge, rho, n_points, min_dist, nu_e=nu_e)
+                g, = torch.autograd.grad(U.sum(), vv)
             U = U.detach()
+        else:               # an accepted trial's energy is this step's: its graph gives the gradient
+            g = torch.zeros_like(v)
+            for vk, Ut, ok in rounds:
+                gr, = torch.autograd.grad(Ut.sum(), vk)
+                g = torch.where(ok[vi][:, None], gr, g)
+            U = U_next
+        rounds = []
+        with torch.no_grad():
             d = -g
             d = torch.where(side, (d * sdir).sum(1, keepdim=True) * sdir, d)
             d = torch.where(corner | ~active[vi][:, None], torch.zeros_like(d), d)
@@ -155,7 +164,7 @@ def relax_mesh(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor, 
             bad = segment_any((q <= 0) | (q < floor.repeat(K)), stack_item, K * B).view(K, B)  # q has the sign of the area
             passes = ~bad & active                                          # (K,B)
             accepted = torch.zeros_like(active)
-            v_new, face_new = v, face
+            v_new, face_new, U_next = v, face, U
             if not bool(passes.any()):
                 break                                   # no item can move: every later step is the same
             while True:                 # round: each item's first untried length that passes the checks
@@ -163,10 +172,14 @@ def relax_mesh(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor, 
                 k = torch.argmax(passes.to(torch.int8), 0)
                 vk = torch.where(has[vi][:, None], vt[k[vi], vrow], v)
                 ft, _ = locate_walk(mesh.with_verts(vk), points, point_item, face, return_bary=False)
-                Ut = mesh_energy(mesh, vk, points, ft, kappa_data, kappa_edge, rho, n_points, min_dist, nu_e=nu_e)
-                ok = has & (Ut < U)
-                v_new = torch.where(ok[vi][:, None], vk, v_new)
+                vk.requires_grad_(True)
+                with torch.enable_grad():
+                    Ut = mesh_energy(mesh, vk, points, ft, kappa_data, kappa_edge, rho, n_points, min_dist, nu_e=nu_e)
+                ok = has & (Ut.detach() < U)
+                rounds.append((vk, Ut, ok))
+                v_new = torch.where(ok[vi][:, None], vk.detach(), v_new)
                 face_new = torch.where(ok[point_item], ft, face_new)
+                U_next = torch.where(ok, Ut.detach(), U_next)
                 accepted |= ok
                 passes = passes & (trial > k) & ~ok                         # the lengths left to try
                 again, moved = torch.stack([passes.any(), accepted.any()]).tolist()

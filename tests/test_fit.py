@@ -1274,6 +1274,110 @@ def test_relax_mesh_batch_independent(device):
     torch.testing.assert_close(out.verts[v0:], o1.verts, rtol=1e-12, atol=1e-12)
 
 
+def naive_relax(mesh, pts, face, cfg):
+    """One item, the backtracking written plainly: each trial length in turn, the points
+    re-located on the grid, the first length that keeps the mesh valid and lowers U taken."""
+    dtype = mesh.dtype
+    item = torch.zeros(pts.shape[0], dtype=torch.long, device=pts.device)
+    v = mesh.verts.detach().clone()
+    bb = mesh.item_bbox()[0]
+    rho = (bb[2:] - bb[:2]).norm()[None]
+    npts = (face >= 0).sum()[None].to(dtype)
+    md = 1e-4 * rho
+    E = mesh.edges.cpu().tolist()
+    el = (v[mesh.edges[:, 0]] - v[mesh.edges[:, 1]]).norm(dim=1).cpu().tolist()
+    short = [math.inf] * v.shape[0]
+    for (i, j), l in zip(E, el):
+        short[i], short[j] = min(short[i], l), min(short[j], l)
+    short = torch.tensor(short, dtype=dtype, device=v.device)
+    corner, side = mesh.is_corner_vert, mesh.is_boundary_vert & ~mesh.is_corner_vert
+    sdir = mesh.boundary_edge_dir
+    q0 = mesh.quality()
+    floor = torch.minimum(q0, torch.full_like(q0, cfg.min_quality))
+    for _ in range(cfg.relax_iterations):
+        vv = v.clone().requires_grad_(True)
+        U = mesh_energy(mesh, vv, pts, face, cfg.kappa_data, cfg.kappa_edge, rho, npts, md)
+        g, = torch.autograd.grad(U.sum(), vv)
+        d = -g
+        d[corner] = 0
+        d[side] = (d[side] * sdir[side]).sum(1, keepdim=True) * sdir[side]
+        worst = float((d.norm(dim=1) / short).max())
+        if worst == 0:
+            break
+        step, moved = cfg.relax_max_move / worst, False
+        for _k in range(cfg.relax_max_backtracks):
+            vt = v + step * d
+            q = mesh.quality(vt)
+            if bool((q > 0).all()) and bool((q >= floor).all()):
+                ft, _ = locate_grid(mesh.with_verts(vt), pts, item)
+                if float(mesh_energy(mesh, vt, pts, ft, cfg.kappa_data, cfg.kappa_edge, rho, npts, md)) < float(U.detach()):
+                    v, face, moved = vt, ft, True
+                    break
+            step = step / 2
+        if not moved:
+            break
+    return v, face
+
+
+@pytest.mark.parametrize("max_move, iterations", [(0.3, 12), (0.9, 8)])
+def test_relax_mesh_equals_plain_backtracking(max_move, iterations, device):
+    """The stacked trials give what trying each length in turn per item gives."""
+    dtype = torch.float64
+    mesh, pts, item, face = relax_setup(device, dtype, n_items=3)
+    cfg = RelaxConfig(relax_iterations=iterations, relax_max_move=max_move)
+    out, f2, _ = relax_mesh(mesh, pts, item, face, cfg)
+    moved = 0
+    for b in range(mesh.num_items):
+        sel = item == b
+        v0, nv = int(mesh.verts_first_idx[b]), int(mesh.verts_per_item[b])
+        f0 = int(mesh.faces_first_idx[b])
+        v_ref, f_ref = naive_relax(mesh[b], pts[sel], face[sel] - f0, cfg)
+        torch.testing.assert_close(out.verts[v0:v0 + nv], v_ref, rtol=0, atol=1e-12)
+        assert torch.equal(f2[sel] - f0, f_ref)
+        moved += int((v_ref != mesh.verts[v0:v0 + nv]).any())
+    assert moved == mesh.num_items
+
+
+def test_relax_mesh_host_reads_do_not_grow_with_batch(device):
+    """Host reads (and kernels) of a relaxation are the same for 3 items and for the same
+    items 4 times over: nothing is read per item or per trial."""
+    from torch.overrides import TorchFunctionMode
+    from torch.utils._python_dispatch import TorchDispatchMode
+    dtype = torch.float64
+    mesh, pts, item, face = relax_setup(device, dtype, n_items=3)
+
+    def counts(m, p, it, f):
+        seen = {"read": 0, "ops": 0}
+
+        class Reads(TorchFunctionMode):
+            def __torch_function__(self, func, types, args=(), kwargs=None):
+                if getattr(func, "__name__", "") in ("tolist", "__bool__", "item", "__int__", "__float__"):
+                    seen["read"] += 1
+                return func(*args, **(kwargs or {}))
+
+        class Ops(TorchDispatchMode):
+            def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+                seen["ops"] += 1
+                if func in (torch.ops.aten.nonzero.default, torch.ops.aten._local_scalar_dense.default):
+                    seen["read"] += 1
+                return func(*args, **(kwargs or {}))
+
+        for attr in ("face_neighbors", "is_corner_vert", "boundary_edge_dir", "degrees", "edges"):
+            getattr(m, attr)                                  # topology built outside
+        with Reads(), Ops():
+            relax_mesh(m, p, it, f, RelaxConfig(relax_iterations=8))
+        return seen
+
+    one = counts(mesh, pts, item, face)
+    n = 4
+    big = MeshBatch.cat([mesh] * n)
+    T = mesh.faces.shape[0]
+    four = counts(big, pts.repeat(n, 1), torch.cat([item + 3 * r for r in range(n)]),
+                  torch.cat([face + T * r for r in range(n)]))
+    assert one == four, (one, four)
+    assert 0 < one["read"] <= 8 * 6
+
+
 # ============================================================================= tolerance / testing
 
 

@@ -126,7 +126,7 @@ def relax_mesh(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor, 
         mesh.face_neighbors                       # cached here, so the trial meshes share it
         nu_e = degree_weights(mesh)
         q0 = mesh.quality(v)
-        floor = torch.minimum(q0, torch.full_like(q0, min_quality))
+        floor = torch.minimum(q0, torch.full_like(q0, min_quality)).repeat(K)
         # trial k of item b is row k * B + b of the stacked mesh checks
         stack_item = (mesh.face_item[None, :] + B * torch.arange(K, device=dev)[:, None]).reshape(-1)
         trial = torch.arange(K, device=dev)[:, None]
@@ -161,7 +161,7 @@ def relax_mesh(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor, 
             lengths = torch.stack(lengths)                                  # (K,B) the halvings
             vt = v + lengths[:, vi, None] * d                               # (K,V,2)
             q = mesh.kernel.quality(vt[:, mesh.faces].reshape(K * T, 3, 2))
-            bad = segment_any((q <= 0) | (q < floor.repeat(K)), stack_item, K * B).view(K, B)  # q has the sign of the area
+            bad = segment_any((q <= 0) | (q < floor), stack_item, K * B).view(K, B)     # q has the sign of the area
             passes = ~bad & active                                          # (K,B)
             accepted = torch.zeros_like(active)
             v_new, face_new, U_next = v, face, U

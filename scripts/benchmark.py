@@ -463,8 +463,8 @@ def part_d(args, config) -> Dict[str, Any]:
     row = dict(B=B, seconds=t, rate=B / t, one_by_one=one_s, one_rate=B / one_s, speedup=one_s / t, extrap=extrap,
                levels=max(levels), topo=topo_ok(results, shapes), stages=batch_stage_sums(results))
     star = "*" if extrap else ""
-    print("| B | batch s | **shapes/s (batch)** | one-by-one s | shapes/s (one-by-one) | speed-up | levels (max / median) | "
-          "topology ok | " + " | ".join(STAGES) + " |")
+    print("| B | batch s | **shapes/s (batch)** | one-by-one s | shapes/s (one-by-one) | speed-up | "
+          "levels (max / median) | topology ok | " + " | ".join(STAGES) + " |")
     print("|" + "---:|" * (8 + len(STAGES)))
     print(f"| {B} | {fmt_s(t)} | **{row['rate']:.1f}** | {fmt_s(one_s)}{star} | {row['one_rate']:.1f}{star} | "
           f"{row['speedup']:.2f}x{star} | {max(levels)} / {int(statistics.median(levels))} | {row['topo']}/{B} | " +

@@ -21,7 +21,7 @@ from typing import List, Optional, Sequence, Tuple
 
 import torch
 
-from torch_isc.core.segments import first_index, segment_count, segment_rows
+from torch_isc.core.segments import first_index, segment_any, segment_count, segment_rows
 from torch_isc.core.simplex import TRIANGLES
 
 __all__ = ["MeshBatch", "hexagon_mesh", "square_mesh", "InvalidMeshError"]
@@ -302,9 +302,9 @@ class MeshBatch:
     @cached_property
     def is_boundary_vert(self) -> torch.Tensor:
         """``(V,)`` bool."""
-        out = torch.zeros(self.verts.shape[0], dtype=torch.bool, device=self.device)
-        out[self.edges[self.is_boundary_edge].reshape(-1)] = True
-        return out
+        E = self.edges.shape[0]
+        return segment_any(self.is_boundary_edge[:, None].expand(E, 2).reshape(-1), self.edges.reshape(-1),
+                           self.verts.shape[0])
 
     @cached_property
     def degrees(self) -> torch.Tensor:
@@ -338,23 +338,27 @@ class MeshBatch:
     def _boundary_data(self):
         with torch.no_grad():
             V = self.verts.shape[0]
-            be = self.edges[self.is_boundary_edge]
+            # every edge, the interior ones sent to a spare row V (masks, not boolean
+            # indexing: no host read; the boundary edges keep their order)
+            isb = self.is_boundary_edge
+            be = torch.where(isb[:, None], self.edges, V)
             v = self.verts.detach()
-            d = v[be[:, 1]] - v[be[:, 0]]
+            d = v[self.edges[:, 1]] - v[self.edges[:, 0]]
             d = d / d.norm(dim=1, keepdim=True).clamp_min(torch.finfo(v.dtype).tiny)
             # sign the direction consistently with the boundary-vertex pair, sum |cross| per vertex
-            acc = torch.zeros(V, 2, 2, dtype=v.dtype, device=v.device)
+            acc = torch.zeros(V + 1, 2, 2, dtype=v.dtype, device=v.device)
             outer = d[:, :, None] * d[:, None, :]
             acc.index_add_(0, be[:, 0], outer)
             acc.index_add_(0, be[:, 1], outer)
+            acc = acc[:V]
             # two collinear boundary edges give a rank-1 sum of outer products
             det = acc[:, 0, 0] * acc[:, 1, 1] - acc[:, 0, 1] * acc[:, 1, 0]
             tr = acc[:, 0, 0] + acc[:, 1, 1]
             corner = self.is_boundary_vert & (det > 1e-6 * tr.clamp_min(1e-30) ** 2)
-            direc = torch.zeros(V, 2, dtype=v.dtype, device=v.device)
+            direc = torch.zeros(V + 1, 2, dtype=v.dtype, device=v.device)
             direc.index_copy_(0, be[:, 0], d)
             direc.index_copy_(0, be[:, 1], d)
-            direc[corner | ~self.is_boundary_vert] = 0
+            direc = torch.where((corner | ~self.is_boundary_vert)[:, None], 0.0, direc[:V])
             return corner, direc
 
     # ---------------------------------------------------------- validity

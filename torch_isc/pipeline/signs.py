@@ -15,7 +15,7 @@ import torch
 
 from torch_isc.core.mesh import MeshBatch
 from torch_isc.core.points import PointSetError
-from torch_isc.core.segments import first_index, hash_keys, hash_to_unit, mix32, segment_max, segment_min
+from torch_isc.core.segments import first_index, hash_keys, hash_to_unit, mix32, segment_count, segment_max, segment_min
 from torch_isc.pipeline.knobs import check_section, knob
 
 if TYPE_CHECKING:
@@ -224,15 +224,17 @@ def sign_islands(mesh: MeshBatch, signs: torch.Tensor) -> torch.Tensor:
         V = signs.shape[0]
         e = mesh.edges
         same = (signs[e[:, 0]] < 0) == (signs[e[:, 1]] < 0)
-        a, b = e[same, 0], e[same, 1]
+        a, b = e[:, 0], e[:, 1]
         lab = torch.arange(V, device=signs.device)
+        big = torch.full_like(a, V)                       # an edge between signs proposes no label
+        # a round after convergence changes nothing: converge is read every other round
         while True:
-            m = torch.minimum(lab[a], lab[b])
-            new = lab.scatter_reduce(0, a, m, "amin").scatter_reduce(0, b, m, "amin")
-            new = new[new]                                 # pointer jumping
-            if torch.equal(new, lab):
+            for _ in range(2):
+                m = torch.where(same, torch.minimum(lab[a], lab[b]), big)
+                new = lab.scatter_reduce(0, a, m, "amin").scatter_reduce(0, b, m, "amin")
+                prev, lab = lab, new[new]                  # pointer jumping
+            if torch.equal(prev, lab):
                 return lab
-            lab = new
 
 
 def remove_small_islands(mesh: MeshBatch, signs: torch.Tensor, keep: torch.Tensor, min_vertices: int) -> torch.Tensor:
@@ -248,7 +250,7 @@ def remove_small_islands(mesh: MeshBatch, signs: torch.Tensor, keep: torch.Tenso
         return signs
     with torch.no_grad():
         lab = sign_islands(mesh, signs)
-        size = torch.bincount(lab, minlength=signs.shape[0])
+        size = segment_count(lab, signs.shape[0])
         pinned = torch.zeros_like(size, dtype=torch.bool).index_fill_(0, lab[keep], True)
         flip = (size[lab] < min_vertices) & ~pinned[lab]
         return torch.where(flip, -signs, signs)

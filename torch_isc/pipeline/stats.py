@@ -121,5 +121,6 @@ class StatsRecorder:
             conv = [int if k in _INT_FIELDS else float for k in names]
             for row in rows:
                 vals = {k: c(x) for k, c, x in zip(names, conv, row[1:])}
-                self.per_item[int(row[0])].append(LevelStats(level=level, seconds=total, stage_seconds=dict(st), **vals))
+                rec = LevelStats(level=level, seconds=total, stage_seconds=dict(st), **vals)
+                self.per_item[int(row[0])].append(rec)
         self._pending = []

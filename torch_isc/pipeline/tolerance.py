@@ -185,7 +185,8 @@ def curve_coverage_excess(mesh: MeshBatch, values: torch.Tensor, points: torch.T
     out = torch.full((T,), float("inf"), dtype=mid.dtype, device=mid.device)
     out = out.scatter_reduce(0, c.reshape(-1), d.reshape(-1), "amin")
     rmin = torch.full((T,), float("inf"), dtype=mid.dtype, device=mid.device)
-    rmin = rmin.scatter_reduce(0, c.reshape(-1), torch.where(seen, reach[:, None].expand_as(d), inf).reshape(-1), "amin")
+    r_seen = torch.where(seen, reach[:, None].expand_as(d), inf)
+    rmin = rmin.scatter_reduce(0, c.reshape(-1), r_seen.reshape(-1), "amin")
     return torch.where(has, out, torch.full_like(out, -float("inf"))), rmin
 
 

@@ -67,8 +67,9 @@ def edge_weights(mesh: MeshBatch, L: torch.Tensor, eps: torch.Tensor, count: tor
     empty = (count == 0) & ~fit
     fi = mesh.face_item
     big = torch.finfo(dt).max
-    emax = segment_max(eps[fit], fi[fit], B, fill=-big)
-    emin = segment_min(eps[fit], fi[fit], B, fill=big)
+    # the triangles without a fit enter the extremes as the fills (masks: no host read)
+    emax = segment_max(torch.where(fit, eps, -big), fi, B, fill=-big)
+    emin = segment_min(torch.where(fit, eps, big), fi, B, fill=big)
     if noise2 is not None:
         # fits within the noise are all equally good: dense noisy data would otherwise spread
         # tiny differences of near-noise errors over the whole range [0, 1]

@@ -17,7 +17,7 @@ import torch
 from torch_isc.core.segments import first_index, segment_count, segment_max, segment_min, segment_sum
 
 __all__ = ["PointsLike", "PointSetError", "PointBatch", "check_points", "distinct_points", "collinear_items",
-           "prepare_points", "check_extent"]
+           "prepare_points", "check_extent", "output_dtypes"]
 
 
 PointsLike = Union[torch.Tensor, np.ndarray, Sequence[Sequence[float]]]
@@ -233,6 +233,15 @@ def prepare_points(point_sets: Sequence[PointsLike], names: Optional[Sequence[Op
         return PointBatch(norm64.to(dtype), point_item, counts, center64, scale64, flat, raw, labels)
 
 
+def output_dtypes(raw: Sequence[torch.Tensor], dtype: torch.dtype) -> List[torch.dtype]:
+    """The precision of each set's outputs: its floating dtype (integers: ``dtype``) promoted
+    with the working ``dtype``; worked out once per distinct input dtype."""
+    memo = {}
+    for d in dict.fromkeys(p.dtype for p in raw):
+        memo[d] = torch.promote_types(d if d.is_floating_point else dtype, dtype)
+    return [memo[p.dtype] for p in raw]
+
+
 def check_extent(batch: PointBatch, cover: float, dtype: torch.dtype) -> None:
     """Raise :class:`PointSetError` naming the first item whose mesh, reaching ``cover``
     diagonals from the centre of its points, would not fit in its output precision (the
@@ -240,8 +249,7 @@ def check_extent(batch: PointBatch, cover: float, dtype: torch.dtype) -> None:
     hold Inf."""
     with torch.no_grad():
         far = batch.center.abs().amax(1) + 2.0 * cover * batch.scale
-        for b, (f, raw) in enumerate(zip(far.tolist(), batch.raw)):
-            odt = torch.promote_types(raw.dtype if raw.dtype.is_floating_point else dtype, dtype)
+        for b, (f, odt) in enumerate(zip(far.tolist(), output_dtypes(batch.raw, dtype))):
             top = torch.finfo(odt).max
             if not f < top:
                 raise PointSetError(f"{batch.labels[b]}: coordinates too large: the mesh around the points "

@@ -9,6 +9,7 @@ import torch
 
 from torch_isc.core.curve import ImplicitCurve
 from torch_isc.core.nesting import polygons_with_holes, signed_area
+from torch_isc.core.points import output_dtypes
 from torch_isc.core.segments import segment_any
 from torch_isc.pipeline.config import ReconstructConfig
 from torch_isc.pipeline.stats import LevelStats
@@ -155,8 +156,7 @@ def finish_items(ws: "WorkingSet", fin: torch.Tensor, n_marked: torch.Tensor, ov
         vals64 = vals.double() * scale[vitem]
         # the caller's precision, at least the working one; cast once per precision, then every
         # item's curve is a view (no device work per item)
-        odts = [torch.promote_types(batch.raw[b].dtype if batch.raw[b].dtype.is_floating_point else dtype, dtype)
-                for b in caller_l]
+        odts = output_dtypes([batch.raw[b] for b in caller_l], dtype)
         v_first = [0] * K
         for j in range(1, K):
             v_first[j] = v_first[j - 1] + nv[j - 1]

@@ -98,7 +98,10 @@ def glyph_outlines(ch: str, font: int, thickness: int) -> List[np.ndarray]:
     return out
 
 
-def make_case(i: int, kinds: Sequence[str], rng: np.random.Generator, glyphs: str = GLYPHS) -> Dict[str, Any]:
+def make_case(i: int, kinds: Sequence[str], rng: np.random.Generator, glyphs: str = GLYPHS,
+              points: Optional[int] = None) -> Dict[str, Any]:
+    """Case ``i``: kind ``kinds[i % len(kinds)]``; ``points``: the samples on its curves in all
+    (before gaps and outliers), instead of the random count."""
     kind = kinds[i % len(kinds)]
     noise = NOISES[(i // len(kinds)) % len(NOISES)]
     if kind == "circle":
@@ -127,6 +130,7 @@ def make_case(i: int, kinds: Sequence[str], rng: np.random.Generator, glyphs: st
     else:
         raise ValueError(f"unknown kind {kind!r} (known: {', '.join(KINDS)})")
     n = int(rng.uniform(80, 600)) * (len(fns) if kind != "glyph" else 3)
+    n = n if points is None else points
     lengths = [arclength_samples(f, 8, 0.0)[1] for f in fns]
     counts = [max(12, int(round(n * ln / sum(lengths)))) for ln in lengths]
     pts = np.concatenate([arclength_samples(f, c, rng.uniform())[0] for f, c in zip(fns, counts)])

@@ -160,10 +160,17 @@ def test_stats_recorder_writes_one_record_per_item_and_level():
     rec.tick("topology")
     rec.record(0, torch.tensor([2, 0]), cols)
     rec.close_level()
-    assert [len(x) for x in rec.per_item] == [1, 0, 1]
-    a, b = rec.per_item[2][0], rec.per_item[0][0]
+    rec.record(1, torch.tensor([2]), {k: v[1:] for k, v in cols.items()})
+    rec.close_level()
+    assert [len(x) for x in rec.per_item] == [0, 0, 0]          # read from the device at flush only
+    rec.flush()
+    assert [len(x) for x in rec.per_item] == [1, 0, 2]
+    a, b, a1 = rec.per_item[2][0], rec.per_item[0][0], rec.per_item[2][1]
     assert (a.level, a.triangles, a.delta1, b.triangles, b.noise) == (0, 1, 0.5, 2, 0.25)
+    assert (a1.level, a1.triangles, a1.marked, a1.noise) == (1, 2, 2, 0.25)
+    assert type(a.triangles) is int and type(a.delta1) is float
     assert a.seconds >= 0 and set(a.stage_seconds) >= {"topology", "relax"} and a.seconds == b.seconds
+    assert a1.stage_seconds["topology"] == 0.0                  # level 1's own (untimed) stages
     assert list(a.to_dict(timings=False)) == ["level", "triangles", "points", "delta1", "max_error", "tolerance",
                                               "noise", "marked", "points_beyond_tolerance"]
 

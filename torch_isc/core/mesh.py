@@ -21,7 +21,7 @@ from typing import List, Optional, Sequence, Tuple
 
 import torch
 
-from torch_isc.core.segments import first_index
+from torch_isc.core.segments import first_index, segment_any, segment_count, segment_rows
 from torch_isc.core.simplex import TRIANGLES
 
 __all__ = ["MeshBatch", "hexagon_mesh", "square_mesh", "InvalidMeshError"]
@@ -94,12 +94,14 @@ class MeshBatch:
     @cached_property
     def vert_item(self) -> torch.Tensor:
         """``(V,)`` item index of every vertex."""
-        return torch.repeat_interleave(torch.arange(self.num_items, device=self.device), self.verts_per_item)
+        return torch.repeat_interleave(torch.arange(self.num_items, device=self.device), self.verts_per_item,
+                                       output_size=self.verts.shape[0])
 
     @cached_property
     def face_item(self) -> torch.Tensor:
         """``(T,)`` item index of every triangle."""
-        return torch.repeat_interleave(torch.arange(self.num_items, device=self.device), self.faces_per_item)
+        return torch.repeat_interleave(torch.arange(self.num_items, device=self.device), self.faces_per_item,
+                                       output_size=self.faces.shape[0])
 
     def with_verts(self, verts: torch.Tensor) -> "MeshBatch":
         """Same topology, new positions; the combinatorial caches are shared."""
@@ -133,11 +135,13 @@ class MeshBatch:
     def vert_offset_of_face(self) -> torch.Tensor:
         return self.verts_first_idx[self.face_item]
 
-    def items_list(self, first: Optional[Sequence[int]] = None) -> List["MeshBatch"]:
+    def items_list(self, counts: Optional[Tuple[Sequence[int], Sequence[int]]] = None) -> List["MeshBatch"]:
         """One single-item batch per item, as views of the packed tensors (faces with local
-        indices): the host reads the item offsets once, not once per item."""
-        nv = self.verts_per_item.tolist()
-        nf = self.faces_per_item.tolist()
+        indices): the host reads the item sizes once, not once per item (not at all when the
+        caller gives them: ``counts = (verts per item, faces per item)`` as host integers)."""
+        if counts is None:
+            counts = torch.stack([self.verts_per_item, self.faces_per_item]).tolist()
+        nv, nf = counts
         local = self.faces - self.vert_offset_of_face[:, None]
         out, v0, f0 = [], 0, 0
         for b in range(len(nv)):
@@ -187,19 +191,28 @@ class MeshBatch:
             off += m.verts.shape[0]
         return MeshBatch(torch.cat(vs), torch.cat(fs), torch.cat(nvs), torch.cat(nfs), check_sizes=False)
 
-    def select_items(self, items: torch.Tensor) -> Tuple["MeshBatch", torch.Tensor, torch.Tensor]:
-        """Sub-batch of the given items (sorted). Returns the mesh, the kept vertex
-        indices and the kept face indices (into this batch's packed tensors)."""
+    def select_items(self, items: torch.Tensor, sizes: Optional[Tuple[int, int]] = None
+                     ) -> Tuple["MeshBatch", torch.Tensor, torch.Tensor]:
+        """Sub-batch of the given items (indices in any order, or a boolean mask), kept in
+        item order. Returns the mesh, the kept vertex indices and the kept face indices (into
+        this batch's packed tensors).
+
+        ``sizes``: the kept vertex and face counts, when the caller has read them already; then
+        ``items`` must be ascending indices without repeats and nothing is read on the host
+        (otherwise the items are put in order and the sizes read, in two host reads)."""
         with torch.no_grad():
-            keep_item = torch.zeros(self.num_items, dtype=torch.bool, device=self.device)
-            keep_item[items] = True
-            vkeep = keep_item[self.vert_item].nonzero().squeeze(1)
-            fkeep = keep_item[self.face_item].nonzero().squeeze(1)
+            if sizes is None:
+                items = items.nonzero().squeeze(1) if items.dtype == torch.bool else torch.unique(items)
+            nv, nf = self.verts_per_item[items], self.faces_per_item[items]
+            if sizes is None:
+                sizes = tuple(torch.stack([nv.sum(), nf.sum()]).tolist())
+            NV, NF = sizes
+            vkeep = segment_rows(self.verts_first_idx[items], nv, NV)
+            fkeep = segment_rows(self.faces_first_idx[items], nf, NF)
             remap = torch.full((self.verts.shape[0],), -1, dtype=torch.long, device=self.device)
-            remap[vkeep] = torch.arange(vkeep.shape[0], device=self.device)
+            remap[vkeep] = torch.arange(NV, device=self.device)
             faces = remap[self.faces[fkeep]]
-        m = MeshBatch(self.verts[vkeep], faces, self.verts_per_item[keep_item], self.faces_per_item[keep_item],
-                      check_sizes=False)
+        m = MeshBatch(self.verts[vkeep], faces, nv, nf, check_sizes=False)
         return m, vkeep, fkeep
 
     # ---------------------------------------------------------- geometry
@@ -271,7 +284,7 @@ class MeshBatch:
 
     @cached_property
     def edges_per_item(self) -> torch.Tensor:
-        return torch.bincount(self.edge_item, minlength=self.num_items)
+        return segment_count(self.edge_item, self.num_items)
 
     @cached_property
     def face_neighbors(self) -> torch.Tensor:
@@ -289,14 +302,14 @@ class MeshBatch:
     @cached_property
     def is_boundary_vert(self) -> torch.Tensor:
         """``(V,)`` bool."""
-        out = torch.zeros(self.verts.shape[0], dtype=torch.bool, device=self.device)
-        out[self.edges[self.is_boundary_edge].reshape(-1)] = True
-        return out
+        E = self.edges.shape[0]
+        return segment_any(self.is_boundary_edge[:, None].expand(E, 2).reshape(-1), self.edges.reshape(-1),
+                           self.verts.shape[0])
 
     @cached_property
     def degrees(self) -> torch.Tensor:
         """``(V,)`` long, number of edges at each vertex."""
-        return torch.bincount(self.edges.reshape(-1), minlength=self.verts.shape[0])
+        return segment_count(self.edges.reshape(-1), self.verts.shape[0])
 
     @cached_property
     def vert_neighbors(self) -> Tuple[torch.Tensor, torch.Tensor]:
@@ -325,23 +338,27 @@ class MeshBatch:
     def _boundary_data(self):
         with torch.no_grad():
             V = self.verts.shape[0]
-            be = self.edges[self.is_boundary_edge]
+            # every edge, the interior ones sent to a spare row V (masks, not boolean
+            # indexing: no host read; the boundary edges keep their order)
+            isb = self.is_boundary_edge
+            be = torch.where(isb[:, None], self.edges, V)
             v = self.verts.detach()
-            d = v[be[:, 1]] - v[be[:, 0]]
+            d = v[self.edges[:, 1]] - v[self.edges[:, 0]]
             d = d / d.norm(dim=1, keepdim=True).clamp_min(torch.finfo(v.dtype).tiny)
             # sign the direction consistently with the boundary-vertex pair, sum |cross| per vertex
-            acc = torch.zeros(V, 2, 2, dtype=v.dtype, device=v.device)
+            acc = torch.zeros(V + 1, 2, 2, dtype=v.dtype, device=v.device)
             outer = d[:, :, None] * d[:, None, :]
             acc.index_add_(0, be[:, 0], outer)
             acc.index_add_(0, be[:, 1], outer)
+            acc = acc[:V]
             # two collinear boundary edges give a rank-1 sum of outer products
             det = acc[:, 0, 0] * acc[:, 1, 1] - acc[:, 0, 1] * acc[:, 1, 0]
             tr = acc[:, 0, 0] + acc[:, 1, 1]
             corner = self.is_boundary_vert & (det > 1e-6 * tr.clamp_min(1e-30) ** 2)
-            direc = torch.zeros(V, 2, dtype=v.dtype, device=v.device)
+            direc = torch.zeros(V + 1, 2, dtype=v.dtype, device=v.device)
             direc.index_copy_(0, be[:, 0], d)
             direc.index_copy_(0, be[:, 1], d)
-            direc[corner | ~self.is_boundary_vert] = 0
+            direc = torch.where((corner | ~self.is_boundary_vert)[:, None], 0.0, direc[:V])
             return corner, direc
 
     # ---------------------------------------------------------- validity

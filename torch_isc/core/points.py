@@ -14,10 +14,10 @@ from typing import List, Optional, Sequence, Union
 import numpy as np
 import torch
 
-from torch_isc.core.segments import first_index, segment_max, segment_min, segment_sum
+from torch_isc.core.segments import first_index, segment_count, segment_max, segment_min, segment_sum
 
 __all__ = ["PointsLike", "PointSetError", "PointBatch", "check_points", "distinct_points", "collinear_items",
-           "prepare_points", "check_extent"]
+           "prepare_points", "check_extent", "output_dtypes"]
 
 
 PointsLike = Union[torch.Tensor, np.ndarray, Sequence[Sequence[float]]]
@@ -56,14 +56,28 @@ def check_points(x: PointsLike, label: str, finite: bool = True) -> torch.Tensor
     return x
 
 
-def _check_finite(raw: Sequence[torch.Tensor], labels: Sequence[str]) -> None:
-    """Every set's coordinates finite, checked for the whole batch with one host read."""
-    n = torch.tensor([p.shape[0] for p in raw])
-    bad = torch.cat([~torch.isfinite(p.double()).all(1) for p in raw])
-    per_item = segment_sum(bad.long(), torch.repeat_interleave(torch.arange(len(raw)), n).to(bad.device), len(raw))
-    for lab, k in zip(labels, per_item.tolist()):
-        if k:
-            raise PointSetError(f"{lab}: {k} point(s) have NaN or Inf coordinates")
+def _pack64(sets: Sequence[torch.Tensor]) -> torch.Tensor:
+    """``(P, 2)`` float64: the sets one after another, cast once when they share a dtype
+    (exact for the inputs' float32/float64/integer values)."""
+    if len({p.dtype for p in sets}) == 1:
+        return torch.cat(list(sets)).to(torch.float64)
+    return torch.cat([p.to(torch.float64) for p in sets])
+
+
+def _item_index(sizes: Sequence[int], device) -> torch.Tensor:
+    """``(P,)`` the item of each row of sets of ``sizes`` rows packed one after another."""
+    n = torch.tensor(list(sizes), device=device)
+    return torch.repeat_interleave(torch.arange(len(sizes), device=device), n, output_size=sum(sizes))
+
+
+def _check_finite(x: torch.Tensor, item: torch.Tensor, labels: Sequence[str]) -> None:
+    """Every set's coordinates finite (``x (P, 2)`` packed, ``item (P,)``), checked for the
+    whole batch with one host read (a second one names the first bad set)."""
+    bad = (~torch.isfinite(x).all(1)).long()
+    if int(bad.sum()):
+        for lab, k in zip(labels, segment_sum(bad, item, len(labels)).tolist()):
+            if k:
+                raise PointSetError(f"{lab}: {k} point(s) have NaN or Inf coordinates")
 
 
 def distinct_points(sets: Sequence[torch.Tensor], labels: Sequence[str]):
@@ -76,11 +90,14 @@ def distinct_points(sets: Sequence[torch.Tensor], labels: Sequence[str]):
     Returns ``(points (P, 2) float64, point_item (P,), counts (B,))``, for the whole batch at
     once: rows ``(item, x, y)`` sorted by three stable sorts (``unique(dim=0)`` is several
     times slower), equal neighbours grouped."""
-    dev = sets[0].device
-    B = len(sets)
-    n = torch.tensor([p.shape[0] for p in sets], device=dev)
-    item = torch.repeat_interleave(torch.arange(B, device=dev), n)
-    x = torch.cat([p.to(torch.float64) for p in sets])
+    x = _pack64(sets)
+    return _distinct_packed(x, _item_index([p.shape[0] for p in sets], x.device), len(sets), labels)
+
+
+def _distinct_packed(x: torch.Tensor, item: torch.Tensor, B: int, labels: Sequence[str]):
+    """:func:`distinct_points` of the packed float64 rows ``x (P, 2)`` of items ``item (P,)``
+    (ascending), with one host read."""
+    dev = x.device
     o = torch.argsort(x[:, 1], stable=True)
     o = o[torch.argsort(x[o, 0], stable=True)]
     o = o[torch.argsort(item[o], stable=True)]
@@ -88,11 +105,10 @@ def distinct_points(sets: Sequence[torch.Tensor], labels: Sequence[str]):
     new = torch.ones(o.shape[0], dtype=torch.bool, device=dev)
     new[1:] = (its[1:] != its[:-1]) | (xs[1:] != xs[:-1]).any(1)
     gid = torch.cumsum(new.long(), 0) - 1
-    G = int(gid[-1]) + 1
-    counts = torch.bincount(its[new], minlength=B)
-    few = (counts < 3).nonzero().squeeze(1)
-    if few.numel():
-        b = int(few[0])
+    counts = segment_sum(new.long(), its, B)
+    G, n_few = torch.stack([gid[-1] + 1, (counts < 3).sum()]).tolist()
+    if n_few:
+        b = int((counts < 3).nonzero()[0, 0])
         raise PointSetError(f"{labels[b]}: needs at least 3 distinct points, got {int(counts[b])}")
     if G == x.shape[0]:
         return x, item, counts
@@ -105,7 +121,7 @@ def collinear_items(pts64: torch.Tensor, point_item: torch.Tensor, B: int, slack
     """``(B,)`` bool: every point of the item lies within ``slack`` of one line (float64,
     normalized coordinates). Measured as the largest distance to the principal axis, so no
     cancellation in an eigenvalue limits the precision."""
-    n = torch.bincount(point_item, minlength=B).to(pts64.dtype)
+    n = segment_count(point_item, B).to(pts64.dtype)
     mean = torch.zeros(B, 2, dtype=pts64.dtype, device=pts64.device).index_add_(0, point_item, pts64) / n[:, None]
     d = pts64 - mean[point_item]
     cov = torch.zeros(B, 3, dtype=pts64.dtype, device=pts64.device).index_add_(
@@ -176,10 +192,12 @@ def prepare_points(point_sets: Sequence[PointsLike], names: Optional[Sequence[Op
     for p, lab in zip(raw, labels):
         if p.device != device:
             raise PointSetError(f"{lab}: on {p.device}, but the batch is on {device}")
-    _check_finite(raw, labels)
     B = len(raw)
     with torch.no_grad():
-        pts64, point_item, counts = distinct_points(raw, labels)
+        x64 = _pack64(raw)
+        item = _item_index([p.shape[0] for p in raw], device)
+        _check_finite(x64, item, labels)
+        pts64, point_item, counts = _distinct_packed(x64, item, B, labels)
         # normalize in float64, then cast: large offsets (1e7) must not cost precision
         big = torch.finfo(torch.float64).max
         idx2 = point_item[:, None].expand(-1, 2)
@@ -215,6 +233,15 @@ def prepare_points(point_sets: Sequence[PointsLike], names: Optional[Sequence[Op
         return PointBatch(norm64.to(dtype), point_item, counts, center64, scale64, flat, raw, labels)
 
 
+def output_dtypes(raw: Sequence[torch.Tensor], dtype: torch.dtype) -> List[torch.dtype]:
+    """The precision of each set's outputs: its floating dtype (integers: ``dtype``) promoted
+    with the working ``dtype``; worked out once per distinct input dtype."""
+    memo = {}
+    for d in dict.fromkeys(p.dtype for p in raw):
+        memo[d] = torch.promote_types(d if d.is_floating_point else dtype, dtype)
+    return [memo[p.dtype] for p in raw]
+
+
 def check_extent(batch: PointBatch, cover: float, dtype: torch.dtype) -> None:
     """Raise :class:`PointSetError` naming the first item whose mesh, reaching ``cover``
     diagonals from the centre of its points, would not fit in its output precision (the
@@ -222,8 +249,7 @@ def check_extent(batch: PointBatch, cover: float, dtype: torch.dtype) -> None:
     hold Inf."""
     with torch.no_grad():
         far = batch.center.abs().amax(1) + 2.0 * cover * batch.scale
-        for b, (f, raw) in enumerate(zip(far.tolist(), batch.raw)):
-            odt = torch.promote_types(raw.dtype if raw.dtype.is_floating_point else dtype, dtype)
+        for b, (f, odt) in enumerate(zip(far.tolist(), output_dtypes(batch.raw, dtype))):
             top = torch.finfo(odt).max
             if not f < top:
                 raise PointSetError(f"{batch.labels[b]}: coordinates too large: the mesh around the points "

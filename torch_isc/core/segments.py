@@ -19,7 +19,7 @@ from typing import Iterator, Optional, Tuple
 import torch
 
 __all__ = ["segment_sum", "segment_max", "segment_min", "segment_count", "segment_mean", "segment_any",
-           "segment_median", "first_index", "local_index", "mix32", "hash_keys", "hash_to_unit", "hash_uniform",
+           "segment_median", "first_index", "segment_rows", "local_index", "mix32", "hash_keys", "hash_to_unit", "hash_uniform",
            "sym2_eigvals", "sym2_eigvec", "expand_in_chunks"]
 
 
@@ -45,8 +45,9 @@ def segment_min(x: torch.Tensor, seg: torch.Tensor, n: int, fill: Optional[float
 
 
 def segment_count(seg: torch.Tensor, n: int) -> torch.Tensor:
-    """``(n,)`` long, the rows of each segment."""
-    return torch.bincount(seg, minlength=n)
+    """``(n,)`` long, the rows of each segment (``seg`` in ``[0, n)``). A scatter-add, not
+    ``bincount``: that one reads the largest index on the host (a synchronization on a GPU)."""
+    return torch.zeros(n, dtype=torch.long, device=seg.device).index_add_(0, seg, torch.ones_like(seg, dtype=torch.long))
 
 
 def segment_mean(x: torch.Tensor, seg: torch.Tensor, n: int) -> torch.Tensor:
@@ -67,7 +68,7 @@ def segment_median(x: torch.Tensor, seg: torch.Tensor, n: int) -> torch.Tensor:
     o1 = torch.argsort(x, stable=True)
     o2 = torch.argsort(seg[o1], stable=True)
     order = o1[o2]
-    cnt = torch.bincount(seg, minlength=n)
+    cnt = segment_count(seg, n)
     first = first_index(cnt)
     mid = (first + (cnt - 1).clamp_min(0) // 2).clamp_max(x.numel() - 1)
     return torch.where(cnt > 0, x[order][mid], torch.zeros(n, dtype=x.dtype, device=x.device))
@@ -76,6 +77,19 @@ def segment_median(x: torch.Tensor, seg: torch.Tensor, n: int) -> torch.Tensor:
 def first_index(counts: torch.Tensor) -> torch.Tensor:
     """``(n,)`` the first row of each of ``n`` contiguous segments of ``counts (n,)`` rows."""
     return torch.cumsum(counts, 0) - counts
+
+
+def segment_rows(first: torch.Tensor, counts: torch.Tensor, total: int) -> torch.Tensor:
+    """``(total,)`` the rows ``first[k] .. first[k] + counts[k] - 1`` of the segments ``k``, one
+    segment after another; ``total`` is ``counts.sum()``, known on the host (no host read here).
+
+    Example:
+        >>> segment_rows(torch.tensor([5, 0]), torch.tensor([2, 3]), 5).tolist()
+        [5, 6, 0, 1, 2]
+    """
+    dev = counts.device
+    seg = torch.repeat_interleave(torch.arange(counts.shape[0], device=dev), counts, output_size=total)
+    return torch.arange(total, device=dev) + (first - first_index(counts))[seg]
 
 
 def local_index(seg: torch.Tensor, first: torch.Tensor) -> torch.Tensor:

@@ -122,9 +122,8 @@ class Triangles:
         v = sym2_eigvec(a, b, d, small)
         nv = v.norm(dim=1, keepdim=True)
         iso = nv.squeeze(1) <= 1e-30
-        normal = torch.where(iso[:, None], torch.tensor([0.0, 1.0], dtype=scatter.dtype,
-                                                        device=scatter.device).expand_as(v),
-                             v / nv.clamp_min(1e-30))
+        up = torch.stack([torch.zeros_like(a), torch.ones_like(a)], 1)      # (0, 1), made on the device
+        normal = torch.where(iso[:, None], up, v / nv.clamp_min(1e-30))
         return small.clamp_min(0), normal
 
     def principal_spread(self, scatter: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import torch
 
 from torch_isc.core.mesh import MeshBatch
-from torch_isc.core.segments import first_index, segment_sum
+from torch_isc.core.segments import first_index, segment_any, segment_sum
 
 __all__ = ["Subdivision", "subdivide"]
 
@@ -39,7 +39,8 @@ class Subdivision:
         V = self.new_vert_edge.shape[0]
         out = old_values.new_zeros((V,) + tuple(old_values.shape[1:]))
         out = out.index_copy(0, self.old_to_new_vert, old_values)
-        nv = (self.new_vert_edge >= 0).nonzero().squeeze(1)
+        # as many new vertices as the sizes say: no host read for their count
+        nv = torch.nonzero_static(self.new_vert_edge >= 0, size=V - self.old_to_new_vert.shape[0]).squeeze(1)
         e = old_edges[self.new_vert_edge[nv]]
         return out.index_copy(0, nv, 0.5 * (old_values[e[:, 0]] + old_values[e[:, 1]]))
 
@@ -48,26 +49,26 @@ def subdivide(mesh: MeshBatch, marked: torch.Tensor) -> Subdivision:
     """Subdivide the marked triangles ``marked (T,)`` bool (and what conformity requires)."""
     dev = mesh.device
     with torch.no_grad():
-        V = mesh.verts.shape[0]
-        vmark = torch.zeros(V, dtype=torch.bool, device=dev)
-        vmark[mesh.faces[marked].reshape(-1)] = True
+        V, T = mesh.verts.shape[0], mesh.faces.shape[0]
+        vmark = segment_any(marked[:, None].expand(T, 3).reshape(-1), mesh.faces.reshape(-1), V)
         e = mesh.edges
         split = vmark[e[:, 0]] & vmark[e[:, 1]]
-        split_ids = split.nonzero().squeeze(1)                  # ascending: item order
-        n_new = split_ids.shape[0]
-        # provisional index: old vertices, then one per split edge; then stable sort by item
-        mid_of_edge = torch.full((e.shape[0],), -1, dtype=torch.long, device=dev)
-        mid_of_edge[split_ids] = V + torch.arange(n_new, device=dev)
+        # provisional index: old vertices, then one per split edge (in edge order, so item
+        # order); then stable sort by item
+        mid_of_edge = torch.where(split, V - 1 + torch.cumsum(split.long(), 0), -1)
+        mids = mid_of_edge[mesh.face_edges]                        # (T,3) midpoint opposite corner k
+        cand, nchild = mesh.kernel.split_children(mesh.faces, mids, vmark[mesh.faces])
+        n_new, n_faces = torch.stack([split.sum(), nchild.sum()]).tolist()      # the one host read
+        split_ids = torch.nonzero_static(split, size=n_new).squeeze(1)          # ascending: item order
         item_all = torch.cat([mesh.vert_item, mesh.edge_item[split_ids]])
         perm = torch.sort(item_all, stable=True).indices           # new order -> provisional index
         rank = torch.empty_like(perm)
         rank[perm] = torch.arange(perm.shape[0], device=dev)       # provisional -> new index
 
-        mids = mid_of_edge[mesh.face_edges]                        # (T,3) midpoint opposite corner k
-        cand, nchild = mesh.kernel.split_children(mesh.faces, mids, vmark[mesh.faces])
         K = cand.shape[1]
         slot = torch.arange(K, device=dev)[None, :] < nchild[:, None]   # (T,K)
-        new_faces = rank[cand[slot]]                                      # row-major: parent order kept
+        kept = torch.nonzero_static(slot.reshape(-1), size=n_faces).squeeze(1)
+        new_faces = rank[cand.reshape(-1, cand.shape[2])[kept]]          # row-major: parent order kept
         first = first_index(nchild)
         children = torch.where(slot, first[:, None] + torch.arange(K, device=dev)[None, :], torch.full_like(slot, -1, dtype=torch.long))
 
@@ -75,7 +76,7 @@ def subdivide(mesh: MeshBatch, marked: torch.Tensor) -> Subdivision:
         new_vert_edge[V:] = split_ids
         new_vert_edge = new_vert_edge[perm]
         B = mesh.num_items
-        vpi = mesh.verts_per_item + torch.bincount(mesh.edge_item[split_ids], minlength=B)
+        vpi = mesh.verts_per_item + segment_sum(split.long(), mesh.edge_item, B)
         fpi = segment_sum(nchild, mesh.face_item, B)
     mid_pos = 0.5 * (mesh.verts[e[split_ids, 0]] + mesh.verts[e[split_ids, 1]])
     verts = torch.cat([mesh.verts, mid_pos], 0)[perm]

@@ -56,13 +56,14 @@ def triangle_moments(mesh: MeshBatch, points: torch.Tensor, face: torch.Tensor, 
     T = mesh.faces.shape[0]
     dt = mesh.dtype
     ok = face >= 0
-    f, X = face[ok], bary[ok].to(dt)
-    p = points[ok].to(dt)
-    count = segment_sum(torch.ones_like(f, dtype=dt), f, T)
+    # a point with no triangle adds zeros to triangle 0 (no boolean indexing: no host read)
+    f, X = face.clamp_min(0), torch.where(ok[:, None], bary.to(dt), torch.zeros((), dtype=dt, device=mesh.device))
+    p = points.to(dt)
+    count = segment_sum(ok.to(dt), f, T)
     M = torch.zeros(T, 9, dtype=dt, device=mesh.device).index_add_(0, f, (X[:, :, None] * X[:, None, :]).reshape(-1, 9))
     # moments about the triangle centroid keep float32 accurate on small triangles
     tc = mesh.verts.detach()[mesh.faces].mean(1)
-    q = p - tc[f]
+    q = torch.where(ok[:, None], p - tc[f], torch.zeros((), dtype=dt, device=mesh.device))
     s1 = torch.zeros(T, 2, dtype=dt, device=mesh.device).index_add_(0, f, q)
     s2 = torch.zeros(T, 4, dtype=dt, device=mesh.device).index_add_(0, f, (q[:, :, None] * q[:, None, :]).reshape(-1, 4))
     n = count.clamp_min(1)

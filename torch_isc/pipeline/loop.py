@@ -217,17 +217,20 @@ def run_loop(batch: PointBatch, cfg: ReconstructConfig, source: SignSource,
             done = torch.ones_like(done)
         rec.tick("test")
         _record(rec, level, ws, verdict, d1, n_marked)
-        fin = done.nonzero().squeeze(1)
-        if fin.numel():
-            for b, res in finish_items(ws, fin, n_marked, over, batch, cfg, rec.per_item, names):
+        nb = ws.num_items
+        n_done = int(done.sum())                                       # the level's one read of the verdict
+        if n_done:
+            # finished items last, each part ascending: no second host read for the split
+            order = torch.argsort(done.to(torch.uint8), stable=True)
+            for b, res in finish_items(ws, order[nb - n_done:], n_marked, over, batch, cfg, rec.per_item, names):
                 if b in timed:
                     res.converged, res.limit = False, "max_seconds"
                 results[b] = res
-        if bool(done.all()):
+        if n_done == nb:
             rec.close_level()
             break
-        if fin.numel():                                                # the others go on
-            ws = ws.select((~done).nonzero().squeeze(1))
+        if n_done:                                                     # the others go on
+            ws = ws.select(order[:nb - n_done])
         sd = subdivide(ws.mesh, ws.marked)                             # AdaptivelySubdivideMesh
         rec.tick("subdivide")
         ws = ws.follow(sd)
@@ -236,6 +239,7 @@ def run_loop(batch: PointBatch, cfg: ReconstructConfig, source: SignSource,
         if cfg.relaxation.relax_iterations > 0:
             rec.tick("relax")
         rec.close_level()
+    rec.flush()
     return results  # type: ignore[return-value]
 
 

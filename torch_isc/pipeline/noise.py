@@ -8,7 +8,8 @@ from typing import Optional, Tuple
 
 import torch
 
-from torch_isc.core.segments import first_index, hash_uniform, local_index, segment_median, sym2_eigvals, sym2_eigvec
+from torch_isc.core.segments import (first_index, hash_uniform, local_index, segment_count, segment_median,
+                                     segment_sum, sym2_eigvals, sym2_eigvec)
 from torch_isc.pipeline.knobs import check_section, knob
 
 __all__ = ["NoiseConfig", "NoiseEstimate", "estimate_noise", "noise_and_frames"]
@@ -83,7 +84,7 @@ def _local_line_residual(points: torch.Tensor, point_item: torch.Tensor, idx: to
     t = sym2_eigvec(a, b, d, lmax)                                        # the major axis
     t = t / t.norm(dim=1, keepdim=True).clamp_min(torch.finfo(dt).tiny)
     t = torch.where(torch.isfinite(t) & (t.norm(dim=1, keepdim=True) > 0.5), t,
-                    torch.tensor([1.0, 0.0], dtype=dt, device=dev))
+                    torch.stack([torch.ones_like(a), torch.zeros_like(a)], 1))      # (1, 0), on the device
     reach = torch.where(valid, nd, torch.zeros_like(nd)).amax(1).sqrt()
     return (lam * m / (m - 2).clamp_min(1), m, lmax, _quadratic_residual(qd, w, t, lmax, m),
             torch.cat([t, reach[:, None]], 1))
@@ -142,7 +143,7 @@ def _noise_at_scale(points: torch.Tensor, point_item: torch.Tensor, num_items: i
     var = segment_median(quad[ok], point_item[ok], num_items)
     aspect = torch.sqrt(lmax / lam.clamp_min(torch.finfo(dt).tiny))
     asp = segment_median(aspect[ok], point_item[ok], num_items)
-    return var, asp, torch.bincount(point_item[ok], minlength=num_items), frame
+    return var, asp, segment_sum(ok.long(), point_item, num_items), frame
 
 
 def estimate_noise(points: torch.Tensor, point_item: torch.Tensor, num_items: int,
@@ -196,7 +197,7 @@ def noise_and_frames(points: torch.Tensor, point_item: torch.Tensor, num_items: 
         chosen = asp >= blob_aspect
         if bool(chosen.all()):
             return NoiseEstimate(var.sqrt(), frames)
-        cnt = torch.bincount(point_item, minlength=num_items)
+        cnt = segment_count(point_item, num_items)
         u = hash_uniform(local_index(point_item, first_index(cnt)), dtype=torch.float64)
         rate = 1.0
         while not bool(chosen.all()):

@@ -9,6 +9,8 @@ import torch
 
 from torch_isc.core.curve import ImplicitCurve
 from torch_isc.core.nesting import polygons_with_holes, signed_area
+from torch_isc.core.points import output_dtypes
+from torch_isc.core.segments import segment_any
 from torch_isc.pipeline.config import ReconstructConfig
 from torch_isc.pipeline.stats import LevelStats
 
@@ -137,27 +139,33 @@ def finish_items(ws: "WorkingSet", fin: torch.Tensor, n_marked: torch.Tensor, ov
     precision, at least the working one."""
     with torch.no_grad():
         dtype = ws.dtype
-        sub, kept_verts, _ = ws.mesh.select_items(fin)
-        caller = ws.items[fin]
+        mesh, B, K = ws.mesh, ws.num_items, fin.shape[0]
+        vi = mesh.vert_item
+        neg = (ws.values < 0) & ~ws.flat[vi]                     # a flat item is all outside: no curve
+        inside = segment_any(neg, vi, B)[fin]
+        # everything the host needs, read at once: per item its caller, test outcome and sizes
+        host = torch.stack([ws.items[fin], n_marked[fin], over[fin].long(), inside.long(), ws.flat[fin].long(),
+                            mesh.verts_per_item[fin], mesh.faces_per_item[fin]]).tolist()
+        caller_l, nv, nf = host[0], host[5], host[6]
+        sub, kept_verts, _ = mesh.select_items(fin, (sum(nv), sum(nf)))
         vitem = sub.vert_item
         flat = ws.flat[fin]
-        vals = torch.where(flat[vitem], ws.values[kept_verts].abs(), ws.values[kept_verts])        # all outside: no curve
-        inside = torch.zeros(fin.shape[0], dtype=torch.bool, device=ws.device).index_fill_(0, vitem[vals < 0], True)
+        vals = torch.where(flat[vitem], ws.values[kept_verts].abs(), ws.values[kept_verts])
         scale, center = ws.scale[fin], ws.center[fin]
         verts64 = sub.verts.double() * scale[vitem, None] + center[vitem]
         vals64 = vals.double() * scale[vitem]
-        caller_l = caller.tolist()
         # the caller's precision, at least the working one; cast once per precision, then every
         # item's curve is a view (no device work per item)
-        odts = [torch.promote_types(batch.raw[b].dtype if batch.raw[b].dtype.is_floating_point else dtype, dtype)
-                for b in caller_l]
+        odts = output_dtypes([batch.raw[b] for b in caller_l], dtype)
+        v_first = [0] * K
+        for j in range(1, K):
+            v_first[j] = v_first[j - 1] + nv[j - 1]
         views = {}
         for odt in dict.fromkeys(odts):
             vals_o = vals64.to(odt)
-            meshes = sub.with_verts(verts64.to(odt)).items_list()
-            views[odt] = [(m, vals_o[v0:v0 + m.verts.shape[0]]) for m, v0 in
-                          zip(meshes, sub.verts_first_idx.tolist())]
-        rows = zip(caller_l, n_marked[fin].tolist(), over[fin].tolist(), inside.tolist(), flat.tolist(), odts)
+            meshes = sub.with_verts(verts64.to(odt)).items_list((nv, nf))
+            views[odt] = [(m, vals_o[v0:v0 + n]) for m, v0, n in zip(meshes, v_first, nv)]
+        rows = zip(caller_l, host[1], host[2], host[3], host[4], odts)
         for jj, (b, mk, ov, has_in, fl, odt) in enumerate(rows):
             limit = None
             if mk > 0:

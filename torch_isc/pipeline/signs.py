@@ -15,7 +15,7 @@ import torch
 
 from torch_isc.core.mesh import MeshBatch
 from torch_isc.core.points import PointSetError
-from torch_isc.core.segments import first_index, hash_keys, hash_to_unit, mix32, segment_max, segment_min
+from torch_isc.core.segments import first_index, hash_keys, hash_to_unit, mix32, segment_count, segment_max, segment_min
 from torch_isc.pipeline.knobs import check_section, knob
 
 if TYPE_CHECKING:
@@ -67,8 +67,9 @@ def edge_weights(mesh: MeshBatch, L: torch.Tensor, eps: torch.Tensor, count: tor
     empty = (count == 0) & ~fit
     fi = mesh.face_item
     big = torch.finfo(dt).max
-    emax = segment_max(eps[fit], fi[fit], B, fill=-big)
-    emin = segment_min(eps[fit], fi[fit], B, fill=big)
+    # the triangles without a fit enter the extremes as the fills (masks: no host read)
+    emax = segment_max(torch.where(fit, eps, -big), fi, B, fill=-big)
+    emin = segment_min(torch.where(fit, eps, big), fi, B, fill=big)
     if noise2 is not None:
         # fits within the noise are all equally good: dense noisy data would otherwise spread
         # tiny differences of near-noise errors over the whole range [0, 1]
@@ -224,15 +225,17 @@ def sign_islands(mesh: MeshBatch, signs: torch.Tensor) -> torch.Tensor:
         V = signs.shape[0]
         e = mesh.edges
         same = (signs[e[:, 0]] < 0) == (signs[e[:, 1]] < 0)
-        a, b = e[same, 0], e[same, 1]
+        a, b = e[:, 0], e[:, 1]
         lab = torch.arange(V, device=signs.device)
+        big = torch.full_like(a, V)                       # an edge between signs proposes no label
+        # a round after convergence changes nothing: converge is read every other round
         while True:
-            m = torch.minimum(lab[a], lab[b])
-            new = lab.scatter_reduce(0, a, m, "amin").scatter_reduce(0, b, m, "amin")
-            new = new[new]                                 # pointer jumping
-            if torch.equal(new, lab):
+            for _ in range(2):
+                m = torch.where(same, torch.minimum(lab[a], lab[b]), big)
+                new = lab.scatter_reduce(0, a, m, "amin").scatter_reduce(0, b, m, "amin")
+                prev, lab = lab, new[new]                  # pointer jumping
+            if torch.equal(prev, lab):
                 return lab
-            lab = new
 
 
 def remove_small_islands(mesh: MeshBatch, signs: torch.Tensor, keep: torch.Tensor, min_vertices: int) -> torch.Tensor:
@@ -248,7 +251,7 @@ def remove_small_islands(mesh: MeshBatch, signs: torch.Tensor, keep: torch.Tenso
         return signs
     with torch.no_grad():
         lab = sign_islands(mesh, signs)
-        size = torch.bincount(lab, minlength=signs.shape[0])
+        size = segment_count(lab, signs.shape[0])
         pinned = torch.zeros_like(size, dtype=torch.bool).index_fill_(0, lab[keep], True)
         flip = (size[lab] < min_vertices) & ~pinned[lab]
         return torch.where(flip, -signs, signs)

@@ -56,10 +56,11 @@ def triangle_errors(mesh: MeshBatch, residual: torch.Tensor, face: torch.Tensor)
     """Per triangle, the max and the mean of the points' squared distances ``residual (P,)``."""
     T = mesh.faces.shape[0]
     ok = face >= 0
-    f, r = face[ok], residual[ok]
+    # points with no triangle add 0 to triangle 0 (no boolean indexing: no host read)
+    f, r = face.clamp_min(0), torch.where(ok, residual, torch.zeros_like(residual))
     mx = segment_max(r, f, T, fill=0)
     sm = segment_sum(r, f, T)
-    cnt = torch.bincount(f, minlength=T).to(residual.dtype)
+    cnt = segment_sum(ok.to(residual.dtype), f, T)
     return mx, sm / cnt.clamp_min(1)
 
 
@@ -165,12 +166,12 @@ def curve_coverage_excess(mesh: MeshBatch, values: torch.Tensor, points: torch.T
     mid = seg.mean(1)                                              # (T,2)
     T = mid.shape[0]
     ok = face >= 0
-    f = face[ok]
-    p = points[ok].to(mid.dtype)
-    fr = frames[ok].to(mid.dtype)
+    f = face.clamp_min(0)
+    p = points.to(mid.dtype)
+    fr = frames.to(mid.dtype)
     tau, reach = fr[:, :2], fr[:, 2]
     cand = torch.cat([f[:, None], mesh.face_neighbors[f]], 1)      # (P,4)
-    valid = (cand >= 0) & has[cand.clamp_min(0)]
+    valid = ok[:, None] & (cand >= 0) & has[cand.clamp_min(0)]
     c = cand.clamp_min(0)
     off = mid[c] - p[:, None, :]                                   # (P,4,2)
     along = (off * tau[:, None, :]).sum(-1)
@@ -178,11 +179,14 @@ def curve_coverage_excess(mesh: MeshBatch, values: torch.Tensor, points: torch.T
     # a point vouches only for what lies within its neighbourhood along the curve: beyond it
     # (a sampling gap) it says nothing, and splitting would not fill the gap
     seen = valid & (along.abs() <= reach[:, None])
-    d = across.abs()
+    # what a point does not see enters the minima as inf (no boolean indexing: no host read)
+    inf = torch.full_like(across, float("inf"))
+    d = torch.where(seen, across.abs(), inf)
     out = torch.full((T,), float("inf"), dtype=mid.dtype, device=mid.device)
-    out = out.scatter_reduce(0, c[seen], d[seen], "amin")
+    out = out.scatter_reduce(0, c.reshape(-1), d.reshape(-1), "amin")
     rmin = torch.full((T,), float("inf"), dtype=mid.dtype, device=mid.device)
-    rmin = rmin.scatter_reduce(0, c[seen], reach[:, None].expand_as(d)[seen], "amin")
+    r_seen = torch.where(seen, reach[:, None].expand_as(d), inf)
+    rmin = rmin.scatter_reduce(0, c.reshape(-1), r_seen.reshape(-1), "amin")
     return torch.where(has, out, torch.full_like(out, -float("inf"))), rmin
 
 

@@ -60,11 +60,16 @@ def delta1_per_triangle(mesh: MeshBatch, M: torch.Tensor, values: torch.Tensor, 
 
 
 def _located(mesh: MeshBatch, points: torch.Tensor, face: torch.Tensor):
-    """``(V, verts, points, faces)``: the vertex count, the detached vertices, and the points
-    that have a triangle (in the mesh's dtype) with their triangles."""
+    """``(V, verts, points, faces, ok)``: the vertex count, the detached vertices, the points
+    (in the mesh's dtype), their triangles (0 where they have none) and whether they have one
+    (masks, not boolean indexing: no host read)."""
     v = mesh.verts.detach()
     ok = face >= 0
-    return v.shape[0], v, points[ok].to(v.dtype), face[ok]
+    return v.shape[0], v, points.to(v.dtype), face.clamp_min(0), ok
+
+
+#: hops of the edge relaxation between two convergence checks (each check is a host read)
+_HOPS_PER_CHECK = 8
 
 
 def vertex_data_distance(mesh: MeshBatch, points: torch.Tensor, face: torch.Tensor, max_hops: int = 256) -> torch.Tensor:
@@ -74,10 +79,11 @@ def vertex_data_distance(mesh: MeshBatch, points: torch.Tensor, face: torch.Tens
     edges (Bellman–Ford on the edge graph) for the vertices of empty regions.
     """
     with torch.no_grad():
-        V, v, p, f = _located(mesh, points, face)
+        V, v, p, f, ok = _located(mesh, points, face)
         dt = v.dtype
         vid = mesh.faces[f]                                   # (P,3)
         dist = (v[vid] - p[:, None, :]).norm(dim=2)
+        dist = torch.where(ok[:, None], dist, torch.full_like(dist, float("inf")))
         d = torch.full((V,), float("inf"), dtype=dt, device=v.device)
         d = d.scatter_reduce(0, vid.reshape(-1), dist.reshape(-1), "amin")
         e = mesh.edges
@@ -85,11 +91,15 @@ def vertex_data_distance(mesh: MeshBatch, points: torch.Tensor, face: torch.Tens
         src = torch.cat([e[:, 0], e[:, 1]])
         dst = torch.cat([e[:, 1], e[:, 0]])
         w = torch.cat([el, el])
-        for _ in range(max_hops):
-            nd = d.scatter_reduce(0, dst, d[src] + w, "amin")
-            if torch.equal(nd, d):
+        # a hop after convergence changes nothing, so checking every few hops (and stopping
+        # after max_hops all the same) gives the same distances with fewer host reads
+        hops = 0
+        while hops < max_hops:
+            for _ in range(min(_HOPS_PER_CHECK, max_hops - hops)):
+                prev, d = d, d.scatter_reduce(0, dst, d[src] + w, "amin")
+                hops += 1
+            if torch.equal(prev, d):                           # the last hop changed nothing
                 break
-            d = nd
         # an item with no located point at all: unit magnitudes
         return torch.where(torch.isfinite(d), d, torch.ones_like(d))
 
@@ -102,11 +112,11 @@ def vertex_data_distance_near(mesh: MeshBatch, points: torch.Tensor, face: torch
     finite it is the true nearest distance unless a nearer point lies farther out than the
     star's edge-neighbours (rare: the triangle there would separate them)."""
     with torch.no_grad():
-        V, v, p, f = _located(mesh, points, face)
+        V, v, p, f, ok = _located(mesh, points, face)
         dt = v.dtype
         nb = mesh.face_neighbors[f]                            # (P,3)
         tri = torch.cat([f[:, None], nb], 1)                   # (P,4)
-        has = tri >= 0
+        has = (tri >= 0) & ok[:, None]
         vid = mesh.faces[tri.clamp_min(0)].reshape(p.shape[0], 12)
         dist = (v[vid] - p[:, None, :]).norm(dim=2)
         dist = torch.where(has.repeat_interleave(3, 1), dist, torch.full_like(dist, float("inf")))

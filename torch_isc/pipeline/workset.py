@@ -16,6 +16,7 @@ import torch
 
 from torch_isc.core.locate import locate_children
 from torch_isc.core.mesh import MeshBatch
+from torch_isc.core.segments import first_index, segment_count, segment_rows
 from torch_isc.core.subdivide import Subdivision
 
 __all__ = ["WorkingSet"]
@@ -81,20 +82,23 @@ class WorkingSet:
         with torch.no_grad():
             B, T = self.num_items, self.mesh.faces.shape[0]
             dev = self.device
-            mesh, kv, kf = self.mesh.select_items(keep)
-            sel = torch.zeros(B, dtype=torch.bool, device=dev).index_fill_(0, keep, True)
-            keep_p = sel[self.point_item]
+            m = self.mesh
+            npi = segment_count(self.point_item, B)           # points are packed item by item
+            nv, nf, npk = m.verts_per_item[keep], m.faces_per_item[keep], npi[keep]
+            NV, NF, NP = torch.stack([nv.sum(), nf.sum(), npk.sum()]).tolist()     # one host read
+            mesh, kv, kf = m.select_items(keep, (NV, NF))
+            kp = segment_rows(first_index(npi)[keep], npk, NP)
             remap_f = torch.full((T,), -1, dtype=torch.long, device=dev)
-            remap_f[kf] = torch.arange(kf.shape[0], device=dev)
+            remap_f[kf] = torch.arange(NF, device=dev)
             new_item = torch.full((B,), -1, dtype=torch.long, device=dev)
             new_item[keep] = torch.arange(keep.shape[0], device=dev)
             out = {k: getattr(self, k)[keep] for k in self.ITEM_FIELDS}
             out.update({k: getattr(self, k)[kv] for k in self.VERT_FIELDS})
             out.update({k: getattr(self, k)[kf] for k in self.FACE_FIELDS})
-            out.update({k: getattr(self, k)[keep_p] for k in self.POINT_FIELDS})
+            out.update({k: getattr(self, k)[kp] for k in self.POINT_FIELDS})
             f = out["face"]
             out["face"] = torch.where(f >= 0, remap_f[f.clamp_min(0)], f)
-            out["point_item"] = new_item[self.point_item[keep_p]]
+            out["point_item"] = new_item[self.point_item[kp]]
         return WorkingSet(mesh=mesh, **out)
 
     def follow(self, sd: Subdivision) -> "WorkingSet":

@@ -694,6 +694,9 @@ def test_compact_lbfgs_direction_matches_two_loop(device):
     gamma = torch.tensor([0.3, 2.0, 1.0], dtype=torch.float64)
     SY = torch.stack([_segmat(Y, S[i], seg, 3) for i in range(k)], 1)      # [b, i, j] = s_i . y_j
     YY = torch.stack([_segmat(Y, Y[i], seg, 3) for i in range(k)], 1)
+    # the stored convention: a skipped (zero) pair carries a unit s·y diagonal
+    SY = SY + torch.diag_embed((torch.diagonal(SY, dim1=1, dim2=2) == 0).double())
+    assert float(SY[1, 1, 1]) == 1.0
     r = _direction(g.to(device), S.to(device), Y.to(device), SY.to(device), YY.to(device), gamma.to(device),
                    seg.to(device), 3).cpu()
     o = 0

@@ -42,7 +42,8 @@ def _direction(g: torch.Tensor, S: torch.Tensor, Y: torch.Tensor, SY: torch.Tens
                gamma: torch.Tensor, seg: torch.Tensor, B: int) -> torch.Tensor:
     """``H g`` with ``H = γI + [S γY] [[R⁻ᵀ(D + γYᵀY)R⁻¹, −R⁻ᵀ], [−R⁻¹, 0]] [Sᵀ; γYᵀ]``, where
     ``R`` is the upper triangle of ``SᵀY`` and ``D`` its diagonal (per segment). The small
-    ``k×k`` algebra runs in float64."""
+    ``k×k`` algebra runs in float64. A pair stored as zeros (skipped for its segment) carries a
+    unit ``s·y`` diagonal: a unit pivot, so it contributes nothing."""
     k = S.shape[0]
     if k == 0:
         return gamma[seg] * g
@@ -50,11 +51,11 @@ def _direction(g: torch.Tensor, S: torch.Tensor, Y: torch.Tensor, SY: torch.Tens
     ab = _segmat(W, g, seg, B).double()[..., None]              # (B, 2k, 1)
     a, b = ab[:, :k], ab[:, k:]
     gm = gamma.double()[:, None, None]
-    D = torch.diagonal(SY, dim1=1, dim2=2)
-    # a pair stored as zeros (skipped for this segment) gets a unit pivot and contributes nothing
-    R = torch.triu(SY) + torch.diag_embed((D == 0).double())
+    R = torch.triu(SY)
+    DY = gm * YY
+    DY.diagonal(dim1=1, dim2=2).add_(torch.diagonal(SY, dim1=1, dim2=2))     # D + γYᵀY
     p = torch.linalg.solve_triangular(R, a, upper=True)                      # R⁻¹ Sᵀg
-    q = torch.linalg.solve_triangular(R.transpose(1, 2), (torch.diag_embed(D) + gm * YY) @ p - gm * b, upper=False)
+    q = torch.linalg.solve_triangular(R.transpose(1, 2), DY @ p - gm * b, upper=False)
     c = torch.cat([q, -gm * p], 1)[..., 0].to(g.dtype)[seg]                 # (N, 2k)
     return gamma[seg] * g + (c.T * W).sum(0)
 
@@ -62,7 +63,7 @@ def _direction(g: torch.Tensor, S: torch.Tensor, Y: torch.Tensor, SY: torch.Tens
 def _pair(S, Y, s_new, y_new, seg, B, dt):
     """The products of a new pair ``(s, y)`` with the pairs ``S, Y`` that stay, in two segmented
     products (S·y, Y·y, s·y, y·y and Y·s, s·s), and the curvature test: a pair is kept only with
-    enough positive curvature, a skipped one is stored as zeros. Returns the stored ``s, y``,
+    enough positive curvature, a skipped one is stored as zeros (with a unit ``s·y``). Returns the stored ``s, y``,
     ``keep``, the next ``gamma`` and the new column ``s_i·y`` / rows ``y_j·y``, ``s·y_j``."""
     k = S.shape[0]
     P1 = _segmat(torch.cat([S, Y, s_new[None], y_new[None]]), y_new, seg, B)
@@ -70,13 +71,13 @@ def _pair(S, Y, s_new, y_new, seg, B, dt):
     sy, yy, ss = P1[:, -2], P1[:, -1], P2[:, -1]
     keep = (sy > 1e-12 * yy.sqrt() * ss.sqrt()) & (sy > 0)
     ks = keep[seg]
-    s_new = torch.where(ks, s_new, torch.zeros_like(s_new))
-    y_new = torch.where(ks, y_new, torch.zeros_like(y_new))
-    gamma = torch.where(keep & (yy > 0), sy / yy.clamp_min(torch.finfo(dt).tiny), torch.ones_like(sy))
+    s_new = torch.where(ks, s_new, 0.0)
+    y_new = torch.where(ks, y_new, 0.0)
+    gamma = torch.where(keep & (yy > 0), sy / yy.clamp_min(torch.finfo(dt).tiny), 1.0)
     kd = keep.double()[:, None]
     col = P1[:, :k].double() * kd                                       # s_i · y_new
     yrow = torch.cat([P1[:, k:2 * k], yy[:, None]], 1).double() * kd    # y_j · y_new
-    row = torch.cat([P2[:, :k], sy[:, None]], 1).double() * kd          # s_new · y_j
+    row = torch.cat([P2[:, :k].double() * kd, torch.where(keep, sy, 1.0).double()[:, None]], 1)   # s_new · y_j
     return s_new, y_new, gamma, col, yrow, row
 
 

@@ -182,6 +182,7 @@ class GeometryObjective:
             self.wt_raw = wt
             self.guard = ((1e-10 * mean_mag) ** 2)[fi]
             self.ef = mesh.edge_faces[interior]
+            self.ef_ab = torch.cat([self.ef[:, 0], self.ef[:, 1]])
             self.el = (v[e[:, 0]] - v[e[:, 1]]).norm(dim=1)
             self.eitem = mesh.edge_item[interior]
             self.cross = crossing_weight > 0 and data_dist is not None and slack is not None
@@ -235,6 +236,7 @@ class GeometryObjective:
             sub.faces, sub.fi = vmap[self.faces[f]], renum[self.fi[f]]
             sub.G, sub.M, sub.wt, sub.guard = self.G[f], self.M[f], self.wt[f], self.guard[f]
             sub.ef, sub.el, sub.eitem = fmap[self.ef[e]], self.el[e], renum[self.eitem[e]]
+            sub.ef_ab = torch.cat([sub.ef[:, 0], sub.ef[:, 1]])
             if self.cross:
                 c, _ = keep(self.c_item)
                 sub.ce, sub.c_item = vmap[self.ce[c]], renum[self.c_item[c]]
@@ -311,7 +313,7 @@ class GeometryObjective:
             cj = (self.smoothness / S)[:, eitem] * el             # d obj / d jump
             cs = (-self.smoothness * J / (S * S))[:, eitem] * el  # d obj / d size
             dj = (2.0 * cj)[..., None] * diff
-            dgrad = dgrad.index_add(1, torch.cat([a, b]),
+            dgrad = dgrad.index_add(1, self.ef_ab,
                                     torch.cat([dj + cs[..., None] * ga, cs[..., None] * gb - dj], 1))
         dFt = dFt + (G * dgrad[..., None, :]).sum(-1)
         dF = torch.zeros_like(F).index_add_(1, faces.reshape(-1), dFt.reshape(K, -1))
@@ -326,7 +328,7 @@ class GeometryObjective:
             h = (2.0 * cw) * (over[..., 1] - over[..., 0]) * cl / (msum * msum)
             dm = torch.stack([h * m[..., 1], -h * m[..., 0]], -1)
             dF = dF.index_add(1, ce.reshape(-1), (dm * self.signs[ce]).reshape(K, -1))
-        ds = dF * self.signs * torch.where(s.abs() < 60.0, e, torch.zeros_like(e))
+        ds = dF * self.signs * torch.where(s.abs() < 60.0, e, 0.0)
         return (obj[0], ds[0]) if one else (obj, ds)
 
 

@@ -1011,6 +1011,37 @@ def test_fit_geometry_batch_independent(device):
     nv2 = m2.verts.shape[0]
     torch.testing.assert_close(F[nv2:], F1, rtol=1e-10, atol=1e-12)
     torch.testing.assert_close(d[1], d1[0], rtol=1e-10, atol=1e-15)
+    # the line search's layout (trials per stacked call) does not change a bit of the result
+    F4, d4 = fit_geometry(mesh, mom, torch.cat([s2, s1]), torch.cat([i2, i1]), torch.cat([tol, tol]),
+                          GeometryConfig(lbfgs_iterations=40, crossing_weight=0.0, lbfgs_trials=4))
+    assert torch.equal(F4, F) and torch.equal(d4, d)
+
+
+def test_fit_geometry_compile_falls_back_to_eager_with_a_warning(device, monkeypatch):
+    """``compile=True`` where torch.compile cannot be made, or its function fails when called:
+    a warning, and the eager result bit for bit."""
+    import torch_isc.pipeline.values as V
+    mesh, pts, face, bary, mom, signs, init = circle_setup(device, torch.float64, n=60, res=4)
+    tol = torch.tensor([0.004], device=device, dtype=torch.float64)
+    cfg = dict(lbfgs_iterations=15, crossing_weight=0.0)
+    F0, d0 = fit_geometry(mesh, mom, signs, init, tol, GeometryConfig(**cfg))
+
+    def no_compile(*a, **k):
+        raise RuntimeError("no inductor here")
+
+    monkeypatch.setattr(torch, "compile", no_compile)
+    monkeypatch.setattr(V, "_COMPILED", [])
+    with pytest.warns(RuntimeWarning, match="torch.compile is unavailable"):
+        F1, d1 = fit_geometry(mesh, mom, signs, init, tol, GeometryConfig(compile=True, **cfg))
+    assert torch.equal(F1, F0) and torch.equal(d1, d0)
+
+    def broken(obj, s):
+        raise RuntimeError("backend failed")
+
+    monkeypatch.setattr(V, "_COMPILED", [broken])
+    with pytest.warns(RuntimeWarning, match="failed"):
+        F2, _ = fit_geometry(mesh, mom, signs, init, tol, GeometryConfig(compile=True, **cfg))
+    assert torch.equal(F2, F0) and V._COMPILED == [None]
 
 
 # ============================================================================= subdivision

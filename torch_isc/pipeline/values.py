@@ -233,6 +233,7 @@ class GeometryObjective:
             sub.B = int(items.sum())
             sub.item_zero = self.item_zero[items]
             sub.vi, sub.signs, sub.floor = renum[self.vi[v]], self.signs[v], self.floor[v]
+            sub.s0, sub.wt_raw, sub.inv_tol2 = self.s0[v], self.wt_raw[f], self.inv_tol2[items]
             sub.faces, sub.fi = vmap[self.faces[f]], renum[self.fi[f]]
             sub.G, sub.M, sub.wt, sub.guard = self.G[f], self.M[f], self.wt[f], self.guard[f]
             sub.ef, sub.el, sub.eitem = fmap[self.ef[e]], self.el[e], renum[self.eitem[e]]

@@ -9,14 +9,16 @@ The direction comes from the compact representation of the inverse Hessian (Byrd
 Schnabel 1994), so one iteration costs a fixed handful of tensor ops whatever the history
 length, instead of the two-loop recursion's four ops per stored pair.
 
-Every round has fixed shapes and no host read (GPU-ready): the history is a fixed buffer of
-``history`` pairs (zero pairs stand for missing ones), the backtracking line search tries
-``trials`` step lengths in one stacked call of the objective over the whole working set and
-takes the first accepted per segment, and a segment that accepted none carries on halving in
-the next round from where it stopped (its state is unchanged, so its direction is too). The
-accepted step is therefore the first of ``1, 1/2, ..., 1/2^(max_backtracks-1)`` satisfying the
-Armijo condition, as in a sequential search. Whether any segment is still running is read on
-the host only every ``check_every`` rounds.
+Once the history has filled (after ``history`` rounds run in lockstep, as a plain batched
+L-BFGS would), every round has fixed shapes and no host read (GPU-ready): each segment keeps
+its last ``history`` pairs in a fixed buffer, the backtracking line search tries ``trials``
+step lengths in one stacked call of the objective over the whole working set and takes the
+first accepted per segment, and a segment that accepted none carries on halving in the next
+round from where it stopped (its state is unchanged, so its direction is too). The accepted
+step is therefore the first of ``1, 1/2, ..., 1/2^(max_backtracks-1)`` satisfying the Armijo
+condition, as in a sequential search, and the arithmetic is that of the sequential search:
+trajectories are bit-identical whatever ``trials``. How many segments still run is read on the
+host every ``check_every`` rounds; the working set is then compacted when it has halved.
 """
 from __future__ import annotations
 

@@ -694,6 +694,9 @@ def test_compact_lbfgs_direction_matches_two_loop(device):
     gamma = torch.tensor([0.3, 2.0, 1.0], dtype=torch.float64)
     SY = torch.stack([_segmat(Y, S[i], seg, 3) for i in range(k)], 1)      # [b, i, j] = s_i . y_j
     YY = torch.stack([_segmat(Y, Y[i], seg, 3) for i in range(k)], 1)
+    # the stored convention: a skipped (zero) pair carries a unit s·y diagonal
+    SY = SY + torch.diag_embed((torch.diagonal(SY, dim1=1, dim2=2) == 0).double())
+    assert float(SY[1, 1, 1]) == 1.0
     r = _direction(g.to(device), S.to(device), Y.to(device), SY.to(device), YY.to(device), gamma.to(device),
                    seg.to(device), 3).cpu()
     o = 0
@@ -704,20 +707,73 @@ def test_compact_lbfgs_direction_matches_two_loop(device):
         o += m
 
 
-def test_masked_objective_line_search_same_result(device):
-    """``masked=True`` (only searching segments re-evaluated) follows the same trajectories."""
+class StackedProblems:
+    """:class:`Problems` evaluated row by row of ``X (K, n)`` (stacked), with ``restrict``."""
+
+    def __init__(self, specs, device):
+        self.specs, self.device, self.prob = specs, device, Problems(specs, device)
+        self.calls = 0
+
+    def __call__(self, X):
+        self.calls += 1
+        return torch.stack([self.prob(x) for x in X])
+
+    def restrict(self, items):
+        sub = StackedProblems([s for s, k in zip(self.specs, items.tolist()) if k], self.device)
+        sub.calls = self.calls
+        return sub, sub.restrict
+
+
+@pytest.mark.parametrize("history", [2, 8])
+def test_line_search_layout_does_not_change_trajectories(history, device):
+    """Trials per stacked call, host reads every few rounds and compaction of the working set
+    change only how the work is laid out: every trajectory is bit-identical to one trial per
+    round (the sequential halving search), and to each problem solved alone."""
     specs = _lbfgs_specs()
     prob = Problems(specs, device)
-    calls = []
+    ref = batched_lbfgs(prob, prob.x0, prob.seg, len(specs), iterations=60, history=history, trials=1, check_every=1)
+    for trials, check_every in [(2, 4), (3, 1), (5, 7), (12, 3)]:
+        got = batched_lbfgs(prob, prob.x0, prob.seg, len(specs), iterations=60, history=history, trials=trials,
+                            check_every=check_every)
+        assert all(torch.equal(u, v) for u, v in zip(ref, got)), (trials, check_every)
+        st = StackedProblems(specs, device)
+        got = batched_lbfgs(st, prob.x0, prob.seg, len(specs), iterations=60, history=history, trials=trials,
+                            check_every=check_every, stacked=True, restrict=st.restrict)
+        assert all(torch.equal(u, v) for u, v in zip(ref, got)), ("stacked, compacted", trials, check_every)
+    # the iterations differ per problem, so compaction really happened
+    assert len(set(ref[2].tolist())) > 2
+    o = 0
+    for k, sp in enumerate(specs):
+        n = sp["x0"].shape[0]
+        alone = Problems([sp], device)
+        xa, fa, ia = batched_lbfgs(alone, alone.x0, alone.seg, 1, iterations=60, history=history, trials=3)
+        assert torch.equal(xa, ref[0][o:o + n]) and torch.equal(fa[0], ref[1][k]) and int(ia[0]) == int(ref[2][k])
+        o += n
 
-    def masked_fun(x, items):
-        calls.append(items)
-        return prob(x)                      # exact for every segment, so also for the subset
 
-    xa, fa, ia = batched_lbfgs(prob, prob.x0, prob.seg, len(specs), iterations=60)
-    xb, fb, ib = batched_lbfgs(masked_fun, prob.x0, prob.seg, len(specs), iterations=60, masked=True)
-    assert torch.equal(xa, xb) and torch.equal(fa, fb) and torch.equal(ia, ib)
-    assert any(c is not None and not bool(c.all()) for c in calls)   # the subset path was taken
+def test_line_search_host_reads_bounded(device):
+    """Once the history has filled, a round has no host read: reads come only every
+    ``check_every`` rounds (counted at the dispatcher: item/bool/nonzero)."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+    reads = []
+
+    class Count(TorchDispatchMode):
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            if func in (torch.ops.aten._local_scalar_dense.default, torch.ops.aten.nonzero.default):
+                reads.append(func)
+            return func(*args, **(kwargs or {}))
+
+    specs = _lbfgs_specs()
+    prob = Problems(specs, device)
+    st = StackedProblems(specs, device)
+    history, trials, every = 2, 2, 5
+    with Count():
+        batched_lbfgs(st, prob.x0, prob.seg, len(specs), iterations=60, history=history, trials=trials,
+                      check_every=every, stacked=True)
+    rounds = st.calls - 1
+    # the lockstep rounds read once per block of trials at most; later ones once per check
+    bound = history * (1 + 12 // trials) + (rounds - history) // every + 1
+    assert rounds > 40 and len(reads) <= bound
 
 
 def test_with_grad_objective_follows_the_autograd_trajectory(device):
@@ -726,7 +782,7 @@ def test_with_grad_objective_follows_the_autograd_trajectory(device):
     specs = _lbfgs_specs()
     prob = Problems(specs, device)
 
-    def own_grad(x, items):
+    def own_grad(x):
         xx = x.detach().requires_grad_(True)
         with torch.enable_grad():
             f = prob(xx)
@@ -734,7 +790,7 @@ def test_with_grad_objective_follows_the_autograd_trajectory(device):
         return f.detach(), g
 
     xa, fa, ia = batched_lbfgs(prob, prob.x0, prob.seg, len(specs), iterations=60)
-    xb, fb, ib = batched_lbfgs(own_grad, prob.x0, prob.seg, len(specs), iterations=60, masked=True, with_grad=True)
+    xb, fb, ib = batched_lbfgs(own_grad, prob.x0, prob.seg, len(specs), iterations=60, with_grad=True)
     assert torch.equal(xa, xb) and torch.equal(fa, fb) and torch.equal(ia, ib)
     for sp, o, n in zip(specs, torch.cumsum(torch.tensor([0] + prob.sizes), 0).tolist(), prob.sizes):
         torch.testing.assert_close(xb[o:o + n].cpu(), sp["xmin"], rtol=1e-4, atol=1e-4)
@@ -822,12 +878,18 @@ def test_geometry_objective_gradient_against_finite_differences(smoothness, cros
         b = int(mesh.vert_item[i])
         fd = (obj.value(s + e)[b] - obj.value(s - e)[b]) / (2 * h)
         assert float(grad[i]) == pytest.approx(float(fd), rel=1e-5, abs=1e-7 * max(1.0, float(f[b])))
-    # one item selected: its objective and gradient entries are those of the full evaluation
-    sel = torch.tensor([False, True], device=device)
-    f1, g1 = obj.value_and_grad(s, sel)
+    # one item selected: its objective and gradient are bit-identical to the full evaluation's
     mine = mesh.vert_item == 1
-    torch.testing.assert_close(f1[1], f[1], rtol=1e-12, atol=0)
-    torch.testing.assert_close(g1[mine], grad[mine], rtol=1e-12, atol=1e-15)
+    sub = obj.restrict(torch.tensor([False, True], device=device))
+    f1, g1 = sub.value_and_grad(s[mine])
+    assert f1.shape == (1,) and torch.equal(f1[0], f[1]) and torch.equal(g1, grad[mine])
+    # several points in one stacked call: row by row the single evaluations
+    S2 = torch.stack([s, obj.s0, s + 0.1])
+    fs, gs = obj.value_and_grad(S2)
+    torch.testing.assert_close(fs, obj.value(S2), rtol=1e-12, atol=0)
+    for k in range(3):
+        fk, gk = obj.value_and_grad(S2[k])
+        assert torch.equal(fs[k], fk) and torch.equal(gs[k], gk)
 
 
 def test_geometry_objective_is_delta1_over_tol2_without_extra_terms(device):
@@ -949,6 +1011,37 @@ def test_fit_geometry_batch_independent(device):
     nv2 = m2.verts.shape[0]
     torch.testing.assert_close(F[nv2:], F1, rtol=1e-10, atol=1e-12)
     torch.testing.assert_close(d[1], d1[0], rtol=1e-10, atol=1e-15)
+    # the line search's layout (trials per stacked call) does not change a bit of the result
+    F4, d4 = fit_geometry(mesh, mom, torch.cat([s2, s1]), torch.cat([i2, i1]), torch.cat([tol, tol]),
+                          GeometryConfig(lbfgs_iterations=40, crossing_weight=0.0, lbfgs_trials=4))
+    assert torch.equal(F4, F) and torch.equal(d4, d)
+
+
+def test_fit_geometry_compile_falls_back_to_eager_with_a_warning(device, monkeypatch):
+    """``compile=True`` where torch.compile cannot be made, or its function fails when called:
+    a warning, and the eager result bit for bit."""
+    import torch_isc.pipeline.values as V
+    mesh, pts, face, bary, mom, signs, init = circle_setup(device, torch.float64, n=60, res=4)
+    tol = torch.tensor([0.004], device=device, dtype=torch.float64)
+    cfg = dict(lbfgs_iterations=15, crossing_weight=0.0)
+    F0, d0 = fit_geometry(mesh, mom, signs, init, tol, GeometryConfig(**cfg))
+
+    def no_compile(*a, **k):
+        raise RuntimeError("no inductor here")
+
+    monkeypatch.setattr(torch, "compile", no_compile)
+    monkeypatch.setattr(V, "_COMPILED", [])
+    with pytest.warns(RuntimeWarning, match="torch.compile is unavailable"):
+        F1, d1 = fit_geometry(mesh, mom, signs, init, tol, GeometryConfig(compile=True, **cfg))
+    assert torch.equal(F1, F0) and torch.equal(d1, d0)
+
+    def broken(obj, s):
+        raise RuntimeError("backend failed")
+
+    monkeypatch.setattr(V, "_COMPILED", [broken])
+    with pytest.warns(RuntimeWarning, match="failed"):
+        F2, _ = fit_geometry(mesh, mom, signs, init, tol, GeometryConfig(compile=True, **cfg))
+    assert torch.equal(F2, F0) and V._COMPILED == [None]
 
 
 # ============================================================================= subdivision

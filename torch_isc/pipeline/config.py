@@ -143,7 +143,7 @@ UPPER_BOUNDS: Dict[str, float] = {
     "anneal_warm_t_start": 1e6, "anneal_replicas": 1_024, "anneal_greedy_sweeps": 1_000_000,
     "min_island_vertices": 2 ** 31 - 1,
     "noise_factor": 1e6, "min_points_split": 2 ** 31 - 1, "thin_feature_factor": 1e6, "min_split_size": 1e6,
-    "lbfgs_iterations": 100_000, "lbfgs_history": 1_000, "smoothness": 1e6, "crossing_weight": 1e6,
+    "lbfgs_iterations": 100_000, "lbfgs_history": 1_000, "lbfgs_trials": 64, "smoothness": 1e6, "crossing_weight": 1e6,
 }
 
 

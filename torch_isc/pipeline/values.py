@@ -7,6 +7,7 @@ once per partition, so an evaluation costs O(triangles), independent of the poin
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Optional, Tuple
 
@@ -32,6 +33,12 @@ class GeometryConfig:
     """EstimateGeometry (flat keys of configs/default.yaml)."""
     lbfgs_iterations: int = knob(60, ge=0)
     lbfgs_history: int = knob(8, gt=0)
+    #: step lengths the line search tries per round, in one stacked evaluation; 0: 1 on a CPU
+    #: (bound by arithmetic), 3 elsewhere (bound by launches). Results do not depend on it
+    lbfgs_trials: int = knob(0, ge=0)
+    #: evaluate the objective through torch.compile (inductor); falls back to eager, with a
+    #: warning, where compiling fails. Off: on this CPU the compile time is not won back
+    compile: bool = knob(False)
     #: magnitudes stay above this fraction of the item's mean magnitude
     magnitude_floor: float = knob(0.02, ge=0, lt=1)
     #: weight of the penalty on jumps of grad f across interior edges; 0 disables
@@ -146,9 +153,6 @@ class GeometryObjective:
     :meth:`value_and_grad` against it in float64); the optimizer calls
     :meth:`value_and_grad`, which costs about half the tensor ops of a backward pass, and the
     method is bound by op count on small meshes.
-
-    With ``items (B,)`` bool, only the faces, edges and crossings of those items are touched;
-    the other items' entries are then garbage (zero) and must be ignored by the caller.
     """
 
     def __init__(self, mesh: MeshBatch, mom: TriangleMoments, signs: torch.Tensor, init_mag: torch.Tensor,
@@ -161,7 +165,9 @@ class GeometryObjective:
         dev = mesh.device
         self.B, self.dt, self.dev, self.signs, self.smoothness = B, dt, dev, signs, smoothness
         self.vi = vi
+        self.compiled = cfg.compile
         with torch.no_grad():
+            self.item_zero = torch.zeros(B, dtype=dt, device=dev)
             G = mesh.bary_gradients()
             nb = segment_sum(mom.count, fi, B)
             wt = mom.count / nb[fi].clamp_min(1)
@@ -186,6 +192,7 @@ class GeometryObjective:
             self.wt_raw = wt
             self.guard = ((1e-10 * mean_mag) ** 2)[fi]
             self.ef = mesh.edge_faces[interior]
+            self.ef_ab = torch.cat([self.ef[:, 0], self.ef[:, 1]])
             self.el = (v[e[:, 0]] - v[e[:, 1]]).norm(dim=1)
             self.eitem = mesh.edge_item[interior]
             self.cross = crossing_weight > 0 and data_dist is not None and slack is not None
@@ -201,96 +208,155 @@ class GeometryObjective:
                 n_cross = torch.bincount(c_item, minlength=B).to(dt)
                 self.c_w = (crossing_weight / n_cross.clamp_min(1)[c_item]) * self.inv_tol2[c_item]
 
+    def _evaluate(self, s: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+        if self.compiled:
+            fn = _compiled_value_and_grad()
+            if fn is not None:
+                try:
+                    return fn(self, s)
+                except Exception as exc:          # no inductor, no compiler: eager from now on
+                    _COMPILED[0] = None
+                    warnings.warn(f"torch.compile of the geometry objective failed ({type(exc).__name__}: "
+                                  f"{exc}); running it eagerly", RuntimeWarning, stacklevel=2)
+        return self.value_and_grad(s)
+
     def values(self, s: torch.Tensor) -> torch.Tensor:
         """``(V,)`` the nodal values ``F`` of the log-magnitudes ``s``."""
         return self.signs * (torch.exp(s.clamp(-60.0, 60.0)) + self.floor)
 
-    def _parts(self, items: Optional[torch.Tensor]):
-        """The faces, smoothness edges (as local face pairs) and crossings of ``items``."""
-        if items is None:
-            return (self.faces, self.G, self.M, self.fi, self.wt, self.guard, self.ef, self.el, self.eitem,
-                    (self.ce, self.c_len, self.c_lim, self.c_w, self.c_item) if self.cross else None)
-        fs = items[self.fi].nonzero().squeeze(1)
-        es = items[self.eitem].nonzero().squeeze(1)
-        remap = torch.full((self.faces.shape[0],), -1, dtype=torch.long, device=self.dev)
-        remap[fs] = torch.arange(fs.shape[0], device=self.dev)
-        cr = None
-        if self.cross:
-            cs = items[self.c_item].nonzero().squeeze(1)
-            cr = (self.ce[cs], self.c_len[cs], self.c_lim[cs], self.c_w[cs], self.c_item[cs])
-        return (self.faces[fs], self.G[fs], self.M[fs], self.fi[fs], self.wt[fs], self.guard[fs], remap[self.ef[es]],
-                self.el[es], self.eitem[es], cr)
+    def restrict(self, items: torch.Tensor) -> "GeometryObjective":
+        """The objective of the items ``items (B,)`` bool alone, items renumbered in order and
+        their vertices, faces, edges and crossings kept in order (so every per-item sum, hence
+        every value, is bit-identical to the whole batch's). Host reads: a few, once."""
+        with torch.no_grad():
+            sub = object.__new__(GeometryObjective)
+            sub.__dict__.update(self.__dict__)
+            renum = torch.cumsum(items, 0) - 1
 
-    def value(self, s: torch.Tensor, items: Optional[torch.Tensor] = None) -> torch.Tensor:
-        """``(B,)`` the objective of every item (differentiable by autograd)."""
-        faces, G, M, fi, wt, guard, ef, el, eitem, cr = self._parts(items)
-        B, dt = self.B, self.dt
+            def keep(owner):
+                k = items[owner]
+                return k.nonzero().squeeze(1), torch.cumsum(k, 0) - 1
+
+            v, vmap = keep(self.vi)
+            f, fmap = keep(self.fi)
+            e, _ = keep(self.eitem)
+            sub.B = int(items.sum())
+            sub.item_zero = self.item_zero[items]
+            sub.vi, sub.signs, sub.floor = renum[self.vi[v]], self.signs[v], self.floor[v]
+            sub.s0, sub.wt_raw, sub.inv_tol2 = self.s0[v], self.wt_raw[f], self.inv_tol2[items]
+            sub.faces, sub.fi = vmap[self.faces[f]], renum[self.fi[f]]
+            sub.G, sub.M, sub.wt, sub.guard = self.G[f], self.M[f], self.wt[f], self.guard[f]
+            sub.ef, sub.el, sub.eitem = fmap[self.ef[e]], self.el[e], renum[self.eitem[e]]
+            sub.ef_ab = torch.cat([sub.ef[:, 0], sub.ef[:, 1]])
+            if self.cross:
+                c, _ = keep(self.c_item)
+                sub.ce, sub.c_item = vmap[self.ce[c]], renum[self.c_item[c]]
+                sub.c_len, sub.c_lim, sub.c_w = self.c_len[c], self.c_lim[c], self.c_w[c]
+        return sub
+
+    def _restricted(self, items: torch.Tensor):
+        """:func:`batched_lbfgs`'s ``restrict``: the sub-objective's evaluation and restrict."""
+        sub = self.restrict(items)
+        return sub._evaluate, sub._restricted
+
+    def _segsum(self, x: torch.Tensor, seg: torch.Tensor) -> torch.Tensor:
+        """``(K, B)`` per item sums of ``x (K, N)`` (B read off a tensor: a symbolic size when compiled)."""
+        return x.new_zeros(x.shape[0], self.item_zero.shape[0]).index_add_(1, seg, x)
+
+    def value(self, s: torch.Tensor) -> torch.Tensor:
+        """``(B,)`` the objective of every item (differentiable by autograd); ``s (K, V)``
+        gives ``(K, B)``."""
+        one = s.dim() == 1
+        s = s[None] if one else s
+        faces, G, M, fi, wt, guard, ef, el, eitem = (self.faces, self.G, self.M, self.fi, self.wt, self.guard,
+                                                      self.ef, self.el, self.eitem)
         F = self.values(s)
-        Ft = F[faces]
-        grad = (G * Ft[..., None]).sum(1)
-        g2 = (grad * grad).sum(1)
-        num = ((Ft[:, :, None] * M).sum(1) * Ft).sum(1)
-        obj = segment_sum(wt * num / (g2 + guard), fi, B)
-        if cr is not None:
-            ce, cl, clim, cw, cit = cr
-            m = F[ce].abs()
-            a = cl[:, None] * m / m.sum(1, keepdim=True)
+        Ft = F[:, faces]
+        grad = (G * Ft[..., None]).sum(-2)
+        g2 = (grad * grad).sum(-1)
+        num = ((Ft[..., :, None] * M).sum(-2) * Ft).sum(-1)
+        obj = self._segsum(wt * num / (g2 + guard), fi)
+        if self.cross:
+            ce, cl, clim, cw, cit = self.ce, self.c_len, self.c_lim, self.c_w, self.c_item
+            m = F[:, ce].abs()
+            a = cl[:, None] * m / m.sum(-1, keepdim=True)
             over = (clim - a).clamp_min(0)
-            obj = obj + segment_sum(cw * (over * over).sum(1), cit, B)
+            obj = obj + self._segsum(cw * (over * over).sum(-1), cit)
         if self.smoothness > 0 and ef.shape[0]:
-            jump = ((grad[ef[:, 0]] - grad[ef[:, 1]]) ** 2).sum(1)
-            size = 0.5 * (g2[ef[:, 0]] + g2[ef[:, 1]])
-            J = segment_sum(el * jump, eitem, B)
-            S = segment_sum(el * size, eitem, B)
-            obj = obj + self.smoothness * J / S.clamp_min(torch.finfo(dt).tiny)
-        return obj
+            jump = ((grad[:, ef[:, 0]] - grad[:, ef[:, 1]]) ** 2).sum(-1)
+            size = 0.5 * (g2[:, ef[:, 0]] + g2[:, ef[:, 1]])
+            J = self._segsum(el * jump, eitem)
+            S = self._segsum(el * size, eitem)
+            obj = obj + self.smoothness * J / S.clamp_min(torch.finfo(self.dt).tiny)
+        return obj[0] if one else obj
 
-    def value_and_grad(self, s: torch.Tensor, items: Optional[torch.Tensor] = None
-                       ) -> Tuple[torch.Tensor, torch.Tensor]:
-        """``(B,)`` objectives and ``(V,)`` their gradient with respect to ``s``."""
-        faces, G, M, fi, wt, guard, ef, el, eitem, cr = self._parts(items)
-        B, dt = self.B, self.dt
+    def value_and_grad(self, s: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+        """``(B,)`` objectives and ``(V,)`` their gradient with respect to ``s``; ``s (K, V)``
+        (several points, e.g. the line search's trials, in one call) gives ``(K, B)`` and
+        ``(K, V)``. Fixed shapes: every item, every face, no host read."""
+        one = s.dim() == 1
+        s = s[None] if one else s
+        K = s.shape[0]
+        faces, G, M, fi, wt, guard, ef, el, eitem = (self.faces, self.G, self.M, self.fi, self.wt, self.guard,
+                                                      self.ef, self.el, self.eitem)
         e = torch.exp(s.clamp(-60.0, 60.0))
-        F = self.signs * (e + self.floor)
-        Ft = F[faces]                                        # (T,3)
-        grad = (G * Ft[..., None]).sum(1)                    # (T,2) ∇f_t
-        g2 = (grad * grad).sum(1)
-        MF = (M * Ft[:, None, :]).sum(2)                     # (T,3) M_t F_t (M symmetric)
-        num = (MF * Ft).sum(1)
+        F = self.signs * (e + self.floor)                    # (K,V)
+        Ft = F[:, faces]                                     # (K,T,3)
+        grad = (G * Ft[..., None]).sum(-2)                   # (K,T,2) ∇f_t
+        g2 = (grad * grad).sum(-1)
+        MF = (M * Ft[..., None, :]).sum(-1)                  # (K,T,3) M_t F_t (M symmetric)
+        num = (MF * Ft).sum(-1)
         rden = 1.0 / (g2 + guard)
         q = num * rden
-        obj = segment_sum(wt * q, fi, B)
+        obj = self._segsum(wt * q, fi)
         # d(num/den)/dF_t = 2 (M F − q G ∇f) / den, the G ∇f part added with the smoothness one
-        dgrad = (-2.0 * wt * q * rden)[:, None] * grad       # (T,2) d obj / d ∇f_t
-        dFt = (2.0 * wt * rden)[:, None] * MF
+        dgrad = (-2.0 * wt * q * rden)[..., None] * grad     # (K,T,2) d obj / d ∇f_t
+        dFt = (2.0 * wt * rden)[..., None] * MF
         if self.smoothness > 0 and ef.shape[0]:
             a, b = ef[:, 0], ef[:, 1]
-            diff = grad[a] - grad[b]
-            jump = (diff * diff).sum(1)
-            size = 0.5 * (g2[a] + g2[b])
-            J = segment_sum(el * jump, eitem, B)
-            S = segment_sum(el * size, eitem, B).clamp_min(torch.finfo(dt).tiny)
+            ga, gb = grad[:, a], grad[:, b]
+            diff = ga - gb
+            jump = (diff * diff).sum(-1)
+            size = 0.5 * (g2[:, a] + g2[:, b])
+            J = self._segsum(el * jump, eitem)
+            S = self._segsum(el * size, eitem).clamp_min(torch.finfo(self.dt).tiny)
             obj = obj + self.smoothness * J / S
-            cj = (self.smoothness / S)[eitem] * el                # d obj / d jump
-            cs = (-self.smoothness * J / (S * S))[eitem] * el     # d obj / d size
-            dj = (2.0 * cj)[:, None] * diff
-            dgrad = dgrad.index_add(0, torch.cat([a, b]),
-                                    torch.cat([dj + cs[:, None] * grad[a], cs[:, None] * grad[b] - dj]))
-        dFt = dFt + (G * dgrad[:, None, :]).sum(2)
-        dF = torch.zeros_like(F).index_add_(0, faces.reshape(-1), dFt.reshape(-1))
-        if cr is not None:
-            ce, cl, clim, cw, cit = cr
-            m = F[ce].abs()                                  # (C,2)
-            msum = m.sum(1)
-            a = cl[:, None] * m / msum[:, None]
+            cj = (self.smoothness / S)[:, eitem] * el             # d obj / d jump
+            cs = (-self.smoothness * J / (S * S))[:, eitem] * el  # d obj / d size
+            dj = (2.0 * cj)[..., None] * diff
+            dgrad = dgrad.index_add(1, self.ef_ab,
+                                    torch.cat([dj + cs[..., None] * ga, cs[..., None] * gb - dj], 1))
+        dFt = dFt + (G * dgrad[..., None, :]).sum(-1)
+        dF = torch.zeros_like(F).index_add_(1, faces.reshape(-1), dFt.reshape(K, -1))
+        if self.cross:
+            ce, cl, clim, cw, cit = self.ce, self.c_len, self.c_lim, self.c_w, self.c_item
+            m = F[:, ce].abs()                               # (K,C,2)
+            msum = m.sum(-1)
+            a = cl[:, None] * m / msum[..., None]
             over = (clim - a).clamp_min(0)
-            obj = obj + segment_sum(cw * (over * over).sum(1), cit, B)
+            obj = obj + self._segsum(cw * (over * over).sum(-1), cit)
             # a_0 = ℓ m_0/(m_0+m_1), a_1 = ℓ − a_0: d obj/d m_0 = (h_0 − h_1) ℓ m_1/Σ², h_k = −2 w over_k
-            h = (2.0 * cw) * (over[:, 1] - over[:, 0]) * cl / (msum * msum)
-            dm = torch.stack([h * m[:, 1], -h * m[:, 0]], 1)
-            dF = dF.index_add(0, ce.reshape(-1), (dm * self.signs[ce]).reshape(-1))
-        ds = dF * self.signs * torch.where(s.abs() < 60.0, e, torch.zeros_like(e))
-        return obj, ds
+            h = (2.0 * cw) * (over[..., 1] - over[..., 0]) * cl / (msum * msum)
+            dm = torch.stack([h * m[..., 1], -h * m[..., 0]], -1)
+            dF = dF.index_add(1, ce.reshape(-1), (dm * self.signs[ce]).reshape(K, -1))
+        ds = dF * self.signs * torch.where(s.abs() < 60.0, e, 0.0)
+        return (obj[0], ds[0]) if one else (obj, ds)
+
+
+_COMPILED: list = []
+
+
+def _compiled_value_and_grad():
+    """``torch.compile`` of :meth:`GeometryObjective.value_and_grad` (dynamic shapes: one
+    compile serves every level and batch), made once; None where it cannot be made."""
+    if not _COMPILED:
+        try:
+            _COMPILED.append(torch.compile(GeometryObjective.value_and_grad, dynamic=True))
+        except Exception as exc:
+            _COMPILED.append(None)
+            warnings.warn(f"torch.compile is unavailable ({type(exc).__name__}: {exc}); the geometry "
+                          "objective runs eagerly", RuntimeWarning, stacklevel=3)
+    return _COMPILED[0]
 
 
 def fit_geometry(mesh: MeshBatch, mom: TriangleMoments, signs: torch.Tensor, init_mag: torch.Tensor,
@@ -323,8 +389,10 @@ def fit_geometry(mesh: MeshBatch, mom: TriangleMoments, signs: torch.Tensor, ini
         values ``(V,)`` and Δ1 per item ``(B,)``.
     """
     obj = GeometryObjective(mesh, mom, signs, init_mag, tol, cfg, data_dist, slack)
-    s, _, _ = batched_lbfgs(obj.value_and_grad, obj.s0, mesh.vert_item, mesh.num_items,
-                            iterations=cfg.lbfgs_iterations, history=cfg.lbfgs_history, masked=True, with_grad=True)
+    s, _, _ = batched_lbfgs(obj._evaluate, obj.s0, mesh.vert_item, mesh.num_items,
+                            iterations=cfg.lbfgs_iterations, history=cfg.lbfgs_history, with_grad=True,
+                            stacked=True, trials=cfg.lbfgs_trials or (1 if mesh.device.type == "cpu" else 3),
+                            restrict=obj._restricted)
     with torch.no_grad():
         F = obj.values(s)
         d1 = segment_sum(obj.wt_raw * delta1_per_triangle(mesh, mom.M, F, obj.G, obj.guard), obj.fi, mesh.num_items)

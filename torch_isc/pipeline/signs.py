@@ -165,12 +165,14 @@ def _coupling_table(mesh: MeshBatch, H: torch.Tensor, rows: torch.Tensor, pos: t
     return torch.where(valid, pos[nb], pad), w
 
 
-#: a sum over the slot axis of at most this many slots adds them in order on the CPU (for whole
-#: vector blocks of the output: tables are padded to whole blocks of _BLOCK rows), the order of
-#: the CSR product this replaced, so the signs are bit-identical to it. A wider table is summed
-#: in chunks, each chunk's sum written into a carry slot that opens the next chunk.
+#: a sum over the slot axis of at most this many slots adds them in order on the CPU, the order
+#: of the CSR product this replaced, so the signs are bit-identical to it (torch's CPU sum runs
+#: 16-row cascades, and in order only over whole blocks of 4 vector registers of outputs: tables
+#: are padded to whole blocks of _BLOCK rows, 64 floats = 4 AVX-512 registers). A wider table
+#: is summed in chunks, each chunk's sum written into a carry slot that opens the next chunk.
+#: tests/test_fit.py checks the order bit for bit.
 _ORDERED_SLOTS = 17
-_BLOCK = 128
+_BLOCK = 64
 #: most vertices have at most this many neighbours: they get a narrow table, the rest a full one
 _NARROW = 8
 

@@ -235,7 +235,7 @@ def _color_layout(mesh: MeshBatch, H: torch.Tensor, fixed: torch.Tensor, R: int)
     longer than 16).
 
     State columns: per colour, its narrow-table vertices (degree <= 8) then the others, each group
-    padded to whole blocks of 128 columns (dummy columns: no table points at them, nothing reads
+    padded to whole blocks of _BLOCK columns (dummy columns: no table points at them, nothing reads
     them back), then the fixed vertices, then a zero column for unused table slots.
 
     Returns:

@@ -1913,3 +1913,164 @@ def test_triangle_errors_hand_values(device):
     mx, mean = triangle_errors(mesh, r, face)
     assert mx.tolist() == [7.0, 0.0, 2.0, 0.0, 0.0, 0.0]
     assert mean.tolist() == [4.0, 0.0, 1.25, 0.0, 0.0, 0.0]
+
+
+# ------------------------------------------------------------------ annealer tables and colouring
+
+
+def fan_mesh(n, device, dtype):
+    """One vertex joined to a ring of ``n`` (degree ``n``: the annealer's full-width table, more
+    slots than its one-op sum takes)."""
+    t = torch.arange(n, dtype=torch.float64) * (2 * math.pi / n)
+    v = torch.cat([torch.zeros(1, 2, dtype=torch.float64), torch.stack([t.cos(), t.sin()], 1)]).to(device, dtype)
+    i = torch.arange(n)
+    f = torch.stack([torch.zeros_like(i), 1 + i, 1 + (i + 1) % n], 1).to(device)
+    return MeshBatch(v, f, torch.tensor([n + 1]), torch.tensor([n]))
+
+
+def annealer_meshes(device, dtype):
+    return MeshBatch.cat([hexagons(2, 4, device, dtype), fan_mesh(23, device, dtype),
+                          square_mesh(torch.zeros(1, 2, device=device, dtype=dtype),
+                                      torch.ones(1, device=device, dtype=dtype), 6), fan_mesh(11, device, dtype)])
+
+
+def naive_neighbors(mesh):
+    nb = defaultdict(list)
+    for k, (i, j) in enumerate(mesh.edges.cpu().tolist()):
+        nb[i].append((j, k))
+        nb[j].append((i, k))
+    return {v: sorted(x) for v, x in nb.items()}
+
+
+def greedy_coloring_by_priority(mesh, active):
+    """Sequential greedy colouring, highest hashed priority first (Python loop)."""
+    from torch_isc.core.segments import mix32
+    V = mesh.verts.shape[0]
+    local = torch.arange(V) - mesh.verts_first_idx.cpu()[mesh.vert_item.cpu()]
+    prio = (mix32(local * 2654435761 + 12345) * V + local).tolist()
+    nb = naive_neighbors(mesh)
+    act = active.cpu().tolist()
+    col = [-1] * V
+    for v in sorted(range(V), key=lambda v: -prio[v]):
+        if act[v]:
+            used = {col[u] for u, _ in nb.get(v, []) if col[u] >= 0}
+            col[v] = next(c for c in range(V + 1) if c not in used)
+    return col
+
+
+@pytest.mark.parametrize("active_frac", [1.0, 0.7])
+def test_vertex_coloring_is_the_priority_greedy(active_frac, device, monkeypatch):
+    """The bounded rounds give the sequential greedy colouring, also when the first block of
+    rounds is too short and more blocks follow."""
+    import torch_isc.pipeline.signs as signs
+    mesh = annealer_meshes(device, torch.float32)
+    g = torch.Generator().manual_seed(3)
+    active = (torch.rand(mesh.verts.shape[0], generator=g) < active_frac).to(device)
+    want = greedy_coloring_by_priority(mesh, active)
+    assert vertex_coloring(mesh, active).cpu().tolist() == want
+    assert max(want) >= 3                                     # the fan centre needs a 4th colour or more
+    monkeypatch.setattr(signs, "_COLOR_ROUNDS", 1)
+    assert vertex_coloring(mesh, active).cpu().tolist() == want
+
+
+@pytest.mark.parametrize("R, dt", [(1, torch.float64), (3, torch.float64), (4, torch.float64), (4, torch.float32)])
+def test_annealer_tables_give_the_local_fields(R, dt, device):
+    """The padded-gather fields of every colour class equal the neighbour sums: to rounding
+    against a dense float64 product, and on the CPU bit for bit against the sum in neighbour
+    order (the CSR order), rounded to the dtype at each step. Every free vertex is in exactly
+    one class, no class holds an edge."""
+    from torch_isc.pipeline.signs import _color_layout
+    mesh = annealer_meshes(device, dt)
+    V = mesh.verts.shape[0]
+    g = torch.Generator().manual_seed(R)
+    H = (torch.rand(mesh.edges.shape[0], generator=g, dtype=torch.float64) * 2 - 1).to(device, dt)
+    fixed = (mesh.is_boundary_vert.cpu() & (torch.rand(V, generator=g) < 0.5)).to(device)
+    s, pos, classes, color, free = _color_layout(mesh, H, fixed, R)
+    sv = torch.where(torch.rand(V, R, generator=g) < 0.5, -1.0, 1.0).to(device, dt)
+    s[:, pos] = sv.T
+    Wd = torch.zeros(V, V, dtype=torch.float64)
+    e = mesh.edges.cpu()
+    Wd[e[:, 0], e[:, 1]] = H.cpu().double()
+    Wd[e[:, 1], e[:, 0]] = H.cpu().double()
+    dense = (Wd @ sv.cpu().double()).to(dt)
+    tol = 1e-12 if dt == torch.float64 else 1e-5
+    nb = naive_neighbors(mesh)
+    npdt = np.float64 if dt == torch.float64 else np.float32
+    Hl, svl = H.cpu().numpy().astype(npdt), sv.cpu().numpy().astype(npdt)
+    col_of = {c: v for v, c in enumerate(pos.cpu().tolist())}
+    seen = []
+    for cl in classes:
+        f = cl.fields().cpu()
+        verts = [col_of[c] for c in range(cl.a, cl.a + cl.width) if c in col_of]
+        seen += verts
+        cols = torch.tensor([int(pos[v]) - cl.a for v in verts])
+        torch.testing.assert_close(f[:, cols].T, dense[verts], rtol=tol, atol=tol)
+        if device.type == "cpu":
+            for v, c in zip(verts, cols.tolist()):
+                for r in range(R):
+                    acc = npdt(0)
+                    for u, k in nb[v]:
+                        acc = npdt(acc + Hl[k] * svl[u, r])
+                    assert float(f[r, c]) == float(acc)
+        cset = set(verts)
+        assert not any(u in cset for v in verts for u, _ in nb[v])
+    assert sorted(seen) == sorted(free.cpu().tolist()) == (~fixed).nonzero().squeeze(1).cpu().tolist()
+
+
+def csr_anneal(mesh, H, init, fixed, cfg, seed, warm):
+    """The annealer as it was: colour classes by nonzero, a sparse CSR product per class."""
+    import warnings
+    from torch_isc.core.segments import hash_keys, hash_to_unit
+    V, R, dt = mesh.verts.shape[0], cfg.anneal_replicas, H.dtype
+    color = vertex_coloring(mesh, ~fixed)
+    s = init.to(dt)[:, None].repeat(1, R)
+    t0 = torch.full((R,), cfg.anneal_t_start, dtype=dt)
+    if warm:
+        s[:, 1:] = torch.where(fixed, init.to(dt), torch.ones_like(init, dtype=dt))[:, None]
+        t0[0] = min(cfg.anneal_warm_t_start, cfg.anneal_t_start)
+    ratio = (cfg.anneal_t_end / t0) ** (1.0 / max(cfg.anneal_sweeps - 1, 1))
+    local = torch.arange(V) - mesh.verts_first_idx[mesh.vert_item]
+    nb = naive_neighbors(mesh)
+    groups = []
+    for c in range(int(color.max()) + 1):
+        g = (color == c).nonzero().squeeze(1)
+        crow, cols, vals = [0], [], []
+        for v in g.tolist():
+            cols += [u for u, _ in nb[v]]
+            vals += [float(H[k]) for _, k in nb[v]]
+            crow.append(len(cols))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            W = torch.sparse_csr_tensor(torch.tensor(crow), torch.tensor(cols, dtype=torch.long),
+                                        torch.tensor(vals, dtype=dt), size=(g.shape[0], V))
+        h0 = hash_keys(torch.zeros(g.shape[0], R, dtype=torch.long), torch.full((g.shape[0], R), seed),
+                       local[g][:, None].expand(-1, R), torch.arange(R)[None, :].expand(g.shape[0], -1))
+        groups.append((g, W, h0))
+    for k in range(cfg.anneal_sweeps + cfg.anneal_greedy_sweeps):
+        for c, (g, W, h0) in enumerate(groups):
+            sg = s[g]
+            dE = -2.0 * sg * (W @ s)
+            if k < cfg.anneal_sweeps:
+                thr = -(t0 * ratio ** k) * torch.log(hash_to_unit(hash_keys(h0, torch.full_like(h0, 64 * k + c)), dt))
+            else:
+                thr = 0.0
+            s[g] = torch.where(dE < thr, -sg, sg)
+    E = ising_energy(mesh, H, s)
+    return s.gather(1, torch.argmin(E, 1)[mesh.vert_item][:, None]).squeeze(1)
+
+
+@pytest.mark.parametrize("dtype_, warm", [(torch.float32, False), (torch.float32, True), (torch.float64, True)])
+def test_anneal_same_signs_as_csr_annealer(dtype_, warm):
+    """Same random draws per vertex and sweep and the same field sums: the same signs."""
+    mesh = annealer_meshes(torch.device("cpu"), dtype_)
+    V = mesh.verts.shape[0]
+    g = torch.Generator().manual_seed(11)
+    H = (torch.rand(mesh.edges.shape[0], generator=g, dtype=torch.float64) * 2 - 1).to(dtype_)
+    H[::7] = 0.0                                             # exact zero fields: the greedy sweeps' ties
+    fixed = mesh.is_boundary_vert.clone()
+    init = torch.where(fixed | (torch.rand(V, generator=g) < 0.5), 1.0, -1.0).to(dtype_)
+    cfg = TopologyConfig(anneal_sweeps=30, anneal_replicas=3, anneal_greedy_sweeps=2)
+    got = anneal(mesh, H, init, fixed, cfg, seed=4, warm=warm)
+    want = csr_anneal(mesh, H, init, fixed, cfg, 4, warm)
+    assert torch.equal(got, want)
+    assert bool((got != init).any())                          # the annealer did flip signs

@@ -6,7 +6,8 @@ Ising model, the colouring and the annealer work on any simplicial mesh's edge l
 """
 from __future__ import annotations
 
-import warnings
+import functools
+import math
 
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable, Optional, Protocol, Sequence, Union
@@ -90,50 +91,222 @@ def edge_weights(mesh: MeshBatch, L: torch.Tensor, eps: torch.Tensor, count: tor
 
 
 # ------------------------------------------------------------------- Ising model
-def vertex_coloring(mesh: MeshBatch, active: Optional[torch.Tensor] = None, max_colors: int = 64) -> torch.Tensor:
-    """Greedy colouring (Jones–Plassmann with hashed priorities): adjacent vertices get
-    different colours; ``-1`` for inactive vertices. Depends only on each item's own mesh."""
-    with torch.no_grad():
+_COLOR_ROUNDS = 16          # colouring rounds run before the first host read (chains are ~12 deep)
+
+
+class _Coloring:
+    """Greedy colouring in order of hashed priorities, as a fixed point: a vertex's colour is the
+    smallest one that none of its higher-priority active neighbours has. Iterating that rule from
+    any start fixes every vertex once its higher-priority neighbours are fixed (Jones–Plassmann's
+    rounds), so a block of rounds runs without a host read and one read says whether the last
+    round changed anything."""
+
+    def __init__(self, mesh: MeshBatch, active: Optional[torch.Tensor], max_colors: int):
         V = mesh.verts.shape[0]
         dev = mesh.device
         local = torch.arange(V, device=dev) - mesh.verts_first_idx[mesh.vert_item]
         prio = mix32(local * 2654435761 + 12345) * V + local        # unique within an item
-        color = torch.full((V,), -1, dtype=torch.long, device=dev)
-        todo = torch.ones(V, dtype=torch.bool, device=dev) if active is None else active.clone()
+        act = torch.ones(V, dtype=torch.bool, device=dev) if active is None else active
         e = mesh.edges
         src = torch.cat([e[:, 0], e[:, 1]])
         dst = torch.cat([e[:, 1], e[:, 0]])
-        while bool(todo.any()):
-            pr = torch.where(todo, prio, torch.full_like(prio, -1))
-            nmax = segment_max(pr[src], dst, V, fill=-1)
-            pick = todo & (prio > nmax)
-            used = torch.zeros(V, max_colors + 1, dtype=torch.bool, device=dev)
-            cs = color[src]
-            has = cs >= 0
-            used[dst[has], cs[has]] = True
-            free = torch.argmax((~used).to(torch.int8), 1)
-            color[pick] = free[pick]
-            todo &= ~pick
-        return color
+        before = act[src] & act[dst] & (prio[src] > prio[dst])    # src is coloured before dst
+        self.C = int(max_colors) + 2                                # colours 0..max_colors, a dump column
+        self.src = torch.where(before, src, V)                      # slot V reads the dump column
+        self.flat = dst * self.C
+        self.ones = torch.ones(src.shape[0], dtype=torch.int8, device=dev)
+        self.color = torch.zeros(V + 1, dtype=torch.long, device=dev)
+        self.color[V:] = self.C - 1
+        self.V, self.active = V, act
+
+    def run(self, rounds: int) -> torch.Tensor:
+        """``rounds`` more rounds; returns a 0-dim bool, whether the last one changed a colour."""
+        V, C = self.V, self.C
+        changed = torch.zeros((), dtype=torch.bool, device=self.color.device)
+        for r in range(rounds):
+            used = torch.zeros(V * C, dtype=torch.int8, device=self.color.device)
+            used.scatter_(0, self.flat + self.color[self.src], self.ones)
+            new = torch.argmin(used.view(V, C)[:, :C - 1], 1)     # first colour not used
+            if r == rounds - 1:
+                changed = (new != self.color[:V]).any()
+            self.color[:V] = new
+        return changed
+
+    def result(self) -> torch.Tensor:
+        return torch.where(self.active, self.color[:self.V], -1)
 
 
-def _coupling_rows(mesh: MeshBatch, H: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
-    """Sparse CSR ``(len(rows), V)`` matrix of the couplings ``H_e`` between each vertex of
-    ``rows`` and its neighbours, so that the local fields of those vertices are one sparse
-    product ``W @ signs`` (a gather-multiply-sum over padded neighbour lists costs ~10x more)."""
+def vertex_coloring(mesh: MeshBatch, active: Optional[torch.Tensor] = None, max_colors: int = 64) -> torch.Tensor:
+    """Greedy colouring (Jones–Plassmann with hashed priorities): adjacent vertices get
+    different colours; ``-1`` for inactive vertices. Depends only on each item's own mesh.
+    Rounds run in blocks of 16 between host reads (one read for usual meshes)."""
+    with torch.no_grad():
+        col = _Coloring(mesh, active, max_colors)
+        while bool(col.run(_COLOR_ROUNDS)):
+            pass
+        return col.result()
+
+
+def _coupling_table(mesh: MeshBatch, H: torch.Tensor, rows: torch.Tensor, pos: torch.Tensor, D: int, pad: int):
+    """Padded neighbour table of the vertices ``rows (n,)``: ``(D, n)`` neighbour slots (as
+    ``pos`` of the neighbour; ``pad`` in unused slots, a zero column of the state) and
+    ``(D, n)`` couplings ``H_e`` (0 in unused slots), neighbours ascending as in the CSR
+    adjacency, so that a sum over the slots adds the same terms in the same order."""
     first, nbrs = mesh.vert_neighbors
     V = mesh.verts.shape[0]
-    deg = first[rows + 1] - first[rows]
-    crow = torch.zeros(rows.shape[0] + 1, dtype=torch.long, device=H.device)
-    crow[1:] = torch.cumsum(deg, 0)
-    owner = torch.repeat_interleave(rows, deg)
-    slot = torch.arange(int(crow[-1]), device=H.device) - torch.repeat_interleave(crow[:-1], deg)
-    col = nbrs[first[owner] + slot]                  # ascending within a row (CSR adjacency is sorted)
-    lo, hi = torch.minimum(owner, col), torch.maximum(owner, col)
-    eid = torch.searchsorted(mesh.edges[:, 0] * V + mesh.edges[:, 1], lo * V + hi)
-    with warnings.catch_warnings():                  # "sparse CSR support is in beta"
-        warnings.simplefilter("ignore")
-        return torch.sparse_csr_tensor(crow, col, H[eid], size=(rows.shape[0], V))
+    E = mesh.edges.shape[0]
+    slot = torch.arange(D, device=H.device)[:, None]
+    start = first[rows][None, :]
+    valid = slot < (first[rows + 1] - first[rows])[None, :]
+    nb = torch.cat([nbrs, nbrs.new_zeros(1)])[torch.where(valid, start + slot, nbrs.shape[0])]
+    lo, hi = torch.minimum(rows[None, :], nb), torch.maximum(rows[None, :], nb)
+    eid = torch.searchsorted(mesh.edges[:, 0] * V + mesh.edges[:, 1], lo * V + hi).clamp_max(max(E - 1, 0))
+    Hx = torch.cat([H, H.new_zeros(1)])
+    w = torch.where(valid, Hx[torch.where(valid, eid, E)], torch.zeros((), dtype=H.dtype, device=H.device))
+    return torch.where(valid, pos[nb], pad), w
+
+
+#: a sum over the slot axis of at most this many slots adds them in order on the CPU, the order
+#: of the CSR product this replaced, so the signs are bit-identical to it (torch's CPU sum runs
+#: 16-row cascades, and in order only over whole blocks of 4 vector registers of outputs: tables
+#: are padded to whole blocks of _BLOCK rows, 64 floats = 4 AVX-512 registers). A wider table
+#: is summed in chunks, each chunk's sum written into a carry slot that opens the next chunk.
+#: tests/test_fit.py checks the order bit for bit.
+_ORDERED_SLOTS = 17
+_BLOCK = 64
+#: most vertices have at most this many neighbours: they get a narrow table, the rest a full one
+_NARROW = 8
+
+
+class _ColorClass:
+    """One colour class of the annealer's state ``s (R, columns)``: its columns ``a:a+width``,
+    its padded neighbour tables as one flat gather ``idx (R·L,)`` of the flattened state with
+    couplings ``w (L,)``, in parts (the narrow and the full table: ``(start, D, rows, column)``),
+    and buffers and views made once, so that a sweep is a fixed sequence of ops writing in place."""
+
+    def __init__(self, s: torch.Tensor, a: int, width: int, idx: torch.Tensor, w: torch.Tensor, parts):
+        R = s.shape[0]
+        self.a, self.width, self.idx, self.w = a, width, idx, w
+        self.flat = s.view(-1)
+        self.sg = s[:, a:a + width]
+        self.p = torch.empty(idx.shape[0], dtype=s.dtype, device=s.device)
+        self.f = torch.empty(R, width, dtype=s.dtype, device=s.device)
+        self.x, self.neg = torch.empty_like(self.f), torch.empty_like(self.f)
+        self.acc = torch.empty(R, width, dtype=torch.bool, device=s.device)
+        pv = self.p.view(R, -1)
+        self.sums = []                                  # (slots, out): in order, chunk by chunk
+        for a0, D, m, c0 in parts:
+            t = pv[:, a0:a0 + D * m].view(R, D, m)
+            for lo in range(0, D, _ORDERED_SLOTS):
+                hi = lo + _ORDERED_SLOTS
+                self.sums.append((t[:, lo:hi], t[:, hi] if hi < D else self.f[:, c0:c0 + m]))
+
+    def fields(self) -> torch.Tensor:
+        """``(R, width)`` local fields ``Σ_j H_ij F_j`` (one gather, one product, a sum per part)."""
+        torch.index_select(self.flat, 0, self.idx, out=self.p)
+        self.p.view(self.f.shape[0], -1).mul_(self.w)
+        for slots, out in self.sums:
+            torch.sum(slots, 1, out=out)
+        return self.f
+
+    def sweep(self, half) -> None:
+        """Metropolis flips of the class: where ``F_i h_i > half`` (thresholds ``(R, width)``,
+        or a scalar 0 for zero temperature)."""
+        torch.mul(self.sg, self.fields(), out=self.x)
+        torch.gt(self.x, half, out=self.acc)
+        torch.neg(self.sg, out=self.neg)
+        torch.where(self.acc, self.neg, self.sg, out=self.sg)
+
+
+def _with_carries(t: torch.Tensor, fill) -> torch.Tensor:
+    """Rows ``(D, m)`` of a wide table with a carry row (``fill``) after the first
+    ``_ORDERED_SLOTS`` and after every ``_ORDERED_SLOTS - 1`` further ones: each chunk of
+    ``_ORDERED_SLOTS`` rows is summed into the carry row that opens the next."""
+    carry = torch.full_like(t[:1], fill)
+    pieces, j = [t[:_ORDERED_SLOTS]], _ORDERED_SLOTS
+    while j < t.shape[0]:
+        pieces += [carry, t[j:j + _ORDERED_SLOTS - 1]]
+        j += _ORDERED_SLOTS - 1
+    return torch.cat(pieces)
+
+
+def _color_layout(mesh: MeshBatch, H: torch.Tensor, fixed: torch.Tensor, R: int):
+    """The annealer's state and tables, built once per call with one host read (the colouring's
+    convergence, the class sizes and the largest degree; more reads only if a priority chain is
+    longer than 16).
+
+    State columns: per colour, its narrow-table vertices (degree <= 8) then the others, each group
+    padded to whole blocks of _BLOCK columns (dummy columns: no table points at them, nothing reads
+    them back), then the fixed vertices, then a zero column for unused table slots.
+
+    Returns:
+        ``s (R, columns + 1)`` zeros, ``pos (V,)`` each vertex's column, the classes
+        (:class:`_ColorClass`, views of ``s``), ``color (V,)`` (-1 fixed), ``free (n,)`` the free
+        vertices in column order.
+    """
+    dev, dt = H.device, H.dtype
+    V = mesh.verts.shape[0]
+    col = _Coloring(mesh, ~fixed, 64)
+    changed = col.run(_COLOR_ROUNDS)
+    deg = mesh.degrees
+    nbins = 2 * (col.C - 1) + 1                            # (colour, wide) bins, then the fixed
+    while True:
+        color = col.result()
+        key = torch.where(color >= 0, 2 * color + (deg > _NARROW).long(), nbins - 1)
+        counts = torch.zeros(nbins, dtype=torch.long, device=dev).index_add_(0, key, torch.ones_like(key))
+        dmax = deg.max() if V else torch.zeros((), dtype=torch.long, device=dev)
+        info = torch.cat([changed.long()[None], dmax[None], counts]).tolist()
+        if not info[0]:
+            break
+        changed = col.run(8)
+    D, cnt = max(info[1], 1), info[2:]
+    padded = [-(-n // _BLOCK) * _BLOCK for n in cnt[:-1]] + [cnt[-1]]
+    pad_t = (counts + _BLOCK - 1) // _BLOCK * _BLOCK           # the same on the device
+    pad_t[-1] = counts[-1]
+    order = torch.argsort(key, stable=True)                # stable: a class keeps vertex order
+    kb = key[order]
+    pos = torch.empty(V, dtype=torch.long, device=dev)
+    pos[order] = (torch.arange(V, device=dev) - (torch.cumsum(counts, 0) - counts)[kb]
+                  + (torch.cumsum(pad_t, 0) - pad_t)[kb])
+    Z = sum(padded)                                        # the zero column
+    s = torch.zeros(R, Z + 1, dtype=dt, device=dev)
+    free = order[:sum(cnt[:-1])]
+    nb_all, w_all = _coupling_table(mesh, H, free, pos, D, Z)
+    rows = torch.arange(R, device=dev)[:, None] * (Z + 1)
+    classes = []
+    a_sorted = a_state = 0
+    for c in range(col.C - 1):
+        parts, nbs, ws, L, width = [], [], [], 0, 0
+        for wide in (0, 1):
+            n, m = cnt[2 * c + wide], padded[2 * c + wide]
+            if n:
+                Dt = D if wide else min(D, _NARROW)
+                nb = torch.nn.functional.pad(nb_all[:Dt, a_sorted:a_sorted + n], (0, m - n), value=Z)
+                w = torch.nn.functional.pad(w_all[:Dt, a_sorted:a_sorted + n], (0, m - n))
+                if Dt > _ORDERED_SLOTS:
+                    nb, w = _with_carries(nb, Z), _with_carries(w, 0)
+                    Dt = nb.shape[0]
+                nbs.append(nb.reshape(-1))
+                ws.append(w.reshape(-1))
+                parts.append((L, Dt, m, width))
+                L, width, a_sorted = L + Dt * m, width + m, a_sorted + n
+        if parts:
+            idx = (torch.cat(nbs)[None, :] + rows).reshape(-1)
+            classes.append(_ColorClass(s, a_state, width, idx, torch.cat(ws), parts))
+            a_state += width
+    return s, pos, classes, color, free
+
+
+@functools.lru_cache(maxsize=32)
+def _temperatures(sweeps: int, t_start: float, t_end: float, warm_t_start: Optional[float], R: int,
+                  dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """``(sweeps, R)`` the geometric schedule of each replica (the same at every level: cached;
+    callers must not write to it)."""
+    t0 = torch.full((R,), float(t_start), dtype=dtype, device=device)
+    if warm_t_start is not None:
+        t0[0] = min(float(warm_t_start), float(t_start))
+    ratio = (t_end / t0) ** (1.0 / max(int(sweeps) - 1, 1))
+    return torch.stack([t0 * ratio ** k for k in range(int(sweeps))])
 
 
 def ising_energy(mesh: MeshBatch, H: torch.Tensor, signs: torch.Tensor) -> torch.Tensor:
@@ -159,58 +332,54 @@ def anneal(mesh: MeshBatch, H: torch.Tensor, init: torch.Tensor, fixed: torch.Te
     what earlier levels found, while the other replicas start from +1 at ``t_start``: a
     cluster of wrong signs that single flips at low temperature cannot undo is redone.
 
+    The state ``(R, columns)`` is kept in colour order, so that a class is one slice, and the
+    local fields are gathers from padded neighbour tables built once per call: no sparse tensor
+    and no host read in the sweeps. The one host read is the colouring's (its convergence, the
+    class sizes, the largest degree).
+
     Args:
         init: ``(V,)`` ±1 start. fixed: ``(V,)`` bool, vertices held at their ``init`` value.
     Returns:
         ``(V,)`` ±1 signs (dtype of ``H``).
     """
     cfg = TopologyConfig() if cfg is None else cfg
-    sweeps, t_start, t_end = cfg.anneal_sweeps, cfg.anneal_t_start, cfg.anneal_t_end
-    greedy_sweeps = cfg.anneal_greedy_sweeps
-    warm_t_start = cfg.anneal_warm_t_start if warm else None
+    sweeps, greedy_sweeps = int(cfg.anneal_sweeps), int(cfg.anneal_greedy_sweeps)
+    warm_t_start = float(cfg.anneal_warm_t_start) if warm else None
     with torch.no_grad():
         dev, dt = H.device, H.dtype
         V = mesh.verts.shape[0]
         R = max(int(cfg.anneal_replicas), 1)
-        color = vertex_coloring(mesh, ~fixed)
-        ncol = int(color.max()) + 1 if V and (color >= 0).any() else 0
-        groups = [(color == c).nonzero().squeeze(1) for c in range(ncol)]
-        s = init.to(dt)[:, None].repeat(1, R)
-        t0 = torch.full((R,), float(t_start), dtype=dt, device=dev)
+        s0 = init.to(dt)[:, None].repeat(1, R)
         if warm_t_start is not None:
-            s[:, 1:] = torch.where(fixed, init.to(dt), torch.ones_like(init, dtype=dt))[:, None]
-            t0[0] = min(float(warm_t_start), float(t_start))
+            s0[:, 1:] = torch.where(fixed, init.to(dt), torch.ones_like(init, dtype=dt))[:, None]
+        s, pos, classes, color, free = _color_layout(mesh, H, fixed, R)
+        s[:, pos] = s0.T
+        F = classes[-1].a + classes[-1].width if classes else 0      # the free vertices' columns
+        # Metropolis: accept when u < exp(-dE / T), i.e. dE < -T log u; with dE = -2 F_i h_i,
+        # when F_i h_i > (T log u) / 2 (a threshold <= 0; the halving is exact). The random
+        # numbers are keyed by (seed, local vertex, replica, 64 sweep + colour), as before.
         local = torch.arange(V, device=dev) - mesh.verts_first_idx[mesh.vert_item]
-        rep = torch.arange(R, device=dev)
-        total = int(sweeps) + int(greedy_sweeps)
-        ratio = (t_end / t0) ** (1.0 / max(int(sweeps) - 1, 1))
-        # per colour class, gathered once: neighbour weights, neighbour ids, and the hash of
-        # the keys that do not change between sweeps (seed, local vertex, replica)
-        prep = []
-        for g in groups:
-            if g.numel() == 0:
-                continue
-            n = g.shape[0]
-            h0 = hash_keys(torch.zeros(n, R, dtype=torch.long, device=dev), torch.full((n, R), int(seed), device=dev),
-                            local[g][:, None].expand(-1, R), rep[None, :].expand(n, -1))
-            prep.append((g, _coupling_rows(mesh, H, g), h0))
-        # the random numbers of a block of sweeps are hashed in one op per colour (the
-        # block bounds the memory: about 2**22 numbers at a time)
-        block = max(1, min(int(sweeps), (1 << 22) // max(V * R, 1)))
-        temps = [t0 * ratio ** k for k in range(int(sweeps))]
-        uniforms: list = []
-        for k in range(total):
+        lc = torch.zeros(F, dtype=torch.long, device=dev).index_copy_(0, pos[free], local[free])
+        cc = torch.zeros(F, dtype=torch.long, device=dev).index_copy_(0, pos[free], color[free])
+        rep = torch.arange(R, device=dev)[:, None]
+        h0 = hash_keys(torch.zeros(R, F, dtype=torch.long, device=dev), torch.full((R, F), int(seed), device=dev),
+                       lc[None, :].expand(R, -1), rep.expand(-1, F))
+        # hash_keys(h0, key) = mix32(h0 * 0x9E3779B1 + key + 0x632BE5AB): its constant part once
+        h0 = h0 * 0x9E3779B1 + 0x632BE5AB
+        temps = _temperatures(sweeps, float(cfg.anneal_t_start), float(cfg.anneal_t_end), warm_t_start, R, dt, dev)
+        # the random numbers of a block of sweeps are hashed in one op; the block bounds the
+        # memory (on a CPU about 2**20 numbers at a time, which keeps the hashing in cache)
+        block = max(1, min(sweeps, (1 << (20 if dev.type == "cpu" else 23)) // max(F * R, 1)))
+        half = None
+        for k in range(sweeps + greedy_sweeps):
             if k < sweeps and k % block == 0:
-                ks = torch.arange(k, min(k + block, int(sweeps)), device=dev) * 64
-                # Metropolis: accept when u < exp(-dE / T), i.e. dE < -T log u (a threshold >= 0)
-                tk = torch.stack(temps[k:k + ks.shape[0]])[:, None, :]
-                uniforms = [-tk * torch.log(hash_to_unit(hash_keys(h0[None], (ks + c)[:, None, None].expand(
-                    -1, *h0.shape)), dt)) for c, (_, _, h0) in enumerate(prep)]
-            for c, (g, W, h0) in enumerate(prep):
-                sg = s[g]
-                dE = -2.0 * sg * (W @ s)                           # energy change of a flip (local field)
-                acc = dE < (uniforms[c][k % block] if k < sweeps else 0.0)
-                s[g] = torch.where(acc, -sg, sg)
+                ks = torch.arange(k, min(k + block, sweeps), device=dev)[:, None, None] * 64
+                u = hash_to_unit(mix32(h0[None] + (ks + cc[None, None, :])), dt)
+                half = (-temps[k:k + ks.shape[0]][:, :, None] * torch.log(u)) * -0.5
+            hk = half[k % block] if k < sweeps else None
+            for cl in classes:
+                cl.sweep(hk[:, cl.a:cl.a + cl.width] if k < sweeps else 0.0)
+        s = s[:, pos].T
         E = ising_energy(mesh, H, s)                              # (B, R)
         best = torch.argmin(E, 1)                                 # first minimum
         return s.gather(1, best[mesh.vert_item][:, None]).squeeze(1)

@@ -357,7 +357,7 @@ def _insert_tips(mesh: MeshBatch, values: torch.Tensor, fg: torch.Tensor, pix: t
     B, H2, W2 = grid_shape
     V, N = values.shape[0], pts.shape[0]
     verts, faces = mesh.verts, mesh.faces
-    item = mesh.vert_item[fg_v[node]]
+    item = mesh.vert_item[fg_v[node]]                               # ascending (nodes are)
     zero = torch.zeros((), dtype=dt, device=dev)
     tip = torch.stack([torch.minimum(torch.maximum(tip[:, 0], zero), sizes[item, 1].to(dt)),
                        torch.minimum(torch.maximum(tip[:, 1], zero), sizes[item, 0].to(dt))], 1)
@@ -456,21 +456,31 @@ def _insert_tips(mesh: MeshBatch, values: torch.Tensor, fg: torch.Tensor, pix: t
     ed2 = splice(edge, edge[ent], edge[ext[two]])
     counts2 = counts + torch.zeros_like(counts).index_add_(0, loop, ins)
     first2 = pos[first]
-    # ---- the mesh: the tips appended to their items, each triangle split in three
-    tid = V + torch.arange(M, device=dev)
-    vitem = torch.cat([mesh.vert_item, itm])
-    perm = torch.argsort(vitem, stable=True)
-    vnew = torch.empty_like(perm)
-    vnew[perm] = torch.arange(perm.shape[0], device=dev)
-    Fs = faces.clone()
-    A, Bv, C = fv[:, 0], fv[:, 1], fv[:, 2]
-    Fs[f] = torch.stack([A, Bv, tid], 1)
-    allf = torch.cat([Fs, torch.stack([Bv, C, tid], 1), torch.stack([C, A, tid], 1)])
-    fperm = torch.argsort(torch.cat([mesh.face_item, itm, itm]), stable=True)
+    # ---- the mesh: the tips appended to their items (in item order already), each triangle
+    # split in three: (A, B, tip) in its place, (B, C, tip) and (C, A, tip) after its item's faces
     add = torch.bincount(itm, minlength=B)
-    mesh2 = MeshBatch(torch.cat([verts, T])[perm], vnew[allf[fperm]], mesh.verts_per_item + add,
-                      mesh.faces_per_item + 2 * add)
-    values2 = torch.cat([values, fT])[perm]
+    before = torch.cumsum(add, 0) - add                              # tips of the items before
+    vshift = torch.repeat_interleave(before, mesh.verts_per_item, output_size=V)
+    fshift = torch.repeat_interleave(2 * before, mesh.faces_per_item, output_size=faces.shape[0])
+    ar_m = torch.arange(M, device=dev)
+    tid = (mesh.verts_first_idx + mesh.verts_per_item)[itm] + ar_m                # new ids of the tips
+    fend = (mesh.faces_first_idx + mesh.faces_per_item)[itm] + 2 * ar_m
+    Vn, Tn = V + M, faces.shape[0] + 2 * M
+    new_v = torch.arange(V, device=dev) + vshift
+    Fo = new_v[faces]
+    A, Bv, C = Fo[f, 0], Fo[f, 1], Fo[f, 2]
+    Fo[f] = torch.stack([A, Bv, tid], 1)
+    F2 = faces.new_empty((Tn, 3))
+    F2[torch.arange(faces.shape[0], device=dev) + fshift] = Fo
+    F2[fend] = torch.stack([Bv, C, tid], 1)
+    F2[fend + 1] = torch.stack([C, A, tid], 1)
+    V2 = verts.new_empty((Vn, 2))
+    V2[new_v] = verts
+    V2[tid] = T
+    values2 = values.new_empty((Vn,))
+    values2[new_v] = values
+    values2[tid] = fT
+    mesh2 = MeshBatch(V2, F2, mesh.verts_per_item + add, mesh.faces_per_item + 2 * add)
     return mesh2, values2, (pts2, fg2, bg2, ed2, first2, counts2)
 
 
@@ -525,7 +535,7 @@ def trace_masks(masks: Sequence[torch.Tensor], connectivity: int = 8, smooth: in
     V = mesh.verts.shape[0]
     base_vals = torch.where(fg, -torch.ones(V, dtype=dtype, device=grid.device),
                             torch.ones(V, dtype=dtype, device=grid.device))
-    pl = extract_zero_set(mesh, base_vals)
+    pl = extract_zero_set(mesh, base_vals, with_points=False)      # the crossings are placed below
     dev = grid.device
     N = pl.edge.shape[0]
     ends = mesh.edges[pl.edge]                                # (N, 2)

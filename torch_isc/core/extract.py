@@ -79,11 +79,13 @@ def _crossing_points(verts: torch.Tensor, values: torch.Tensor, edges: torch.Ten
     return verts[a] + t[:, None] * (verts[b] - verts[a])
 
 
-def extract_zero_set(mesh: MeshBatch, values: torch.Tensor) -> Polylines:
+def extract_zero_set(mesh: MeshBatch, values: torch.Tensor, with_points: bool = True) -> Polylines:
     """Polylines of the zero set of the function with nodal ``values (V,)`` on ``mesh``.
 
     Differentiable in the vertex positions and the values (crossing points are linear
-    interpolations along edges). Values must be nonzero.
+    interpolations along edges). Values must be nonzero. With ``with_points=False`` only the
+    loops are traced (``points`` is left empty, ``(0, 2)``): for a caller that places the
+    crossings itself.
 
     Example:
         >>> from torch_isc.core.mesh import hexagon_mesh
@@ -157,5 +159,5 @@ def extract_zero_set(mesh: MeshBatch, values: torch.Tensor) -> Polylines:
         closed = ~on_chain[order[first]] if N else torch.zeros(0, dtype=torch.bool, device=dev)
         edge_ordered = node_edge[order]
         item = mesh.edge_item[edge_ordered[first]] if N else torch.zeros(0, dtype=torch.long, device=dev)
-    pts = _crossing_points(mesh.verts, values, mesh.edges[edge_ordered])
+    pts = _crossing_points(mesh.verts, values, mesh.edges[edge_ordered]) if with_points else mesh.verts.new_zeros((0, 2))
     return Polylines(pts, first, counts, closed, item, edge_ordered, mesh.num_items)

@@ -227,7 +227,8 @@ def _smooth(a: torch.Tensor, d: torch.Tensor, prev: torch.Tensor, nxt: torch.Ten
 def _corner_tips(a: torch.Tensor, d: torch.Tensor, t: torch.Tensor, prev: torch.Tensor, nxt: torch.Tensor,
                  n_loop: torch.Tensor, side: Tuple[int, int] = (2, 7), zone: int = 3, radius: float = 2.0,
                  straight: float = 0.16, min_turn: float = 0.35, max_cos: float = 0.5,
-                 min_loop: int = 64, min_side: float = 2.0, max_cos_smooth: float = 0.8) -> torch.Tensor:
+                 min_loop: int = 64, min_side: float = 2.0, max_cos_smooth: float = 0.8
+                 ) -> Tuple[torch.Tensor, Optional[Tuple[torch.Tensor, torch.Tensor, torch.Tensor]]]:
     """Crossing parameters ``t`` with the sharp corners restored: at each corner of the loops
     (a turn of the chords 3 nodes either side with cosine below ``max_cos`` on the crack
     midpoints, at its sharpest node, and below ``max_cos_smooth`` on the smoothed crossings),
@@ -238,9 +239,12 @@ def _corner_tips(a: torch.Tensor, d: torch.Tensor, t: torch.Tensor, prev: torch.
     meet the wedge of the two extended sides (convex corners: the intersection of the two
     foreground half-planes; notches: the union). The tip a mask cuts off is drawn again, to
     within the edges' reach; smooth curves have no such corner (their sides are not straight or
-    meet at too small a turn, ``sin`` below ``min_turn``) and are left as they are."""
+    meet at too small a turn, ``sin`` below ``min_turn``) and are left as they are.
+
+    Returns ``(t, corners)``: ``corners`` is ``(node (C,), tip (C, 2), convex (C,))`` of the
+    corners found (for :func:`_insert_tips`), None when there is none."""
     if t.numel() == 0:
-        return t
+        return t, None
     p = a + t[:, None] * d
     m = a + 0.5 * d
     # the turn between the chords to the nodes `span` steps away on either side, its sharpest
@@ -252,7 +256,7 @@ def _corner_tips(a: torch.Tensor, d: torch.Tensor, t: torch.Tensor, prev: torch.
     cosang = (u * w).sum(1) / (u.norm(dim=1) * w.norm(dim=1)).clamp_min(1e-12)
     c = ((cosang < max_cos) & (n_loop >= min_loop)).nonzero().squeeze(1)      # candidates (few)
     if c.numel() == 0:
-        return t
+        return t, None
     # ... where the smoothed curve turns too (a staircase step on a smooth curve does not), at
     # the sharpest node within `span` steps
     us, ws = p[c] - p[p3[c]], p[n3[c]] - p[c]
@@ -264,7 +268,7 @@ def _corner_tips(a: torch.Tensor, d: torch.Tensor, t: torch.Tensor, prev: torch.
         keep &= (cc < cosang[cb]) & (cc <= cosang[cf])
     c = c[keep]
     if c.numel() == 0:
-        return t
+        return t, None
     steps = max(side[1], zone)
     back, fwd = [c], [c]
     for _ in range(steps):
@@ -292,7 +296,7 @@ def _corner_tips(a: torch.Tensor, d: torch.Tensor, t: torch.Tensor, prev: torch.
     tip = mu1 + sol[:, None] * v1
     ok = (den.abs() > min_turn) & (r1 < straight) & (r2 < straight) & ((tip - p[c]).norm(dim=1) < radius + 0.5)
     if not bool(ok.any()):
-        return t
+        return t, None
     # the zone's nodes, (C, 2 zone + 1)
     nodes = torch.stack([back[j] for j in range(zone, 0, -1)] + [c] + [fwd[j] for j in range(1, zone + 1)], 1)
     C, Z = nodes.shape
@@ -318,7 +322,166 @@ def _corner_tips(a: torch.Tensor, d: torch.Tensor, t: torch.Tensor, prev: torch.
     use = ok[:, None] & inside & (s <= 1) & near
     out = t.clone()
     out[nodes[use]] = tn[use].clamp(0.02, 0.98)
-    return out
+    return out, (c[ok], tip[ok], den[ok] > 0)
+
+
+def _cross2(u: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    return u[..., 0] * w[..., 1] - u[..., 1] * w[..., 0]
+
+
+def _insert_tips(mesh: MeshBatch, values: torch.Tensor, fg: torch.Tensor, pix: torch.Tensor, grid_shape,
+                 sizes: torch.Tensor, pts: torch.Tensor, fg_v: torch.Tensor, bg_v: torch.Tensor,
+                 edge: torch.Tensor, loop: torch.Tensor, k: torch.Tensor, first: torch.Tensor,
+                 counts: torch.Tensor, nxt: torch.Tensor, corners, zone: int = 6, eps: float = 1e-3,
+                 fractions: Sequence[float] = (1.0, 0.85, 0.7, 0.55, 0.4, 0.25)):
+    """A vertex at the tip of each corner (:func:`_corner_tips`), so the zero set reaches it.
+
+    The band's crossings lie between pixel centres, so the tip of a corner sharper than the
+    pixel staircase (it lies beyond the band of centres of its class) cannot be drawn by
+    the magnitudes alone. The tip (clipped to the image frame) is located in its grid cell;
+    when the triangle holding it has a vertex of the corner's class (the foreground for a
+    convex corner, the background for a notch) and is crossed by the corner's own loop within
+    ``zone`` nodes, the tip is inserted there (the triangle split in three) with that class's
+    sign and a magnitude ``eps`` times its triangle's smallest, so the curve runs through it
+    to within ``eps`` of an edge; the new region is joined to the class through the triangle,
+    so no border is added or merged. A tip that does not qualify is pulled back toward the
+    corner's crossing (``fractions`` of the way) until it does, or dropped. The loop gains one
+    or two crossings there, which inherit the pixel pair of the crossing before them.
+
+    Returns ``(mesh, values, (points, fg_v, bg_v, edge, first, counts))``: the mesh with the
+    tip vertices (items re-packed), its values, and the spliced loops (``fg_v``, ``bg_v`` and
+    ``edge`` index the band mesh before the insertion).
+    """
+    node, tip, convex = corners
+    dev, dt = values.device, values.dtype
+    B, H2, W2 = grid_shape
+    V, N = values.shape[0], pts.shape[0]
+    verts, faces = mesh.verts, mesh.faces
+    item = mesh.vert_item[fg_v[node]]                               # ascending (nodes are)
+    zero = torch.zeros((), dtype=dt, device=dev)
+    tip = torch.stack([torch.minimum(torch.maximum(tip[:, 0], zero), sizes[item, 1].to(dt)),
+                       torch.minimum(torch.maximum(tip[:, 1], zero), sizes[item, 0].to(dt))], 1)
+    p0 = pts[node]
+    fr = torch.tensor(list(fractions), dtype=dt, device=dev)
+    q = p0[:, None] + fr[None, :, None] * (tip - p0)[:, None]                      # (C, S, 2)
+    # the grid cells around each candidate (TL pixel (i, j) of the padded grid; a point on a
+    # cell's side belongs to both) and their two faces each: (C, S, 8) faces
+    cell_key = pix[faces[0::2, 0]]                                # ascending: the cells' TL pixels
+    fs, oks = [], []
+    for dx in (-1e-7, 1e-7):
+        for dy in (-1e-7, 1e-7):
+            j = torch.floor(q[..., 0] + 0.5 + dx).long()
+            i = torch.floor(q[..., 1] + 0.5 + dy).long()
+            inside = (i >= 0) & (i < H2 - 1) & (j >= 0) & (j < W2 - 1)
+            key = (item[:, None] * H2 + i.clamp(0, H2 - 2)) * W2 + j.clamp(0, W2 - 2)
+            ci = torch.searchsorted(cell_key, key).clamp(max=max(cell_key.shape[0] - 1, 0))
+            hit = inside & (cell_key[ci] == key)
+            fs += [2 * ci, 2 * ci + 1]
+            oks += [hit, hit]
+    f = torch.stack(fs, -1)
+    P = verts[faces[f]]                                              # (C, S, 8, 3, 2)
+    qq = q[..., None, :]
+    den = _cross2(P[..., 1, :] - P[..., 0, :], P[..., 2, :] - P[..., 0, :])
+    lam = torch.stack([_cross2(P[..., 1, :] - qq, P[..., 2, :] - qq), _cross2(P[..., 2, :] - qq, P[..., 0, :] - qq),
+                       _cross2(P[..., 0, :] - qq, P[..., 1, :] - qq)], -1) / den[..., None]
+    valid = torch.stack(oks, -1) & (lam.min(-1).values > -1e-9)
+    fv = faces[f]                                                    # (C, S, 8, 3)
+    kin = fg[fv] == convex[:, None, None, None]                      # of the corner's class
+    nk = kin.sum(-1)
+    valid &= (nk >= 1) & (nk <= 2)
+    node_of_edge = torch.full((mesh.edges.shape[0],), -1, dtype=torch.long, device=dev)
+    node_of_edge[edge] = torch.arange(N, device=dev)
+    nn = node_of_edge[mesh.face_edges[f]]                            # (C, S, 8, 3), -1: not crossed
+    lc = loop[node]
+    cnt = counts[lc][:, None, None, None]
+    dk = (k[nn.clamp(min=0)] - k[node][:, None, None, None]) % cnt
+    own = (loop[nn.clamp(min=0)] == lc[:, None, None, None]) & (torch.minimum(dk, cnt - dk) <= zone)
+    valid &= ((nn < 0) | own).all(-1) & ((nn >= 0).sum(-1) == 2)
+    # the best-placed valid face of each candidate, then the first (farthest) valid candidate
+    score = torch.where(valid, lam.min(-1).values, torch.full_like(den, -1.0))
+    best = score.argmax(-1, keepdim=True)                            # (C, S, 1)
+    valid = valid.gather(-1, best).squeeze(-1)
+    f = f.gather(-1, best).squeeze(-1)
+    lam = lam.gather(-2, best[..., None].expand(*best.shape, 3)).squeeze(-2)
+    P = P.gather(-3, best[..., None, None].expand(*best.shape, 3, 2)).squeeze(-3)
+    nn = nn.gather(-2, best[..., None].expand(*best.shape, 3)).squeeze(-2)
+    has = valid.any(1)
+    if not bool(has.any()):
+        return None
+    s_idx = torch.argmax(valid.to(torch.int8), 1)                  # the first (farthest) valid fraction
+    r = torch.arange(node.shape[0], device=dev)
+    sel = has.nonzero().squeeze(1)
+    f, lam, P, nn, conv, itm = f[r, s_idx][sel], lam[r, s_idx][sel], P[r, s_idx][sel], nn[r, s_idx][sel], \
+        convex[sel], item[sel]
+    # one tip per triangle
+    uf, inv = torch.unique(f, return_inverse=True)
+    firstc = torch.full((uf.shape[0],), sel.shape[0], dtype=torch.long, device=dev).scatter_reduce_(
+        0, inv, torch.arange(sel.shape[0], device=dev), "amin")
+    keep = firstc[inv] == torch.arange(sel.shape[0], device=dev)
+    f, lam, P, nn, conv, itm = f[keep], lam[keep], P[keep], nn[keep], conv[keep], itm[keep]
+    M = f.shape[0]
+    lam = lam.clamp_min(1e-3)
+    lam = lam / lam.sum(1, keepdim=True)
+    T = (lam[..., None] * P).sum(1)                                  # strictly inside its triangle
+    fv = faces[f]
+    fT = torch.where(conv, -eps, eps).to(dt) * values[fv].abs().min(1).values
+    # the loop enters the triangle at one crossed edge and leaves at the other
+    e2 = nn.sort(1, descending=True).values[:, :2]
+    ent = torch.where(nxt[e2[:, 0]] == e2[:, 1], e2[:, 0], e2[:, 1])
+    ext = torch.where(ent == e2[:, 0], e2[:, 1], e2[:, 0])
+    other = lambda n: torch.where(conv, bg_v[n], fg_v[n])          # the end of the other class
+    v_in, v_out = other(ent), other(ext)
+    two = v_in != v_out
+
+    def crossing(v):
+        return T + (fT / (fT - values[v]))[:, None] * (verts[v] - T)
+
+    # ---- splice the new crossings after the entry node
+    ins = torch.zeros(N, dtype=torch.long, device=dev)
+    ins[ent] = 1 + two.long()
+    pos = torch.arange(N, device=dev) + torch.cumsum(ins, 0) - ins
+    N2 = N + int(ins.sum())
+    p1, p2 = pos[ent] + 1, pos[ent[two]] + 2
+
+    def splice(old, new1, new2):
+        out = old.new_empty((N2,) + tuple(old.shape[1:]))
+        out[pos] = old
+        out[p1] = new1
+        out[p2] = new2
+        return out
+
+    pts2 = splice(pts, crossing(v_in), crossing(v_out)[two])
+    fg2 = splice(fg_v, fg_v[ent], fg_v[ext[two]])
+    bg2 = splice(bg_v, bg_v[ent], bg_v[ext[two]])
+    ed2 = splice(edge, edge[ent], edge[ext[two]])
+    counts2 = counts + torch.zeros_like(counts).index_add_(0, loop, ins)
+    first2 = pos[first]
+    # ---- the mesh: the tips appended to their items (in item order already), each triangle
+    # split in three: (A, B, tip) in its place, (B, C, tip) and (C, A, tip) after its item's faces
+    add = torch.bincount(itm, minlength=B)
+    before = torch.cumsum(add, 0) - add                              # tips of the items before
+    vshift = torch.repeat_interleave(before, mesh.verts_per_item, output_size=V)
+    fshift = torch.repeat_interleave(2 * before, mesh.faces_per_item, output_size=faces.shape[0])
+    ar_m = torch.arange(M, device=dev)
+    tid = (mesh.verts_first_idx + mesh.verts_per_item)[itm] + ar_m                # new ids of the tips
+    fend = (mesh.faces_first_idx + mesh.faces_per_item)[itm] + 2 * ar_m
+    Vn, Tn = V + M, faces.shape[0] + 2 * M
+    new_v = torch.arange(V, device=dev) + vshift
+    Fo = new_v[faces]
+    A, Bv, C = Fo[f, 0], Fo[f, 1], Fo[f, 2]
+    Fo[f] = torch.stack([A, Bv, tid], 1)
+    F2 = faces.new_empty((Tn, 3))
+    F2[torch.arange(faces.shape[0], device=dev) + fshift] = Fo
+    F2[fend] = torch.stack([Bv, C, tid], 1)
+    F2[fend + 1] = torch.stack([C, A, tid], 1)
+    V2 = verts.new_empty((Vn, 2))
+    V2[new_v] = verts
+    V2[tid] = T
+    values2 = values.new_empty((Vn,))
+    values2[new_v] = values
+    values2[tid] = fT
+    mesh2 = MeshBatch(V2, F2, mesh.verts_per_item + add, mesh.faces_per_item + 2 * add)
+    return mesh2, values2, (pts2, fg2, bg2, ed2, first2, counts2)
 
 
 def _realize(t: torch.Tensor, fg_v: torch.Tensor, bg_v: torch.Tensor, loop: torch.Tensor, k: torch.Tensor,
@@ -372,7 +535,7 @@ def trace_masks(masks: Sequence[torch.Tensor], connectivity: int = 8, smooth: in
     V = mesh.verts.shape[0]
     base_vals = torch.where(fg, -torch.ones(V, dtype=dtype, device=grid.device),
                             torch.ones(V, dtype=dtype, device=grid.device))
-    pl = extract_zero_set(mesh, base_vals)
+    pl = extract_zero_set(mesh, base_vals, with_points=False)      # the crossings are placed below
     dev = grid.device
     N = pl.edge.shape[0]
     ends = mesh.edges[pl.edge]                                # (N, 2)
@@ -385,14 +548,22 @@ def trace_masks(masks: Sequence[torch.Tensor], connectivity: int = 8, smooth: in
     K = pl.first.shape[0]
     # small loops (a few pixels) get fewer iterations: their curvature is all signal
     t = _smooth(a, d, prev, nxt, smooth, reach, pl.counts[loop] // 3) if smooth > 0 else torch.full((N,), 0.5, dtype=dtype, device=dev)
+    tips = None
     if corners and smooth > 0:
-        t = _corner_tips(a, d, t, prev, nxt, pl.counts[loop])
+        t, tips = _corner_tips(a, d, t, prev, nxt, pl.counts[loop])
     s = _realize(t, fg_v, bg_v, loop, k, pl.first, pl.counts, nxt, V)
     mag = torch.exp(s - s.max().clamp_min(0) if V else s)
     values = torch.where(fg, -mag, mag)
     pts = mesh.verts[ends[:, 0]] + (values[ends[:, 0]] / (values[ends[:, 0]] - values[ends[:, 1]]))[:, None] * (
         mesh.verts[ends[:, 1]] - mesh.verts[ends[:, 0]])
-    pl = Polylines(pts, pl.first, pl.counts, pl.closed, pl.item, pl.edge, pl.num_items)
+    first, counts, edge, out_mesh = pl.first, pl.counts, pl.edge, mesh
+    spliced = None if tips is None else _insert_tips(mesh, values, fg, pix, (B, H2, W2), sizes.to(dev), pts, fg_v,
+                                                     bg_v, edge, loop, k, first, counts, nxt, tips)
+    if spliced is not None:
+        out_mesh, values, (pts, fg_v, bg_v, edge, first, counts) = spliced
+        a = mesh.verts[fg_v]
+        loop, k, prev, nxt = _loop_index(first, counts, pts.shape[0])
+    pl = Polylines(pts, first, counts, pl.closed, pl.item, edge, pl.num_items)
 
     # ---- outer border or hole: foreground on the left, so outer loops turn positively
     p0 = pl.points
@@ -432,7 +603,7 @@ def trace_masks(masks: Sequence[torch.Tensor], connectivity: int = 8, smooth: in
     # a loop whose chain ends without a different-kind loop on its left has no parent
     parent = torch.where((term_near >= 0) & (outer[term_near.clamp(min=0)] != outer), parent,
                          torch.full_like(parent, -1))
-    return GridCurves(mesh, values, pl, outer, parent, start, sizes, a)
+    return GridCurves(out_mesh, values, pl, outer, parent, start, sizes, a)
 
 
 def cv_layout(outer: np.ndarray, parent: np.ndarray, start: np.ndarray, mode: str = "tree",

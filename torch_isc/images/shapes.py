@@ -8,7 +8,7 @@ from typing import Callable, Dict, List, Tuple
 
 import numpy as np
 
-__all__ = ["SHAPES", "shape_mask"]
+__all__ = ["SHAPES", "shape_mask", "corner_shapes", "shape_mask_of"]
 
 
 def _circle(cx: float, cy: float, r: float, n: int = 0) -> np.ndarray:
@@ -83,7 +83,64 @@ for _name, _h, _w, (_in, _cv) in [
 def shape_mask(name: str, supersample: int = 16) -> Tuple[np.ndarray, np.ndarray, List[np.ndarray]]:
     """``(mask (H, W) bool, coverage (H, W) float, true curves)`` of a shape of :data:`SHAPES`:
     a pixel is foreground when the shape covers at least half of it."""
-    H, W, inside, curves = SHAPES[name]
+    return shape_mask_of(SHAPES[name], supersample)
+
+
+def _regular(cx, cy, r, n, deg):
+    t = np.arange(n) * 2 * math.pi / n + math.radians(deg)
+    return np.c_[cx + r * np.cos(t), cy + r * np.sin(t)]
+
+
+def _wedge(cx, cy, length, apex_deg, deg):
+    """An isosceles triangle with apex angle ``apex_deg``, sides ``length``, centred on its centroid."""
+    h = math.radians(apex_deg) / 2
+    p = np.array([[0.0, 0.0], [length * math.cos(h), length * math.sin(h)], [length * math.cos(h), -length * math.sin(h)]])
+    p -= p.mean(0)
+    a = math.radians(deg)
+    c, s = math.cos(a), math.sin(a)
+    return np.c_[cx + p[:, 0] * c - p[:, 1] * s, cy + p[:, 0] * s + p[:, 1] * c]
+
+
+def _ell(cx, cy, size, deg):
+    """An L (a 90-degree notch): a square of side ``size`` less its top-right quarter."""
+    q = np.array([[0, 0], [1, 0], [1, 0.5], [0.5, 0.5], [0.5, 1], [0, 1]], float) * size - size / 2
+    a = math.radians(deg)
+    c, s = math.cos(a), math.sin(a)
+    return np.c_[cx + q[:, 0] * c - q[:, 1] * s, cy + q[:, 0] * s + q[:, 1] * c]
+
+
+def corner_shapes(seed: int = 0) -> Dict[str, Tuple[int, int, Callable, List[np.ndarray]]]:
+    """A broad set of polygons (random rotations and sub-pixel offsets from ``seed``): squares of
+    3 to 290 px, wedges with apex angles 20 to 150 degrees, regular 5-, 6- and 12-gons (corners
+    of 108, 120 and 150 degrees), stars and L shapes (notches); same layout as :data:`SHAPES`."""
+    rng = np.random.default_rng(seed)
+    out: Dict[str, Tuple[int, int, Callable, List[np.ndarray]]] = {}
+
+    def add(name, extent, make):
+        n = int(math.ceil(extent)) + 8
+        cx, cy = n / 2 + rng.uniform(-0.5, 0.5), n / 2 + rng.uniform(-0.5, 0.5)
+        deg = float(rng.uniform(0, 360))
+        poly = make(cx, cy, deg)
+        out[f"{name} rot {deg:.0f}"] = (n, n, *_polys([poly]))
+
+    for side in (3, 6, 12, 40, 150, 290):
+        add(f"square {side} px", side * 1.42, lambda cx, cy, deg, s=side: _rot_square(cx, cy, s / 2, deg))
+    for apex in (20, 30, 45, 60, 90, 120, 150):
+        L = 40.0
+        add(f"wedge {apex} deg", 2 * L, lambda cx, cy, deg, a=apex: _wedge(cx, cy, L, a, deg))
+    for n, r in ((5, 20.0), (6, 30.0), (12, 60.0)):
+        add(f"{n}-gon r={r:g}", 2 * r, lambda cx, cy, deg, n=n, r=r: _regular(cx, cy, r, n, deg))
+    add("wedge 60 deg small", 16, lambda cx, cy, deg: _wedge(cx, cy, 9.0, 60, deg))
+    add("star 5 r=30/15", 60, lambda cx, cy, deg: _star(cx, cy, 30.0, 15.0, 5, deg))
+    add("star 6 r=100/60", 200, lambda cx, cy, deg: _star(cx, cy, 100.0, 60.0, 6, deg))
+    for size in (10, 50):
+        add(f"L {size} px", size * 1.42, lambda cx, cy, deg, s=size: _ell(cx, cy, s, deg))
+    return out
+
+
+def shape_mask_of(spec, supersample: int = 16) -> Tuple[np.ndarray, np.ndarray, List[np.ndarray]]:
+    """:func:`shape_mask` of a ``(H, W, inside, curves)`` spec."""
+    H, W, inside, curves = spec
     s = supersample
     off = (np.arange(s) + 0.5) / s
     ys = (np.arange(H)[:, None] + off[None, :]).reshape(-1)

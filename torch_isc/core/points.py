@@ -73,9 +73,10 @@ def distinct_points(sets: Sequence[torch.Tensor], labels: Sequence[str]):
     nearest neighbours would be its own copies: noise 0, tolerance floor gone) and the
     point-count guards of the test, and noisy data would be refined into spurious loops.
 
-    Returns ``(points (P, 2) float64, point_item (P,), counts (B,))``, for the whole batch at
-    once: rows ``(item, x, y)`` sorted by three stable sorts (``unique(dim=0)`` is several
-    times slower), equal neighbours grouped."""
+    Returns ``(points (P, 2) float64, point_item (P,), counts (B,), source (P,))``, for the
+    whole batch at once: rows ``(item, x, y)`` sorted by three stable sorts (``unique(dim=0)``
+    is several times slower), equal neighbours grouped; ``source`` is each kept point's index
+    in its caller's set (a key that a merge elsewhere in the set does not shift)."""
     dev = sets[0].device
     B = len(sets)
     n = torch.tensor([p.shape[0] for p in sets], device=dev)
@@ -94,11 +95,12 @@ def distinct_points(sets: Sequence[torch.Tensor], labels: Sequence[str]):
     if few.numel():
         b = int(few[0])
         raise PointSetError(f"{labels[b]}: needs at least 3 distinct points, got {int(counts[b])}")
+    start = first_index(n)
     if G == x.shape[0]:
-        return x, item, counts
+        return x, item, counts, torch.arange(x.shape[0], device=dev) - start[item]
     first = segment_min(o, gid, G, fill=x.shape[0])
     keep = first.sort().values                       # item-major, first occurrence within an item
-    return x[keep], item[keep], counts
+    return x[keep], item[keep], counts, keep - start[item[keep]]
 
 
 def collinear_items(pts64: torch.Tensor, point_item: torch.Tensor, B: int, slack: torch.Tensor) -> torch.Tensor:
@@ -132,6 +134,8 @@ class PointBatch:
         flat: ``(B,)`` bool, items whose points lie on one line (no region to enclose).
         raw: the caller's point sets as given (checked tensors).
         labels: a name per item for messages.
+        source: ``(P,)`` long, each point's index in its caller's set (None: its index in the
+            item), the key of per-point hashes (a merged repeat does not shift the others').
     """
     points: torch.Tensor
     point_item: torch.Tensor
@@ -141,6 +145,7 @@ class PointBatch:
     flat: torch.Tensor
     raw: List[torch.Tensor]
     labels: List[str]
+    source: Optional[torch.Tensor] = None
 
     @property
     def num_items(self) -> int:
@@ -179,7 +184,7 @@ def prepare_points(point_sets: Sequence[PointsLike], names: Optional[Sequence[Op
     _check_finite(raw, labels)
     B = len(raw)
     with torch.no_grad():
-        pts64, point_item, counts = distinct_points(raw, labels)
+        pts64, point_item, counts, source = distinct_points(raw, labels)
         # normalize in float64, then cast: large offsets (1e7) must not cost precision
         big = torch.finfo(torch.float64).max
         idx2 = point_item[:, None].expand(-1, 2)
@@ -212,7 +217,7 @@ def prepare_points(point_sets: Sequence[PointsLike], names: Optional[Sequence[Op
         ulp = torch.tensor([torch.finfo(p.dtype).eps if p.dtype.is_floating_point else 0.0 for p in raw],
                            dtype=torch.float64, device=device)
         flat = collinear_items(norm64, point_item, B, 1e-12 + 8 * ulp * reach / scale64)
-        return PointBatch(norm64.to(dtype), point_item, counts, center64, scale64, flat, raw, labels)
+        return PointBatch(norm64.to(dtype), point_item, counts, center64, scale64, flat, raw, labels, source)
 
 
 def check_extent(batch: PointBatch, cover: float, dtype: torch.dtype) -> None:

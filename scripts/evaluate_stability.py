@@ -77,6 +77,37 @@ def jitter(p: np.ndarray, seed: int, rel: float = 1e-9) -> np.ndarray:
     return p + rel * diag * rng.uniform(-1, 1, p.shape)
 
 
+def first_divergence(p: np.ndarray, q: np.ndarray, cfg) -> str:
+    """Run ``p`` and ``q`` one by one with the loop's test stage watched, and name the first
+    decision on which they part: ``signs@L`` (vertex signs of level L differ on the same mesh),
+    ``marks@L`` (same signs, different marked triangles), ``none`` (every decision agrees: the
+    curves differ by the fit alone). Also the relative change of the noise estimate."""
+    import torch_isc.pipeline.loop as loop
+    real = loop.test_fit
+    seen: List[List[Dict]] = []
+
+    def watched(ws, values, ev, tcfg, mpf):
+        v = real(ws, values, ev, tcfg, mpf)
+        seen[-1].append({"signs": ws.signs.clone(), "marked": v.marked.clone(), "noise": float(ws.noise[0]),
+                         "nv": int(ws.mesh.verts.shape[0])})
+        return v
+    loop.test_fit = watched
+    try:
+        for x in (p, q):
+            seen.append([])
+            torch_isc.reconstruct(x, cfg)
+    finally:
+        loop.test_fit = real
+    a, b = seen
+    dn = (b[0]["noise"] - a[0]["noise"]) / max(a[0]["noise"], 1e-300)
+    for lev, (u, v) in enumerate(zip(a, b)):
+        if u["nv"] != v["nv"] or not torch.equal(u["signs"], v["signs"]):
+            return f"signs@{lev} noise{dn:+.1e}"
+        if not torch.equal(u["marked"], v["marked"]):
+            return f"marks@{lev} noise{dn:+.1e}"
+    return ("none" if len(a) == len(b) else "levels") + f" noise{dn:+.1e}"
+
+
 def curves(res) -> List:
     return [(pl["points"].double(), pl["closed"]) for pl in res.polylines]
 
@@ -88,8 +119,10 @@ def main(argv=None) -> Dict:
     ap.add_argument("--shapes", default=",".join(SHAPES))
     ap.add_argument("--noises", default=",".join(str(n) for n in NOISES))
     ap.add_argument("--bound", type=float, default=1e-3, help="report cases moved by more (units of the diagonal)")
-    ap.add_argument("--set", action="append", default=[], help="config override key=value")
+    ap.add_argument("--set", nargs="+", action="extend", default=[], metavar="KEY=VALUE", help="config overrides")
     ap.add_argument("--verbose", action="store_true")
+    ap.add_argument("--diagnose", action="store_true",
+                    help="for every case moved by more than --bound, the first decision that differs (reruns it)")
     ap.add_argument("--json", help="write every case's numbers here")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
@@ -120,7 +153,19 @@ def main(argv=None) -> Dict:
                           f"tol {a.tolerance:.6e}")
                 if len(a.__dict__) and len(base.stats) != len(r.stats):
                     print(f"   levels {len(base.stats)}/{len(r.stats)}")
+        if args.diagnose:
+            for name, j in (("round", 1), ("jitter", 2)):
+                if row[name] > args.bound:
+                    row[name + "_first"] = first_divergence(sets[3 * i], sets[3 * i + j], cfg)
+                    print(f"{kind:7s} noise={noise:<6} seed={seed:<3d} {name:6s} {row[name]:.2e}  "
+                          f"first: {row[name + '_first']}")
         rows.append(row)
+    if args.diagnose:
+        from collections import Counter
+        for name in ("round", "jitter"):
+            c = Counter(r[name + "_first"].split(" ")[0].split("@")[0] + "@" + (r[name + "_first"].split("@")[1][:1]
+                        if "@" in r[name + "_first"] else "-") for r in rows if name + "_first" in r)
+            print(f"first decision that differs ({name}):", dict(sorted(c.items())))
     summary = {}
     print(f"{'shape':8s} {'noise':>6s} {'pert':>7s} {'median':>9s} {'max':>9s} {'>bound':>7s} {'refine differs':>15s}")
     groups = [(k, n) for k in args.shapes.split(",") for n in (float(x) for x in args.noises.split(","))]

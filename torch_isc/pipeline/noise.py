@@ -154,8 +154,9 @@ def estimate_noise(points: torch.Tensor, point_item: torch.Tensor, num_items: in
 
 
 #: Each aspect threshold acts as a ramp from ``threshold / (1 + ASPECT_BAND)`` (weight 0) to
-#: ``threshold * (1 + ASPECT_BAND)`` (weight 1), linear in the log of the aspect.
-ASPECT_BAND = 0.1
+#: ``threshold * (1 + ASPECT_BAND)`` (weight 1), linear in the log of the aspect. The band is
+#: wider than the median aspect moves when one point of a 64-point subset moves or merges.
+ASPECT_BAND = 0.25
 
 
 def _aspect_ramp(aspect: torch.Tensor, threshold: float) -> torch.Tensor:

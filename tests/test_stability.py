@@ -73,7 +73,7 @@ def test_noise_estimate_moves_little_when_a_point_merges(make, seed):
     assert abs(noise_of(q) / noise_of(p) - 1) < 0.1
     # a repeat that adds a row changes nothing at all (it is merged, the keys stay)
     assert noise_of(np.concatenate([p, p[5:6]])) == noise_of(p)
-    res = [reconstruct(x, ReconstructConfig(), ) for x in (p, np.concatenate([p, p[7:9]]))]
+    res = [reconstruct(x, ReconstructConfig()) for x in (p, np.concatenate([p, p[7:9]]))]
     assert res[0].stats[0].noise == res[1].stats[0].noise
 
 

@@ -87,9 +87,10 @@ def distinct_points(sets: Sequence[torch.Tensor], labels: Sequence[str]):
     nearest neighbours would be its own copies: noise 0, tolerance floor gone) and the
     point-count guards of the test, and noisy data would be refined into spurious loops.
 
-    Returns ``(points (P, 2) float64, point_item (P,), counts (B,))``, for the whole batch at
-    once: rows ``(item, x, y)`` sorted by three stable sorts (``unique(dim=0)`` is several
-    times slower), equal neighbours grouped."""
+    Returns ``(points (P, 2) float64, point_item (P,), counts (B,), source (P,))``, for the
+    whole batch at once: rows ``(item, x, y)`` sorted by three stable sorts (``unique(dim=0)``
+    is several times slower), equal neighbours grouped; ``source`` is each kept point's index
+    in its caller's set (a key that a merge elsewhere in the set does not shift)."""
     x = _pack64(sets)
     return _distinct_packed(x, _item_index([p.shape[0] for p in sets], x.device), len(sets), labels)
 
@@ -110,11 +111,12 @@ def _distinct_packed(x: torch.Tensor, item: torch.Tensor, B: int, labels: Sequen
     if n_few:
         b = int((counts < 3).nonzero()[0, 0])
         raise PointSetError(f"{labels[b]}: needs at least 3 distinct points, got {int(counts[b])}")
+    start = first_index(segment_count(item, B))
     if G == x.shape[0]:
-        return x, item, counts
+        return x, item, counts, torch.arange(x.shape[0], device=dev) - start[item]
     first = segment_min(o, gid, G, fill=x.shape[0])
     keep = first.sort().values                       # item-major, first occurrence within an item
-    return x[keep], item[keep], counts
+    return x[keep], item[keep], counts, keep - start[item[keep]]
 
 
 def collinear_items(pts64: torch.Tensor, point_item: torch.Tensor, B: int, slack: torch.Tensor) -> torch.Tensor:
@@ -148,6 +150,8 @@ class PointBatch:
         flat: ``(B,)`` bool, items whose points lie on one line (no region to enclose).
         raw: the caller's point sets as given (checked tensors).
         labels: a name per item for messages.
+        source: ``(P,)`` long, each point's index in its caller's set (None: its index in the
+            item), the key of per-point hashes (a merged repeat does not shift the others').
     """
     points: torch.Tensor
     point_item: torch.Tensor
@@ -157,6 +161,7 @@ class PointBatch:
     flat: torch.Tensor
     raw: List[torch.Tensor]
     labels: List[str]
+    source: Optional[torch.Tensor] = None
 
     @property
     def num_items(self) -> int:
@@ -197,7 +202,7 @@ def prepare_points(point_sets: Sequence[PointsLike], names: Optional[Sequence[Op
         x64 = _pack64(raw)
         item = _item_index([p.shape[0] for p in raw], device)
         _check_finite(x64, item, labels)
-        pts64, point_item, counts = _distinct_packed(x64, item, B, labels)
+        pts64, point_item, counts, source = _distinct_packed(x64, item, B, labels)
         # normalize in float64, then cast: large offsets (1e7) must not cost precision
         big = torch.finfo(torch.float64).max
         idx2 = point_item[:, None].expand(-1, 2)
@@ -230,7 +235,7 @@ def prepare_points(point_sets: Sequence[PointsLike], names: Optional[Sequence[Op
         ulp = torch.tensor([torch.finfo(p.dtype).eps if p.dtype.is_floating_point else 0.0 for p in raw],
                            dtype=torch.float64, device=device)
         flat = collinear_items(norm64, point_item, B, 1e-12 + 8 * ulp * reach / scale64)
-        return PointBatch(norm64.to(dtype), point_item, counts, center64, scale64, flat, raw, labels)
+        return PointBatch(norm64.to(dtype), point_item, counts, center64, scale64, flat, raw, labels, source)
 
 
 def output_dtypes(raw: Sequence[torch.Tensor], dtype: torch.dtype) -> List[torch.dtype]:

@@ -180,7 +180,7 @@ def _start(batch: PointBatch, cfg: ReconstructConfig, rec: StatsRecorder) -> Wor
     B, dtype, device = batch.num_items, batch.points.dtype, batch.points.device
     with torch.no_grad():
         tol = _tolerance(batch, cfg, dtype).to(dtype)
-        est = noise_and_frames(batch.points, batch.point_item, B, cfg.noise)
+        est = noise_and_frames(batch.points, batch.point_item, B, cfg.noise, batch.source)
     rec.skip()                                   # the noise estimate is not a stage of the loop
     mesh = initial_mesh(cfg.mesh, B, device, dtype)
     face, bary = locate_grid(mesh, batch.points, batch.point_item)

@@ -3,6 +3,7 @@ and the coverage test's tangents), from local parabola fits at each point's neig
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Optional, Tuple
 
@@ -153,8 +154,20 @@ def estimate_noise(points: torch.Tensor, point_item: torch.Tensor, num_items: in
     return noise_and_frames(points, point_item, num_items, cfg).level
 
 
+#: Each aspect threshold acts as a ramp from ``threshold / (1 + ASPECT_BAND)`` (weight 0) to
+#: ``threshold * (1 + ASPECT_BAND)`` (weight 1), linear in the log of the aspect. The band is
+#: wider than the median aspect moves when one point of a 64-point subset moves or merges.
+ASPECT_BAND = 0.25
+
+
+def _aspect_ramp(aspect: torch.Tensor, threshold: float) -> torch.Tensor:
+    """``(B,)`` in [0, 1]: how far ``aspect`` is past ``threshold``, over the band."""
+    r = torch.log(aspect.double().clamp_min(1e-300) / threshold) / math.log1p(ASPECT_BAND)
+    return (0.5 * (r + 1.0)).clamp(0.0, 1.0).to(aspect.dtype)
+
+
 def noise_and_frames(points: torch.Tensor, point_item: torch.Tensor, num_items: int,
-                     cfg: Optional[NoiseConfig] = None) -> NoiseEstimate:
+                     cfg: Optional[NoiseConfig] = None, source: Optional[torch.Tensor] = None) -> NoiseEstimate:
     """The noise level of each item and the local frame of each point, from one pass.
 
     For every point, a parabola ``y = c0 + c1 x + c2 x²`` (x along the principal axis) is fitted
@@ -181,7 +194,11 @@ def noise_and_frames(points: torch.Tensor, point_item: torch.Tensor, num_items: 
     The frames ``(P, 3)`` are each point's unit major axis of its neighbourhood (the curve's
     tangent there) and the distance to the farthest of its ``k`` neighbours (0 for a point
     alone in its item). ``k, window, blob_aspect, line_aspect, min_points`` are the
-    ``noise_*`` knobs of ``cfg``.
+    ``noise_*`` knobs of ``cfg``. Each aspect test is a ramp over a band (``ASPECT_BAND``),
+    not a switch: an aspect near a threshold blends the two scales' variances, so the estimate
+    moves continuously with the points. ``source (P,)``: each point's index in the caller's
+    set (:attr:`PointBatch.source`), the key of the subset hash (default: its index in the
+    item), so that merging a repeat does not redraw the subsets.
     """
     cfg = NoiseConfig() if cfg is None else cfg
     k, window, min_points = cfg.noise_neighbours, cfg.noise_window, cfg.noise_min_subset
@@ -193,28 +210,36 @@ def noise_and_frames(points: torch.Tensor, point_item: torch.Tensor, num_items: 
             z = torch.zeros(num_items, dtype=dt, device=dev)
             fr = torch.tensor([1.0, 0.0, 0.0], dtype=dt, device=dev).expand(P, 3).clone()
             return NoiseEstimate(z, fr)
-        var, asp, _, frames = _noise_at_scale(points, point_item, num_items, k, window)
-        chosen = asp >= blob_aspect
-        if bool(chosen.all()):
-            return NoiseEstimate(var.sqrt(), frames)
+        var0, asp, _, frames = _noise_at_scale(points, point_item, num_items, k, window)
+        # every threshold is a ramp over a band of aspects (blend weights, not a switch): a
+        # perturbation far below the noise moves the estimate by about as much, never by a scale
+        w = _aspect_ramp(asp, blob_aspect)
+        if bool((w >= 1).all()):
+            return NoiseEstimate(var0.sqrt(), frames)
+        est = w * var0
+        left = 1.0 - w                                   # the weight still to place, per item
         cnt = segment_count(point_item, num_items)
-        u = hash_uniform(local_index(point_item, first_index(cnt)), dtype=torch.float64)
+        key = local_index(point_item, first_index(cnt)) if source is None else source
+        u = hash_uniform(key, dtype=torch.float64)
         rate = 1.0
-        while not bool(chosen.all()):
+        while bool((left > 0).any()):
             rate /= 4.0
-            # an item still undecided, with enough points left at this rate, is refitted
-            todo = ~chosen & (cnt.to(torch.float64) * rate >= min_points)
+            # an item still undecided, with enough points left at this rate, is refitted; one
+            # without keeps the full-density estimate for the rest of its weight
+            todo = (left > 0) & (cnt.to(torch.float64) * rate >= min_points)
             if not bool(todo.any()):
                 break
             keep = todo[point_item] & (u < rate)
             pi = point_item[keep]
             v2, a2, n2, _ = _noise_at_scale(points[keep], pi, num_items, k, window)
             use = todo & (n2 >= min_points)
-            line = use & (a2 >= line_aspect)
+            est = torch.where(todo & ~use, est + left * var0, est)
+            left = torch.where(todo & ~use, torch.zeros_like(left), left)
             # only a line-like scale is believed: data that are a blob at every scale (no
             # curve, e.g. uniform clutter) keep the full-density estimate
-            var = torch.where(line, v2, var)
-            chosen = chosen | line | (todo & ~use)
-        return NoiseEstimate(var.sqrt(), frames)
+            w2 = torch.where(use, _aspect_ramp(a2, line_aspect), torch.zeros_like(left))
+            est = est + left * w2 * torch.where(use, v2, torch.zeros_like(v2))
+            left = left * (1.0 - w2)
+        return NoiseEstimate((est + left * var0).sqrt(), frames)
 
 

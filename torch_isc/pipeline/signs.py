@@ -42,6 +42,15 @@ class TopologyConfig:
     anneal_greedy_sweeps: int = knob(4, ge=0)
     #: sign regions of fewer vertices (and no boundary vertex) are flipped; 0 or 1 disables
     min_island_vertices: int = knob(2, ge=0)
+    #: coupling toward equal signs on an edge provably farther from the data than the tolerance
+    #: allows (pipeline/support.py); 0 disables (the default: measured +1 of 192 on the broad
+    #: suite beside the cluster moves, but it opened a loop inside a figure of data/family)
+    unsupported_weight: float = knob(0.0, ge=0)
+    #: ...the distance it starts at, in noise widths (never below the tolerance); the cluster
+    #: moves' far vertices are those beyond it
+    unsupported_noise_widths: float = knob(3.0, ge=0)
+    #: rounds of cluster moves after annealing (pipeline/simplify.py); 0 disables
+    cluster_rounds: int = knob(2, ge=0)
 
     def __post_init__(self):
         check_section(self)
@@ -460,9 +469,17 @@ class IsingSigns:
             H = edge_weights(mesh, fits.L, fits.eps, ev.moments.count, self.evidence.min_points_fit,
                              self.cfg.empty_weight, pooled_count=fits.support, reach=fits.reach,
                              noise2=ws.noise ** 2)
+            far = None
+            if self.cfg.unsupported_weight > 0 or self.cfg.cluster_rounds > 0:
+                from torch_isc.pipeline.support import support_coupling
+                cpl, far = support_coupling(ws, self.cfg.unsupported_weight, self.cfg.unsupported_noise_widths)
+                H = H + cpl
             fixed = mesh.is_boundary_vert
             init = torch.where(fixed, torch.ones_like(ws.signs), ws.signs)
             s = anneal(mesh, H, init, fixed, self.cfg, self.seed, warm=level > 0)
+            if self.cfg.cluster_rounds > 0:
+                from torch_isc.pipeline.simplify import descend_clusters
+                s = descend_clusters(mesh, H, s, fixed, far, self.cfg.cluster_rounds)
             return remove_small_islands(mesh, s, fixed, self.cfg.min_island_vertices)
 
     def marks(self, ws: "WorkingSet", values: torch.Tensor, min_len: torch.Tensor) -> Optional[torch.Tensor]:

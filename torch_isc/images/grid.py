@@ -155,8 +155,11 @@ class GridCurves:
     """The curves of a batch of masks (:func:`trace_masks`).
 
     Attributes:
-        mesh: the packed band mesh; values: ``(V,)`` nodal values (negative on foreground).
-        polylines: the zero set, one closed loop per border, loops grouped by item.
+        mesh: the packed band mesh, with a vertex at each restored corner tip
+            (:func:`_insert_tips`); values: ``(V,)`` nodal values (negative on foreground).
+        polylines: the zero set, one closed loop per border, loops grouped by item; its
+            ``edge`` indexes the band mesh before the tips were added (the pixel pair each
+            point separates; a tip's crossings repeat the pair of the crossing before them).
         outer: ``(K,)`` bool, the loop is the outer border of a foreground component (else a hole).
         parent: ``(K,)`` long, global index of the enclosing loop (the hole around an outer
             border, the outer border around a hole), -1 for none (RETR_TREE's parent).

@@ -2005,7 +2005,9 @@ def test_annealer_tables_give_the_local_fields(R, dt, device):
         seen += verts
         cols = torch.tensor([int(pos[v]) - cl.a for v in verts])
         torch.testing.assert_close(f[:, cols].T, dense[verts], rtol=tol, atol=tol)
-        if device.type == "cpu":
+        # the in-order sum is what torch 2.13's AVX-512 CPU reduction does for these tables;
+        # other vector widths block the sum differently (the fields still match to rounding)
+        if device.type == "cpu" and torch.backends.cpu.get_cpu_capability() == "AVX512":
             for v, c in zip(verts, cols.tolist()):
                 for r in range(R):
                     acc = npdt(0)

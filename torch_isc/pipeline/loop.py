@@ -28,6 +28,7 @@ from torch_isc.core.mesh import MeshBatch, hexagon_mesh, square_mesh
 from torch_isc.core.points import PointBatch, PointSetError, PointsLike, check_extent, prepare_points
 from torch_isc.core.segments import segment_count, segment_sum
 from torch_isc.pipeline.config import ConfigError, MeshConfig, ReconstructConfig, from_dict, initial_triangles
+from torch_isc.pipeline.band import band_stage
 from torch_isc.pipeline.evidence import gather_evidence
 from torch_isc.pipeline.noise import noise_and_frames
 from torch_isc.pipeline.relax import relax_stage
@@ -219,7 +220,11 @@ def run_loop(batch: PointBatch, cfg: ReconstructConfig, source: SignSource,
         _record(rec, level, ws, verdict, d1, n_marked)
         fin = done.nonzero().squeeze(1)
         if fin.numel():
-            for b, res in finish_items(ws, fin, n_marked, over, batch, cfg, rec.per_item, names):
+            # the band stage refines and refits the finished items only
+            sub = band_stage(ws.select(fin), cfg.band, cfg.geometry, slack[fin])
+            rec.tick("geometry")
+            local = torch.arange(fin.shape[0], device=fin.device)
+            for b, res in finish_items(sub, local, n_marked[fin], over[fin], batch, cfg, rec.per_item, names):
                 if b in timed:
                     res.converged, res.limit = False, "max_seconds"
                 results[b] = res

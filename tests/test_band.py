@@ -1,0 +1,121 @@
+"""Tests of torch_isc.pipeline.band: the wrap fraction (hand-computed angles), the spike rule,
+the band's refinement marks, and the whole stage against an analytic circle under noise."""
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import torch
+
+import torch_isc
+from torch_isc.core.mesh import hexagon_mesh
+from torch_isc.core.nesting import signed_area
+from torch_isc.pipeline.band import BandConfig, band_marks, spike_vertices, wrap_fraction
+
+
+def _hex(r=1, dtype=torch.float64):
+    return hexagon_mesh(torch.zeros(1, 2, dtype=dtype), torch.ones(1, dtype=dtype), r)
+
+
+def _centre(m):
+    return int(m.verts.norm(dim=1).argmin())
+
+
+def test_wrap_fraction_by_hand():
+    m = _hex(1)
+    c = _centre(m)
+    ring = [i for i in range(7) if i != c]
+    ang = torch.atan2(m.verts[ring, 1], m.verts[ring, 0])
+    order = [ring[i] for i in torch.argsort(ang).tolist()]
+    # centre inside, every ring vertex outside: the curve runs all the way around it
+    v = torch.ones(7, dtype=torch.float64)
+    v[c] = -1.0
+    assert math.isclose(float(wrap_fraction(m, v)[c]), 1.0, abs_tol=1e-12)
+    # a straight cut through the centre (three consecutive ring vertices inside with it):
+    # triangles 0, 60, 60, 0 degrees across, two cut ones half: 180 of 360 degrees
+    v = torch.ones(7, dtype=torch.float64)
+    v[c] = -1.0
+    v[order[:3]] = -1.0
+    assert math.isclose(float(wrap_fraction(m, v)[c]), 0.5, abs_tol=1e-12)
+    # five of the six ring vertices across: 4 full triangles + 2 halves = 300 of 360 degrees
+    v = -torch.ones(7, dtype=torch.float64)
+    v[c] = 1.0
+    v[order[0]] = 1.0
+    assert math.isclose(float(wrap_fraction(m, v)[c]), 300.0 / 360.0, abs_tol=1e-12)
+
+
+def _ws(m, points, noise):
+    from torch_isc.core.locate import locate_grid
+    pi = torch.zeros(points.shape[0], dtype=torch.long)
+    face, _ = locate_grid(m, points, pi)
+    return SimpleNamespace(mesh=m, points=points, face=face, noise=torch.tensor([noise], dtype=torch.float64))
+
+
+def test_spike_vertices_need_the_wrap_and_the_data():
+    m = _hex(2)
+    c = _centre(m)
+    nb = [int(j) for e in m.edges.tolist() for j in e if c in e and j != c]
+    v = -torch.ones(m.verts.shape[0], dtype=torch.float64)
+    v[m.is_boundary_vert] = 1.0
+    v[c] = 1.0
+    v[nb[0]] = 1.0             # the spike's root: the centre's one neighbour of its sign
+    assert float(wrap_fraction(m, v)[c]) > 0.8
+    cfg = BandConfig()
+    near = torch.tensor([[0.01, 0.0], [0.3, 0.3]], dtype=torch.float64)      # a point next to the centre
+    assert bool(spike_vertices(_ws(m, near, 0.01), v, cfg)[c])
+    far = torch.tensor([[0.3, 0.3], [-0.3, 0.25]], dtype=torch.float64)       # none within 2 noise widths
+    assert not bool(spike_vertices(_ws(m, far, 0.01), v, cfg)[c])
+    v2 = v.clone()
+    v2[nb] = 1.0                # all of its star on its side: no curve around it
+    assert not bool(spike_vertices(_ws(m, near, 0.01), v2, cfg)[c])
+
+
+def test_band_marks_stop_at_the_noise_scale():
+    m = _hex(2)
+    v = m.verts.norm(dim=1) - 0.6
+    ws = SimpleNamespace(mesh=m, values=v, noise=torch.tensor([0.01], dtype=torch.float64),
+                         flat=torch.zeros(1, dtype=torch.bool))
+    crossed = band_marks(ws, BandConfig(band_rings=0))
+    fneg = v[m.faces] < 0
+    assert torch.equal(crossed, fneg.any(1) & ~fneg.all(1))
+    assert int(band_marks(ws, BandConfig(band_rings=1)).sum()) > int(crossed.sum())
+    # edges are 0.5 long: nothing is split once they are below band_min_size noise widths
+    assert not bool(band_marks(ws, BandConfig(band_min_size=60.0)).any())
+    ws.flat = torch.ones(1, dtype=torch.bool)
+    assert not bool(band_marks(ws, BandConfig()).any())
+
+
+def _noisy_circle(n, sigma, seed):
+    rng = np.random.default_rng(seed)
+    t = np.linspace(0, 2 * math.pi, n, endpoint=False) + rng.uniform()
+    p = np.stack([np.cos(t), np.sin(t)], 1)
+    return torch.tensor(p + rng.normal(0, sigma, p.shape))
+
+
+def _radius(res):
+    (pl,) = res.polylines
+    a = pl["points"].double().numpy()
+    return math.sqrt(abs(signed_area(a)) / math.pi)
+
+
+def test_circle_radius_converges_under_noise():
+    """The unit circle at 1% noise of the diagonal (sigma = 0.028): the area radius of the
+    curve approaches 1 as the points grow (the mean of the band, not its outer envelope), and
+    the band stage keeps the topology."""
+    sigma = 0.01 * 2 * math.sqrt(2)
+    errs = []
+    for n in (300, 2400):
+        res = torch_isc.reconstruct_batch([_noisy_circle(n, sigma, s) for s in range(2)])
+        assert all(r.num_closed == 1 and r.num_open == 0 for r in res)
+        errs.append(max(abs(_radius(r) - 1.0) for r in res))
+    assert errs[1] < 0.25 * sigma
+    assert errs[1] <= errs[0] + 0.05 * sigma
+
+
+def test_band_stage_off_is_the_loop():
+    pts = _noisy_circle(200, 0.01, 0)
+    off = torch_isc.reconstruct(pts, torch_isc.ReconstructConfig().replace(band_levels=0))
+    on = torch_isc.reconstruct(pts)
+    assert on.curve.mesh.faces.shape[0] > off.curve.mesh.faces.shape[0]
+    assert on.num_closed == off.num_closed == 1

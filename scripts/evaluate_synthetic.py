@@ -8,6 +8,7 @@ Run from the repository root:
     .venv/bin/python scripts/evaluate_synthetic.py --kinds gapcircle,outliers --count 120
     .venv/bin/python scripts/evaluate_synthetic.py --rotations 8 --count 0   # public cases, 8 angles
     .venv/bin/python scripts/evaluate_synthetic.py --peers                   # + NN-crust, concave hull
+    .venv/bin/python scripts/evaluate_synthetic.py --suite broad --peers     # issue 13's families, 192 shapes
 
 Generated shapes (``--kinds``, taken in turn; noise levels 0, 0.25, 0.5, 1% of the truth's
 diagonal in turn over each round of kinds; every shape with a random rotation, 80-600 points
@@ -22,6 +23,23 @@ per curve, spaced evenly in arclength with a random phase):
 - glyph: a character of ``--glyphs`` (default: with holes or without, no dots) drawn by OpenCV's Hershey stroke fonts
   with strokes 40-70 px wide at 1024 px, outlines from ``cv2.findContours`` (outer boundaries and
   holes, simplified to 1 px), 240-1800 points in all.
+
+Further kinds (``--suite broad`` runs them at noise 0, 0.5, 1, 2% with ``--noises``):
+
+- font: a character of ``--font-glyphs`` (letters, digits, & @ % # $ ...; no glyph with a detached
+  dot) in one of ten DejaVu TrueType fonts (sans, serif, mono, math; bold, condensed), outlines
+  read with fontTools and flattened here (12 points per Bezier segment); outer contours and
+  holes, their nesting checked against their orientation; 240-1800 points in all. Without
+  fontTools or the font files: Hershey glyphs instead (a notice says so);
+- rings3: three concentric circles with gaps of 9-11 noise widths at 1% noise;
+- close2: two unit circles 3 sample spacings apart (80-600 points each);
+- satellites: a unit circle and six circles of radius 0.12-0.18 at distance 1.5, 7-9 points each;
+- squares3: three concentric squares (half-sizes 1, 0.7, 0.4);
+- crescent: a unit disc minus a disc of radius 0.8-0.9 shifted by 0.3-0.45 (two sharp tips);
+- dumbbell: two unit discs 1.2 apart joined by a neck of half-width 0.12-0.2.
+
+Cells of the tables: right topology / cases, median Hausdorff and median Chamfer (% of the
+truth's diagonal).
 
 The public cases (``--rotations K``) are turned about the origin by K angles spread over
 (0, 60) degrees (the hexagonal initial mesh repeats every 60 degrees), truth included: the
@@ -56,9 +74,16 @@ from _common import (Curve, add_run_args, arclength_samples, ellipse, flower, re
 from torch_isc import metrics  # noqa: E402
 
 KINDS = ("circle", "ellipse", "flower", "two", "annulus", "squircle", "nested3", "gapcircle", "gapflower",
-         "outliers", "glyph")
+         "outliers", "glyph")           # the default (record_outputs' synthetic suite draws these)
+ALL_KINDS = KINDS + ("font", "rings3", "close2", "satellites", "squares3", "crescent", "dumbbell")
 GLYPHS = "ABDOPQRabdegopq04689CGSUVXZ235"
 NOISES = (0.0, 0.25, 0.5, 1.0)          # % of the truth's diagonal
+# issue 13's families: font glyphs weighted 4 of 12 (several fonts, letters, digits, symbols),
+# close and nested curves, small components of few points, sharp corners and tips, a neck, gaps,
+# outliers; 192 shapes = per noise level 16 glyphs and 4 of each other family
+BROAD_KINDS = ("font", "rings3", "close2", "satellites", "font", "squares3", "crescent", "dumbbell",
+               "font", "gapcircle", "outliers", "font")
+SUITES = {"broad": dict(kinds=",".join(BROAD_KINDS), noises="0,0.5,1,2", count=192)}
 
 
 def squircle(p: float) -> Curve:
@@ -98,9 +123,117 @@ def glyph_outlines(ch: str, font: int, thickness: int) -> List[np.ndarray]:
     return out
 
 
-def make_case(i: int, kinds: Sequence[str], rng: np.random.Generator, glyphs: str = GLYPHS) -> Dict[str, Any]:
+# ----------------------------------------------------------------------------- TrueType glyphs
+FONT_DIR = Path("/usr/share/fonts/truetype/dejavu")
+FONT_FILES = ("DejaVuSans.ttf", "DejaVuSerif.ttf", "DejaVuSansMono.ttf", "DejaVuMathTeXGyre.ttf",
+              "DejaVuSans-Bold.ttf", "DejaVuSerif-Bold.ttf", "DejaVuSansMono-Bold.ttf",
+              "DejaVuSansCondensed.ttf", "DejaVuSerifCondensed.ttf", "DejaVuSansCondensed-Bold.ttf")
+# counters, thin strokes, sharp inner corners, several components (% and the like); no glyph
+# with a detached dot or accent (i j ? ! ; :), which would be a speck of a few points
+FONT_GLYPHS = "&@%#$8B0469ABDOPQRagbdegopqs2357GKMSWXkwy"
+_FONTS: Dict[str, Any] = {}
+
+
+def fonts_available() -> List[str]:
+    """The DejaVu font files of :data:`FONT_FILES` that exist here and that fontTools reads."""
+    try:
+        import fontTools.ttLib  # noqa: F401
+    except ImportError:
+        return []
+    return [f for f in FONT_FILES if (FONT_DIR / f).is_file()]
+
+
+def _bezier(p: np.ndarray, n: int) -> np.ndarray:
+    """``n`` points of the Bezier curve with control points ``p (k, 2)`` at t = 1/n .. 1
+    (de Casteljau; the start point is the previous segment's end)."""
+    t = np.arange(1, n + 1)[:, None, None] / n
+    q = np.broadcast_to(p, (n,) + p.shape).copy()
+    while q.shape[1] > 1:
+        q = (1 - t) * q[:, :-1] + t * q[:, 1:]
+    return q[:, 0]
+
+
+def _outline_pen():
+    """A fontTools pen that flattens the outline: lines kept, every quadratic or cubic segment
+    sampled at 12 points (BasePen splits TrueType's implied on-curve points for us)."""
+    from fontTools.pens.basePen import BasePen
+
+    class Pen(BasePen):
+        def __init__(self):
+            super().__init__(None)
+            self.contours: List[np.ndarray] = []
+            self._cur: List[np.ndarray] = []
+
+        def _moveTo(self, pt):
+            self._cur = [np.asarray([pt], np.float64)]
+
+        def _lineTo(self, pt):
+            self._cur.append(np.asarray([pt], np.float64))
+
+        def _curveToOne(self, p1, p2, p3):
+            self._cur.append(_bezier(np.asarray([self._getCurrentPoint(), p1, p2, p3], np.float64), 12))
+
+        def _qCurveToOne(self, p1, p2):
+            self._cur.append(_bezier(np.asarray([self._getCurrentPoint(), p1, p2], np.float64), 12))
+
+        def _closePath(self):
+            c = np.concatenate(self._cur)
+            if len(c) > 1 and np.allclose(c[0], c[-1]):
+                c = c[:-1]
+            if len(c) >= 3:
+                self.contours.append(c)
+            self._cur = []
+
+        _endPath = _closePath
+
+    return Pen()
+
+
+def _signed_area(c: np.ndarray) -> float:
+    x, y = c[:, 0], c[:, 1]
+    return 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
+
+
+def _inside(p: np.ndarray, poly: np.ndarray) -> bool:
+    """Even-odd test of the point ``p`` against the closed polygon ``poly``."""
+    x, y = poly[:, 0], poly[:, 1]
+    xn, yn = np.roll(x, -1), np.roll(y, -1)
+    cross = (y > p[1]) != (yn > p[1])
+    xs = x + (p[1] - y) * (xn - x) / np.where(yn == y, 1.0, yn - y)
+    return bool(np.sum(cross & (p[0] < xs)) % 2)
+
+
+def font_outlines(ch: str, font_file: str) -> Optional[List[np.ndarray]]:
+    """The contours of ``ch`` in ``font_file`` (closed polylines, em units scaled to 1), or
+    None when the font lacks the glyph or its contours are not properly nested: every contour's
+    depth (how many contours enclose it) must match its orientation (TrueType: outer contours
+    clockwise, holes anticlockwise), else the truth would not be a set of disjoint curves."""
+    from fontTools.ttLib import TTFont
+    if font_file not in _FONTS:
+        _FONTS[font_file] = TTFont(str(FONT_DIR / font_file))
+    font = _FONTS[font_file]
+    name = font.getBestCmap().get(ord(ch))
+    if name is None:
+        return None
+    pen = _outline_pen()
+    font.getGlyphSet()[name].draw(pen)
+    em = float(font["head"].unitsPerEm)
+    cs = [c / em for c in pen.contours if abs(_signed_area(c)) > 1e-4 * em * em]
+    if not cs:
+        return None
+    for i, c in enumerate(cs):
+        depth = sum(_inside(c[0], d) for j, d in enumerate(cs) if j != i)
+        if (depth % 2 == 0) != (_signed_area(c) < 0):
+            return None
+    return cs
+
+
+def make_case(i: int, kinds: Sequence[str], rng: np.random.Generator, glyphs: str = GLYPHS,
+              noises: Sequence[float] = NOISES, font_glyphs: str = FONT_GLYPHS) -> Dict[str, Any]:
     kind = kinds[i % len(kinds)]
-    noise = NOISES[(i // len(kinds)) % len(NOISES)]
+    noise = noises[(i // len(kinds)) % len(noises)]
+    extra: Dict[str, Any] = {}
+    counts: Optional[List[int]] = None
     if kind == "circle":
         fns = [ellipse(1, 1)]
     elif kind == "ellipse":
@@ -124,11 +257,56 @@ def make_case(i: int, kinds: Sequence[str], rng: np.random.Generator, glyphs: st
         ch = glyphs[int(rng.integers(len(glyphs)))]
         font = (cv2.FONT_HERSHEY_SIMPLEX, cv2.FONT_HERSHEY_DUPLEX)[int(rng.integers(2))]
         fns = [polyline_curve(c) for c in glyph_outlines(ch, font, int(rng.integers(40, 70)))]
+    elif kind == "font":
+        fonts = fonts_available()
+        cs = None
+        while cs is None:
+            ch = font_glyphs[int(rng.integers(len(font_glyphs)))]
+            if fonts:
+                ff = fonts[int(rng.integers(len(fonts)))]
+                cs = font_outlines(ch, ff)
+                extra = dict(glyph=ch, font=ff)
+            else:                                      # no DejaVu / fontTools: Hershey instead
+                import cv2
+                hf = (cv2.FONT_HERSHEY_SIMPLEX, cv2.FONT_HERSHEY_DUPLEX)[int(rng.integers(2))]
+                cs = glyph_outlines(ch, hf, int(rng.integers(40, 70))) or None
+                extra = dict(glyph=ch, font=f"hershey{hf}")
+        fns = [polyline_curve(c) for c in cs]
+    elif kind == "rings3":
+        # gaps of 9-11 noise widths at 1% noise (1% of the diagonal 2 sqrt 2)
+        g = rng.uniform(9, 11) * 0.01 * 2 * math.sqrt(2)
+        fns = [ellipse(1, 1), ellipse(1 - g, 1 - g), ellipse(1 - 2 * g, 1 - 2 * g)]
+    elif kind == "close2":
+        m = int(rng.uniform(80, 600))                 # points per circle; gap = 3 spacings
+        h = 2 * math.pi / m
+        fns = [ellipse(1, 1, -1 - 1.5 * h), ellipse(1, 1, 1 + 1.5 * h)]
+        counts = [m, m]
+    elif kind == "satellites":
+        rs = rng.uniform(0.12, 0.18)
+        a0 = rng.uniform(0, 2 * math.pi)
+        cen = [(1.5 * math.cos(a0 + k * math.pi / 3), 1.5 * math.sin(a0 + k * math.pi / 3)) for k in range(6)]
+        fns = [ellipse(1, 1)] + [ellipse(rs, rs, cx, cy) for cx, cy in cen]
+        counts = [int(rng.uniform(80, 600))] + [int(rng.integers(7, 10)) for _ in cen]
+    elif kind == "squares3":
+        sq = np.array([[1.0, 1.0], [-1.0, 1.0], [-1.0, -1.0], [1.0, -1.0]])
+        fns = [polyline_curve(sq * r) for r in (1.0, 0.7, 0.4)]
+    elif kind == "crescent":
+        from shapely.geometry import Point
+        d, r2 = rng.uniform(0.3, 0.45), rng.uniform(0.8, 0.9)
+        poly = Point(0, 0).buffer(1.0, quad_segs=256).difference(Point(d, 0).buffer(r2, quad_segs=256))
+        fns = [polyline_curve(np.asarray(poly.exterior.coords)[:-1])]
+    elif kind == "dumbbell":
+        from shapely.geometry import Point, box
+        w = rng.uniform(0.12, 0.2)                    # half-width of the neck (discs of radius 1)
+        poly = Point(-1.6, 0).buffer(1.0, quad_segs=256).union(Point(1.6, 0).buffer(1.0, quad_segs=256)).union(
+            box(-1.6, -w, 1.6, w))
+        fns = [polyline_curve(np.asarray(poly.exterior.coords)[:-1])]
     else:
-        raise ValueError(f"unknown kind {kind!r} (known: {', '.join(KINDS)})")
-    n = int(rng.uniform(80, 600)) * (len(fns) if kind != "glyph" else 3)
+        raise ValueError(f"unknown kind {kind!r} (known: {', '.join(ALL_KINDS)})")
     lengths = [arclength_samples(f, 8, 0.0)[1] for f in fns]
-    counts = [max(12, int(round(n * ln / sum(lengths)))) for ln in lengths]
+    if counts is None:
+        n = int(rng.uniform(80, 600)) * (len(fns) if kind not in ("glyph", "font") else 3)
+        counts = [max(12, int(round(n * ln / sum(lengths)))) for ln in lengths]
     pts = np.concatenate([arclength_samples(f, c, rng.uniform())[0] for f, c in zip(fns, counts)])
     truth = [arclength_samples(f, 1000, 0.0)[0] for f in fns]
     allt = np.concatenate(truth)
@@ -147,7 +325,7 @@ def make_case(i: int, kinds: Sequence[str], rng: np.random.Generator, glyphs: st
         pts = np.concatenate([pts, rng.uniform(lo - 0.1 * diag, hi + 0.1 * diag, (m, 2))])
     a = rng.uniform(0, 2 * math.pi)
     R = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
-    return dict(name=f"{kind}_{i}", kind=kind, noise=f"n{noise:g}", points=pts @ R.T,
+    return dict(name=f"{kind}_{i}", kind=kind, noise=f"n{noise:g}", points=pts @ R.T, **extra,
                 truth={"curves": [(c @ R.T).tolist() for c in truth], "n_components": len(fns)})
 
 
@@ -171,29 +349,30 @@ def score(cases: List[Dict[str, Any]], polylines: List[Any]) -> List[Dict[str, A
     return [metrics.score_case(pl, c["truth"]) for c, pl in zip(cases, polylines)]
 
 
+def _cell(rows) -> str:
+    """``right/n H C``: the right-topology count, median Hausdorff and median Chamfer (% of the
+    truth's diagonal) of the scores ``rows``."""
+    if not rows:
+        return ""
+    ok = sum(bool(s["topology_ok"]) for s in rows)
+    h = 100 * statistics.median(s["hausdorff"] for s in rows)
+    c = 100 * statistics.median(s["chamfer"] for s in rows)
+    return f"{ok}/{len(rows)} {h:.2f} {c:.2f}"
+
+
 def print_summary(title: str, cases, scores, seconds: float) -> Tuple[int, int]:
     kinds = list(dict.fromkeys(c["kind"] for c in cases))
     noises = sorted({c["noise"] for c in cases}, key=lambda s: float(s[1:]))
     print(f"## {title}\n")
-    print("| kind | " + " | ".join(f"topology {n}" for n in noises) + " | all | median H% |")
-    print("|---|" + "---:|" * (len(noises) + 2))
-    for k in kinds:
-        cells = []
-        for n in noises:
-            ok = [bool(s["topology_ok"]) for c, s in zip(cases, scores) if c["kind"] == k and c["noise"] == n]
-            cells.append(f"{sum(ok)}/{len(ok)}" if ok else "")
-        ok = [bool(s["topology_ok"]) for c, s in zip(cases, scores) if c["kind"] == k]
-        hs = [s["hausdorff"] for c, s in zip(cases, scores) if c["kind"] == k]
-        print(f"| {k} | " + " | ".join(cells) + f" | {sum(ok)}/{len(ok)} | {100 * statistics.median(hs):.2f} |")
-    cells = []
-    for n in noises:
-        ok = [bool(s["topology_ok"]) for c, s in zip(cases, scores) if c["noise"] == n]
-        hs = [s["hausdorff"] for c, s in zip(cases, scores) if c["noise"] == n]
-        cells.append(f"{sum(ok)}/{len(ok)} ({100 * statistics.median(hs):.2f}%)")
+    print("cells: right topology / cases, median Hausdorff %, median Chamfer % (of the truth's diagonal)\n")
+    print("| kind | " + " | ".join(f"noise {n[1:]}%" for n in noises) + " | all |")
+    print("|---|" + "---:|" * (len(noises) + 1))
+    for k in kinds + [None]:
+        sel = [(c, s) for c, s in zip(cases, scores) if k is None or c["kind"] == k]
+        cells = [_cell([s for c, s in sel if c["noise"] == n]) for n in noises] + [_cell([s for _, s in sel])]
+        label = "**all**" if k is None else k
+        print(f"| {label} | " + " | ".join(cells) + " |")
     ok = [bool(s["topology_ok"]) for s in scores]
-    hs = [s["hausdorff"] for s in scores]
-    print("| **all** (median H%) | " + " | ".join(cells) +
-          f" | **{sum(ok)}/{len(ok)}** | {100 * statistics.median(hs):.2f} |")
     print(f"\ntopology right: {sum(ok)} of {len(ok)}; {seconds:.2f} s\n")
     return sum(ok), len(ok)
 
@@ -201,9 +380,16 @@ def print_summary(title: str, cases, scores, seconds: float) -> Tuple[int, int]:
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--count", type=int, default=280, help="generated shapes (default 280)")
+    ap.add_argument("--suite", choices=sorted(SUITES), default=None,
+                    help="a preset of --kinds, --noises and --count (broad: the families of issue 13 at "
+                         "noise 0, 0.5, 1, 2%%); explicit options override it")
+    ap.add_argument("--count", type=int, default=None, help="generated shapes (default 280)")
     ap.add_argument("--seed", type=int, default=0, help="generator seed (default 0)")
-    ap.add_argument("--kinds", default=",".join(KINDS), help=f"comma list, taken in turn (default: {','.join(KINDS)})")
+    ap.add_argument("--kinds", default=None, help=f"comma list, taken in turn (default: {','.join(KINDS)}; "
+                                                  f"all: {','.join(ALL_KINDS)})")
+    ap.add_argument("--noises", default=None, help="comma list of noise levels, %% of the truth's diagonal, taken "
+                                                   "in turn over each round of kinds (default 0,0.25,0.5,1)")
+    ap.add_argument("--font-glyphs", default=FONT_GLYPHS, help=f"characters of the font kind (default {FONT_GLYPHS})")
     ap.add_argument("--glyphs", default=GLYPHS, help=f"characters of the glyph kind (default {GLYPHS})")
     ap.add_argument("--rotations", type=int, default=0, help="also the public cases turned by K angles (default 0)")
     ap.add_argument("--cases", default=None, help="public cases folder (default: ../shared/cases)")
@@ -216,13 +402,18 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Optional[Sequence[str]] = None) -> int:
     args = build_parser().parse_args(argv)
     config = setup_run(args)
-    kinds = [k.strip() for k in args.kinds.split(",") if k.strip()]
-    unknown = [k for k in kinds if k not in KINDS]
+    suite = SUITES.get(args.suite, {})
+    kinds = [k.strip() for k in (args.kinds or suite.get("kinds") or ",".join(KINDS)).split(",") if k.strip()]
+    noises = tuple(float(x) for x in (args.noises or suite.get("noises") or ",".join(map(str, NOISES))).split(","))
+    count = args.count if args.count is not None else suite.get("count", 280)
+    unknown = [k for k in kinds if k not in ALL_KINDS]
     if unknown:
-        print(f"--kinds: unknown {', '.join(unknown)} (known: {', '.join(KINDS)})", file=sys.stderr)
+        print(f"--kinds: unknown {', '.join(unknown)} (known: {', '.join(ALL_KINDS)})", file=sys.stderr)
         return 2
     rng = np.random.default_rng(args.seed)
-    cases = [make_case(i, kinds, rng, args.glyphs) for i in range(args.count)]
+    if "font" in kinds and not fonts_available():
+        print(f"font kind: no fontTools or no DejaVu fonts in {FONT_DIR}; Hershey glyphs instead", file=sys.stderr)
+    cases = [make_case(i, kinds, rng, args.glyphs, noises, args.font_glyphs) for i in range(count)]
     if args.rotations > 0:
         cases += rotated_public(resolve_dir(args.cases, REPO / ".." / "shared" / "cases"), args.rotations)
     if args.filter:
@@ -230,7 +421,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     if not cases:
         print("no set to reconstruct", file=sys.stderr)
         return 2
-    print(f"{len(cases)} point set(s): {args.count} generated (seed {args.seed}), public cases at "
+    print(f"{len(cases)} point set(s): {count} generated (seed {args.seed}{', suite ' + args.suite if args.suite else ''}), public cases at "
           f"{args.rotations} angle(s); config overrides: {' '.join(args.set) or 'none'}\n")
     sets = [torch.as_tensor(c["points"], dtype=torch.float64, device=args.device) for c in cases]
     t0 = time.perf_counter()
@@ -252,8 +443,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                 continue
             print_summary(name, cases, score(cases, pls), time.perf_counter() - t1)
     if args.json:
-        rows = [dict(name=c["name"], kind=c["kind"], noise=c["noise"], topology_ok=bool(s["topology_ok"]),
-                     hausdorff=float(s["hausdorff"]), n_closed=int(s["n_closed"])) for c, s in zip(cases, scores)]
+        rows = [dict(name=c["name"], kind=c["kind"], noise=c["noise"], glyph=c.get("glyph"), font=c.get("font"), topology_ok=bool(s["topology_ok"]),
+                     hausdorff=float(s["hausdorff"]), chamfer=float(s["chamfer"]), n_closed=int(s["n_closed"])) for c, s in zip(cases, scores)]
         torch_isc.io.atomic_write(args.json, json.dumps(rows, indent=1))
     return 0
 

@@ -42,7 +42,7 @@ class BandConfig:
     #: a triangle whose longest edge is below this many noise widths is not split
     band_min_size: float = knob(4.0, ge=0)
     #: smoothness weight of the final refit (the loop's is ``smoothness``)
-    band_smoothness: float = knob(0.3, ge=0)
+    band_smoothness: float = knob(3.0, ge=0)
     #: L-BFGS iterations of the final refit
     band_iterations: int = knob(80, ge=0)
     #: rounds of the spike rule (flip simple vertices the curve wraps around, then refit); 0 disables

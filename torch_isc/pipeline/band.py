@@ -44,7 +44,7 @@ class BandConfig:
     #: smoothness weight of the final refit (the loop's is ``smoothness``)
     band_smoothness: float = knob(3.0, ge=0)
     #: L-BFGS iterations of the final refit
-    band_iterations: int = knob(80, ge=0)
+    band_iterations: int = knob(40, ge=0)
     #: rounds of the spike rule (flip simple vertices the curve wraps around, then refit); 0 disables
     spike_rounds: int = knob(2, ge=0)
     #: a vertex is a spike's tip when more than this fraction of the angle around it lies across the curve
@@ -146,20 +146,21 @@ def band_stage(ws: "WorkingSet", cfg: BandConfig, geometry: GeometryConfig, slac
     # Δ1 at the noise level then weighs O(1), and the smoothness term can hold its own
     # started, as the loop is, at each vertex's distance to the data (the floor is a fraction of
     # the mean start: the loop's far magnitudes are large and would put the near ones on it)
+    # started, as the loop is, at each vertex's distance to the data: the floor is a fraction
+    # of the mean start, and the loop's far magnitudes grew (a floor taken from them flattens f
+    # near the curve); a warm start from the loop's values also kept more of its spikes
     values = ws.values
     with torch.no_grad():
         init = vertex_data_distance(m, ws.points, ws.face)
-    for r in range(cfg.spike_rounds + 1):
+    # the loop's curve already has its spikes: flip first, then fit (each later round flips
+    # what the refit left and fits again)
+    for r in range(max(cfg.spike_rounds, 1)):
+        if cfg.spike_rounds > 0:
+            values = _flip_spikes(ws, values, cfg)
         signs = torch.where(values < 0, -1.0, 1.0).to(values.dtype)
         values, _ = fit_geometry(m, mom, signs, init if r == 0 else values.abs(), slack, gcfg, data_dist=near,
                                  slack=slack)
         values = values.detach()
-        if r == cfg.spike_rounds:
-            break
-        flipped = _flip_spikes(ws, values, cfg)
-        if torch.equal(flipped, values):
-            break
-        values = flipped
     # flat items keep what the loop made (no curve)
     values = torch.where(ws.flat[ws.mesh.vert_item], ws.values, values.detach())
     return ws.replace(values=values, signs=torch.where(values < 0, -1.0, 1.0).to(values.dtype))

@@ -111,7 +111,7 @@ def reconstruct_batch(point_sets: Sequence[PointsLike], config: Optional[Reconst
     Gradients: when grad mode is on and a point set is a tensor that requires grad, every
     result's curve values carry a gradient with respect to its own points (the values are
     unchanged; the gradient is that of the refit of the magnitudes to the points with mesh
-    and signs frozen, by implicit differentiation, see
+    and signs frozen, with the band stage's smoothness when it ran, by implicit differentiation, see
     :func:`torch_isc.pipeline.refit.attach_point_gradients`). Otherwise nothing changes.
     """
     cfg = _as_config(config)
@@ -127,7 +127,10 @@ def reconstruct_batch(point_sets: Sequence[PointsLike], config: Optional[Reconst
     results = run_loop(batch, cfg, source, names)
     if torch.is_grad_enabled() and any(torch.is_tensor(p) and p.requires_grad for p in point_sets):
         from torch_isc.pipeline.refit import attach_point_gradients
-        results = attach_point_gradients(results, point_sets)
+        # the band stage's meshes are finer than the loop's: their refit needs its smoothness
+        # (with the loop's, triangles of one or two points make the point gradients erratic)
+        kw = {"smoothness": cfg.band.band_smoothness} if cfg.band.band_levels > 0 else {}
+        results = attach_point_gradients(results, point_sets, **kw)
     if packed:
         from torch_isc.core.curve import ImplicitCurve
         return results, ImplicitCurve.cat([r.curve for r in results])

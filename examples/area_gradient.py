@@ -65,10 +65,11 @@ def main(argv=None) -> dict:
     grad = p.grad
     # finite differences of the converged re-solve (mesh and signs frozen)
     frozen = res.curve.detach()
-    F0 = torch_isc.refit(frozen, p0).values
+    sm = torch_isc.ReconstructConfig().band.band_smoothness      # the refit reconstruct's gradient uses
+    F0 = torch_isc.refit(frozen, p0, smoothness=sm).values
 
     def area_of(q):
-        return float(area(ImplicitCurve(frozen.mesh, frozen.values + torch_isc.refit(frozen, q).values - F0)))
+        return float(area(ImplicitCurve(frozen.mesh, frozen.values + torch_isc.refit(frozen, q, smoothness=sm).values - F0)))
 
     eps, worst = 1e-6, 0.0
     idx = torch.randperm(2 * args.points, generator=g)[:args.checks].tolist()

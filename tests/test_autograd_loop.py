@@ -32,10 +32,11 @@ def test_reconstruct_area_gradient_matches_finite_differences_of_the_resolve():
     # F + F*(p) - F*(p0) (keep_values), so the derivative is dA/dF(F) . dF*/dp
     frozen = plain.curve
     F = frozen.values
-    F0 = torch_isc.refit(frozen, p0).values
+    sm = torch_isc.ReconstructConfig().band.band_smoothness      # the refit of the band stage's mesh
+    F0 = torch_isc.refit(frozen, p0, smoothness=sm).values
 
     def area_of(q):
-        return float(area(ImplicitCurve(frozen.mesh, F + torch_isc.refit(frozen, q).values - F0)))
+        return float(area(ImplicitCurve(frozen.mesh, F + torch_isc.refit(frozen, q, smoothness=sm).values - F0)))
 
     eps = 1e-6
     gen = torch.Generator().manual_seed(1)

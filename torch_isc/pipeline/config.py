@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any, Dict, Iterable, List, Mapping, Optional, Union
 
 from torch_isc._helpers import decode_text
+from torch_isc.pipeline.band import BandConfig
 from torch_isc.pipeline.evidence import EvidenceConfig
 from torch_isc.pipeline.knobs import ConfigError, check_bounds, check_section, knob
 from torch_isc.pipeline.noise import NoiseConfig
@@ -29,7 +30,7 @@ from torch_isc.pipeline.tolerance import TestConfig
 from torch_isc.pipeline.values import GeometryConfig
 
 __all__ = ["ReconstructConfig", "ConfigError", "MeshConfig", "LimitsConfig", "RunConfig", "NoiseConfig",
-           "EvidenceConfig", "TopologyConfig", "GeometryConfig", "TestConfig", "RelaxConfig", "load_config",
+           "EvidenceConfig", "TopologyConfig", "GeometryConfig", "BandConfig", "TestConfig", "RelaxConfig", "load_config",
            "parse_overrides", "from_dict", "flat_keys", "read_config_mapping", "config_hash", "UPPER_BOUNDS",
            "MAX_CONFIG_BYTES", "initial_triangles"]
 
@@ -90,6 +91,7 @@ class ReconstructConfig:
     geometry: GeometryConfig = field(default_factory=GeometryConfig)
     test: TestConfig = field(default_factory=TestConfig)
     relaxation: RelaxConfig = field(default_factory=RelaxConfig)
+    band: BandConfig = field(default_factory=BandConfig)
     run: RunConfig = field(default_factory=RunConfig)
 
     def __post_init__(self):
@@ -144,6 +146,7 @@ UPPER_BOUNDS: Dict[str, float] = {
     "min_island_vertices": 2 ** 31 - 1, "unsupported_weight": 1e6, "unsupported_noise_widths": 1e6, "cluster_rounds": 1_000,
     "noise_factor": 1e6, "min_points_split": 2 ** 31 - 1, "thin_feature_factor": 1e6, "min_split_size": 1e6,
     "lbfgs_iterations": 100_000, "lbfgs_history": 1_000, "lbfgs_trials": 64, "smoothness": 1e6, "crossing_weight": 1e6,
+    "band_levels": 8, "band_rings": 16, "band_min_size": 1e6, "band_smoothness": 1e6, "band_iterations": 100_000,
 }
 
 

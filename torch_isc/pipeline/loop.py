@@ -28,6 +28,7 @@ from torch_isc.core.mesh import MeshBatch, hexagon_mesh, square_mesh
 from torch_isc.core.points import PointBatch, PointSetError, PointsLike, check_extent, prepare_points
 from torch_isc.core.segments import segment_count, segment_sum
 from torch_isc.pipeline.config import ConfigError, MeshConfig, ReconstructConfig, from_dict, initial_triangles
+from torch_isc.pipeline.band import band_stage
 from torch_isc.pipeline.evidence import gather_evidence
 from torch_isc.pipeline.noise import noise_and_frames
 from torch_isc.pipeline.relax import relax_stage
@@ -110,7 +111,7 @@ def reconstruct_batch(point_sets: Sequence[PointsLike], config: Optional[Reconst
     Gradients: when grad mode is on and a point set is a tensor that requires grad, every
     result's curve values carry a gradient with respect to its own points (the values are
     unchanged; the gradient is that of the refit of the magnitudes to the points with mesh
-    and signs frozen, by implicit differentiation, see
+    and signs frozen, with the band stage's smoothness when it ran, by implicit differentiation, see
     :func:`torch_isc.pipeline.refit.attach_point_gradients`). Otherwise nothing changes.
     """
     cfg = _as_config(config)
@@ -126,7 +127,10 @@ def reconstruct_batch(point_sets: Sequence[PointsLike], config: Optional[Reconst
     results = run_loop(batch, cfg, source, names)
     if torch.is_grad_enabled() and any(torch.is_tensor(p) and p.requires_grad for p in point_sets):
         from torch_isc.pipeline.refit import attach_point_gradients
-        results = attach_point_gradients(results, point_sets)
+        # the band stage's meshes are finer than the loop's: their refit needs its smoothness
+        # (with the loop's, triangles of one or two points make the point gradients erratic)
+        kw = {"smoothness": cfg.band.band_smoothness} if cfg.band.band_levels > 0 else {}
+        results = attach_point_gradients(results, point_sets, **kw)
     if packed:
         from torch_isc.core.curve import ImplicitCurve
         return results, ImplicitCurve.cat([r.curve for r in results])
@@ -222,7 +226,12 @@ def run_loop(batch: PointBatch, cfg: ReconstructConfig, source: SignSource,
         if n_done:
             # finished items last, each part ascending: no second host read for the split
             order = torch.argsort(done.to(torch.uint8), stable=True)
-            for b, res in finish_items(ws, order[nb - n_done:], n_marked, over, batch, cfg, rec.per_item, names):
+            fin = order[nb - n_done:]
+            # the band stage refines and refits the finished items only
+            sub = band_stage(ws.select(fin), cfg.band, cfg.geometry, slack[fin])
+            rec.tick("geometry")
+            local = torch.arange(n_done, device=fin.device)
+            for b, res in finish_items(sub, local, n_marked[fin], over[fin], batch, cfg, rec.per_item, names):
                 if b in timed:
                     res.converged, res.limit = False, "max_seconds"
                 results[b] = res

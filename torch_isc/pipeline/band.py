@@ -1,0 +1,166 @@
+"""The last stage: refine the mesh around the curve, signs fixed, and refit the magnitudes so
+the zero set follows the mean of the noisy band.
+
+The loop stops refining once the test passes, which under noise leaves triangles of a few
+noise widths whose zero set is a polygon with one straight piece per triangle. This stage
+splits the triangles the zero set crosses (and ``band_rings`` rings of neighbours) for
+``band_levels`` rounds, never a triangle whose longest edge is below ``band_min_size`` noise
+widths: a triangle narrower than the noise band has too few points on either side of the
+curve for its line to average them, and the zero set would start chasing points. New
+vertices take the piecewise-linear ``f`` (the zero set does not move and the topology is
+kept, see :meth:`ImplicitCurve.refine_band`). The magnitudes are then refitted with the
+loop's objective (:class:`~torch_isc.pipeline.values.GeometryObjective`: ``Δ1`` plus the
+jump of ``∇f`` across interior edges plus the dead-zoned crossing term) with a stronger
+smoothness weight, so residuals of points on both sides of the curve cancel rather than bend it.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import torch
+
+from torch_isc.core.subdivide import subdivide
+from torch_isc.pipeline.evidence import triangle_moments
+from torch_isc.pipeline.knobs import check_section, knob
+from torch_isc.pipeline.values import GeometryConfig, fit_geometry, vertex_data_distance, vertex_data_distance_near
+
+if TYPE_CHECKING:
+    from torch_isc.pipeline.workset import WorkingSet
+
+__all__ = ["BandConfig", "band_marks", "wrap_fraction", "spike_vertices", "band_stage"]
+
+
+@dataclass
+class BandConfig:
+    """The band stage (flat keys of configs/default.yaml)."""
+    #: rounds of refinement around the curve before the final refit; 0 disables the stage
+    band_levels: int = knob(1, ge=0)
+    #: rings of neighbours of the crossed triangles split with them
+    band_rings: int = knob(1, ge=0)
+    #: a triangle whose longest edge is below this many noise widths is not split
+    band_min_size: float = knob(4.0, ge=0)
+    #: smoothness weight of the final refit (the loop's is ``smoothness``)
+    band_smoothness: float = knob(3.0, ge=0)
+    #: L-BFGS iterations of the final refit
+    band_iterations: int = knob(40, ge=0)
+    #: rounds of the spike rule (flip simple vertices the curve wraps around, then refit); 0 disables
+    spike_rounds: int = knob(2, ge=0)
+    #: a vertex is a spike's tip when more than this fraction of the angle around it lies across the curve
+    spike_wrap: float = knob(0.7, gt=0.5, le=1)
+    #: ...and it lies within this many noise widths of the data
+    spike_reach: float = knob(2.0, ge=0)
+
+    def __post_init__(self):
+        check_section(self)
+
+
+def band_marks(ws: "WorkingSet", cfg: BandConfig) -> torch.Tensor:
+    """``(T,)`` bool: the triangles the zero set crosses plus ``band_rings`` rings of
+    neighbours, longer (longest edge) than ``band_min_size`` times the item's noise, in items
+    that have a curve."""
+    with torch.no_grad():
+        m = ws.mesh
+        fneg = ws.values[m.faces] < 0
+        marked = fneg.any(1) & ~fneg.all(1)
+        nb = m.face_neighbors
+        for _ in range(cfg.band_rings):
+            marked = marked | (marked[nb.clamp_min(0)] & (nb >= 0)).any(1)
+        p = m.verts.detach()[m.faces]
+        longest = (p - p.roll(1, 1)).norm(dim=2).amax(1)
+        fi = m.face_item
+        return marked & (longest > cfg.band_min_size * ws.noise[fi]) & ~ws.flat[fi]
+
+
+def wrap_fraction(mesh, values: torch.Tensor) -> torch.Tensor:
+    """``(V,)`` the fraction of the angle around each vertex that lies on the other side of the
+    piecewise-linear zero set, counted per incident triangle: its angle at the vertex times the
+    share of its two other corners whose sign differs (1/2 for a triangle the curve cuts
+    between them and the vertex on one side only). About 1/2 on a straight curve; near 1 at
+    the tip of a spike (the curve runs around the vertex and back)."""
+    with torch.no_grad():
+        f = mesh.faces
+        p = mesh.verts.detach()[f]                                   # (T,3,2)
+        a = p.roll(-1, 1) - p
+        b = p.roll(1, 1) - p
+        cos = (a * b).sum(2) / (a.norm(dim=2) * b.norm(dim=2)).clamp_min(torch.finfo(p.dtype).tiny)
+        ang = torch.acos(cos.clamp(-1.0, 1.0))                       # (T,3) angle at each corner
+        neg = values.detach()[f] < 0
+        other = (neg.roll(-1, 1) != neg).to(p.dtype) + (neg.roll(1, 1) != neg).to(p.dtype)
+        V = mesh.verts.shape[0]
+        tot = torch.zeros(V, dtype=p.dtype, device=p.device).index_add_(0, f.reshape(-1), ang.reshape(-1))
+        op = torch.zeros(V, dtype=p.dtype, device=p.device).index_add_(0, f.reshape(-1), (0.5 * other * ang).reshape(-1))
+        return op / tot.clamp_min(torch.finfo(p.dtype).tiny)
+
+
+def spike_vertices(ws: "WorkingSet", values: torch.Tensor, cfg: BandConfig) -> torch.Tensor:
+    """``(V,)`` bool: vertices the zero set wraps around (:func:`wrap_fraction` above
+    ``spike_wrap``) that lie within ``spike_reach`` noise widths of the data. The fit keeps
+    such a vertex on its side of the curve by making ``|f|`` there tiny, which draws the zero
+    set into a spike (or a notch) toward it; the data cannot tell on which side of a curve a
+    vertex inside the noise band lies, so its sign is a free choice there."""
+    with torch.no_grad():
+        near = vertex_data_distance_near(ws.mesh, ws.points, ws.face)
+        reach = cfg.spike_reach * ws.noise[ws.mesh.vert_item]
+        return (wrap_fraction(ws.mesh, values) > cfg.spike_wrap) & (near <= reach)
+
+
+def _flip_spikes(ws: "WorkingSet", values: torch.Tensor, cfg: BandConfig) -> torch.Tensor:
+    """``(V,)`` values with the simple spike vertices flipped (both signs, each an independent
+    set: :meth:`ImplicitCurve.flip_simple`, so every item keeps its topology)."""
+    from torch_isc.core.curve import ImplicitCurve
+    with torch.no_grad():
+        cand = spike_vertices(ws, values, cfg)
+        c = ImplicitCurve(ws.mesh, values, validate=False)
+        c, _ = c.flip_simple(candidates=cand, grow=True, ratio=0.5)
+        c, _ = c.flip_simple(candidates=cand, grow=False, ratio=0.5)
+        return c.values
+
+
+def band_stage(ws: "WorkingSet", cfg: BandConfig, geometry: GeometryConfig, slack: torch.Tensor) -> "WorkingSet":
+    """The working set with its mesh refined around the curve and its magnitudes refitted
+    (signs of every old vertex kept; new vertices take the sign of ``f`` where they sit).
+    ``slack (B,)``: the crossing term's dead zone (the tolerance each item was tested at)."""
+    if cfg.band_levels <= 0 or ws.num_items == 0:
+        return ws
+    for _ in range(cfg.band_levels):
+        marked = band_marks(ws, cfg)
+        if not bool(marked.any()):
+            break
+        ws = ws.follow(subdivide(ws.mesh, marked))
+    gcfg = dataclasses.replace(geometry, smoothness=cfg.band_smoothness, lbfgs_iterations=cfg.band_iterations)
+    with torch.no_grad():
+        # the fit explains the points near the curve it has (crossed triangles and their
+        # neighbours): a point farther out is an outlier to this topology, and in a triangle
+        # where f is flat (magnitudes at the floor) it would weigh without bound
+        m = ws.mesh
+        fneg = ws.values[m.faces] < 0
+        near_t = fneg.any(1) & ~fneg.all(1)
+        nb = m.face_neighbors
+        near_t = near_t | (near_t[nb.clamp_min(0)] & (nb >= 0)).any(1)
+        face = torch.where((ws.face >= 0) & near_t[ws.face.clamp_min(0)], ws.face, torch.full_like(ws.face, -1))
+        mom = triangle_moments(m, ws.points, face, ws.bary)
+        near = vertex_data_distance_near(m, ws.points, ws.face) if gcfg.crossing_weight > 0 else None
+    # the fit is normalized by the tested tolerance (never below the noise), not the user's:
+    # Δ1 at the noise level then weighs O(1), and the smoothness term can hold its own
+    # started, as the loop is, at each vertex's distance to the data (the floor is a fraction of
+    # the mean start: the loop's far magnitudes are large and would put the near ones on it)
+    # started, as the loop is, at each vertex's distance to the data: the floor is a fraction
+    # of the mean start, and the loop's far magnitudes grew (a floor taken from them flattens f
+    # near the curve); a warm start from the loop's values also kept more of its spikes
+    values = ws.values
+    with torch.no_grad():
+        init = vertex_data_distance(m, ws.points, ws.face)
+    # the loop's curve already has its spikes: flip first, then fit (each later round flips
+    # what the refit left and fits again)
+    for r in range(max(cfg.spike_rounds, 1)):
+        if cfg.spike_rounds > 0:
+            values = _flip_spikes(ws, values, cfg)
+        signs = torch.where(values < 0, -1.0, 1.0).to(values.dtype)
+        values, _ = fit_geometry(m, mom, signs, init if r == 0 else values.abs(), slack, gcfg, data_dist=near,
+                                 slack=slack)
+        values = values.detach()
+    # flat items keep what the loop made (no curve)
+    values = torch.where(ws.flat[ws.mesh.vert_item], ws.values, values.detach())
+    return ws.replace(values=values, signs=torch.where(values < 0, -1.0, 1.0).to(values.dtype))

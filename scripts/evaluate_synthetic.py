@@ -393,7 +393,7 @@ def build_parser() -> argparse.ArgumentParser:
                                                   f"all: {','.join(ALL_KINDS)})")
     ap.add_argument("--noises", default=None, help="comma list of noise levels, %% of the truth's diagonal, taken "
                                                    "in turn over each round of kinds (default 0,0.25,0.5,1)")
-    ap.add_argument("--font-glyphs", default=FONT_GLYPHS, help=f"characters of the font kind (default {FONT_GLYPHS})")
+    ap.add_argument("--font-glyphs", default=FONT_GLYPHS, help="characters of the font kind (default " + FONT_GLYPHS.replace("%", "%%") + ")")
     ap.add_argument("--glyphs", default=GLYPHS, help=f"characters of the glyph kind (default {GLYPHS})")
     ap.add_argument("--rotations", type=int, default=0, help="also the public cases turned by K angles (default 0)")
     ap.add_argument("--cases", default=None, help="public cases folder (default: ../shared/cases)")

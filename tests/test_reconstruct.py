@@ -225,8 +225,8 @@ def test_sparse_annulus_is_not_cut_into_pieces(seed, item):
 
 def test_distinct_points_packed_against_a_loop():
     """Exact repeats are merged per item, first occurrences kept in input order (-0.0 equals
-    0.0; integer and float32 inputs compared exactly in float64); a set left with fewer than 3
-    distinct points is named in the error."""
+    0.0; integer and float32 inputs compared exactly in float64), each with its row in the
+    caller's set; a set left with fewer than 3 distinct points is named in the error."""
     from torch_isc.core.points import distinct_points as _distinct
     g = torch.Generator().manual_seed(0)
     a = torch.randint(0, 4, (50, 2), generator=g)
@@ -235,20 +235,26 @@ def test_distinct_points_packed_against_a_loop():
     d = torch.randn(30, 2, generator=g, dtype=torch.float64)
 
     def first_occurrences(x):
-        seen, out = set(), []
-        for r in x.double().tolist():
+        seen, out, rows = set(), [], []
+        for i, r in enumerate(x.double().tolist()):
             key = (r[0] + 0.0, r[1] + 0.0)
             if key not in seen:
                 seen.add(key)
                 out.append(r)
-        return torch.tensor(out, dtype=torch.float64)
+                rows.append(i)
+        return torch.tensor(out, dtype=torch.float64), rows
 
     sets = [a, b, c, d]
-    pts, item, counts = _distinct(sets, ["a", "b", "c", "d"])
+    pts, item, counts, source = _distinct(sets, ["a", "b", "c", "d"])
     assert pts.dtype == torch.float64
-    assert counts.tolist() == [first_occurrences(x).shape[0] for x in sets]
+    assert counts.tolist() == [first_occurrences(x)[0].shape[0] for x in sets]
     for k, x in enumerate(sets):
-        assert torch.equal(pts[item == k], first_occurrences(x)), k
+        want, rows = first_occurrences(x)
+        assert torch.equal(pts[item == k], want), k
+        assert source[item == k].tolist() == rows, k
+    # no repeat at all: every row kept, its own index
+    _, _, _, src = _distinct([d, d[:7]], ["d", "e"])
+    assert src.tolist() == list(range(30)) + list(range(7))
     with pytest.raises(PointSetError, match="^two: needs at least 3 distinct points, got 2$"):
         _distinct([d, torch.tensor([[1.0, 1.0], [1.0, 1.0], [2.0, 0.0]])], ["one", "two"])
 

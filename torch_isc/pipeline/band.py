@@ -144,8 +144,6 @@ def band_stage(ws: "WorkingSet", cfg: BandConfig, geometry: GeometryConfig, slac
         near = vertex_data_distance_near(m, ws.points, ws.face) if gcfg.crossing_weight > 0 else None
     # the fit is normalized by the tested tolerance (never below the noise), not the user's:
     # Δ1 at the noise level then weighs O(1), and the smoothness term can hold its own
-    # started, as the loop is, at each vertex's distance to the data (the floor is a fraction of
-    # the mean start: the loop's far magnitudes are large and would put the near ones on it)
     # started, as the loop is, at each vertex's distance to the data: the floor is a fraction
     # of the mean start, and the loop's far magnitudes grew (a floor taken from them flattens f
     # near the curve); a warm start from the loop's values also kept more of its spikes

@@ -6,7 +6,8 @@ import pytest
 import torch
 
 from torch_isc.core.mesh import hexagon_mesh
-from torch_isc.pipeline.simplify import cluster_flip_change, descend_clusters, edge_components
+from torch_isc.core.segments import edge_components
+from torch_isc.pipeline.simplify import cluster_flip_change, descend_clusters
 from torch_isc.pipeline.support import edge_data_gap, unsupported_coupling
 
 

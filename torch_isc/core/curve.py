@@ -16,7 +16,7 @@ from torch_isc.core.extract import Polylines, extract_zero_set
 from torch_isc.core.locate import barycentric, locate_grid
 from torch_isc.core.mesh import InvalidMeshError, MeshBatch
 
-__all__ = ["ImplicitCurve", "InvalidValuesError", "check_values", "max_orientation_fraction"]
+__all__ = ["ImplicitCurve", "InvalidValuesError", "check_values", "crossed_triangles", "max_orientation_fraction"]
 
 
 class InvalidValuesError(ValueError):
@@ -322,14 +322,7 @@ class ImplicitCurve:
         """
         from torch_isc.core.subdivide import subdivide
         m = self.mesh
-        with torch.no_grad():
-            fneg = self.values.detach()[m.faces] < 0
-            marked = fneg.any(1) & ~fneg.all(1)
-            for _ in range(int(rings)):
-                nb = m.face_neighbors
-                grow = (marked[nb.clamp_min(0)] & (nb >= 0)).any(1)
-                marked = marked | grow
-        sd = subdivide(m, marked)
+        sd = subdivide(m, crossed_triangles(m, self.values, rings))
         vals = sd.interpolate(self.values, m.edges)
         with torch.no_grad():
             ends = m.edges[sd.new_vert_edge.clamp_min(0)]
@@ -383,8 +376,7 @@ class ImplicitCurve:
         with torch.no_grad():
             v = self.values.detach()
             if candidates is None:
-                fneg = v[m.faces] < 0
-                mixed = fneg.any(1) & ~fneg.all(1)
+                mixed = crossed_triangles(m, v)
                 candidates = torch.zeros(v.shape[0], dtype=torch.bool, device=m.device)
                 candidates[m.faces[mixed].reshape(-1)] = True
             ok = candidates & self.simple_vertices() & ((v > 0) if grow else (v < 0))
@@ -400,6 +392,19 @@ class ImplicitCurve:
             flip = ok & (k < nb_min)
         vals = torch.where(flip, -ratio * self.values, self.values)
         return ImplicitCurve(m, vals, validate=False), flip
+
+
+def crossed_triangles(mesh: MeshBatch, values: torch.Tensor, rings: int = 0) -> torch.Tensor:
+    """``(T,)`` bool: the triangles whose corners have both signs of ``values (V,)`` (the zero
+    set crosses them), plus ``rings`` rings of edge neighbours."""
+    with torch.no_grad():
+        fneg = values.detach()[mesh.faces] < 0
+        marked = fneg.any(1) & ~fneg.all(1)
+        if rings > 0:
+            nb = mesh.face_neighbors
+            for _ in range(int(rings)):
+                marked = marked | (marked[nb.clamp_min(0)] & (nb >= 0)).any(1)
+        return marked
 
 
 def max_orientation_fraction(mesh: MeshBatch, disp: torch.Tensor, safety: float = 0.9) -> torch.Tensor:

@@ -18,7 +18,7 @@ from typing import Iterator, Optional, Tuple
 
 import torch
 
-__all__ = ["segment_sum", "segment_max", "segment_min", "segment_count", "segment_mean", "segment_any",
+__all__ = ["edge_components", "segment_sum", "segment_max", "segment_min", "segment_count", "segment_mean", "segment_any",
            "segment_median", "first_index", "segment_rows", "local_index", "mix32", "hash_keys", "hash_to_unit", "hash_uniform",
            "sym2_eigvals", "sym2_eigvec", "expand_in_chunks"]
 
@@ -170,3 +170,21 @@ def expand_in_chunks(counts: torch.Tensor, budget: int) -> Iterator[Tuple[int, i
         slot = torch.arange(row.shape[0], device=dev) - torch.repeat_interleave(torch.cumsum(n, 0) - n, n)
         yield i0, i1, row, slot
         i0 = i1
+
+
+def edge_components(num_verts: int, edges: torch.Tensor, join: torch.Tensor) -> torch.Tensor:
+    """``(V,)`` long: a label per vertex, the smallest vertex index of its component in the
+    graph of the ``edges (E, 2)`` where ``join (E,)`` holds. Label propagation with pointer
+    jumping: a few tensor ops per round, rounds ~ log of the components' diameters in practice;
+    convergence is read every other round (a round after convergence changes nothing)."""
+    with torch.no_grad():
+        a, b = edges[:, 0], edges[:, 1]
+        lab = torch.arange(num_verts, device=edges.device)
+        big = torch.full_like(a, num_verts)                # an edge that does not join proposes no label
+        while True:
+            for _ in range(2):
+                m = torch.where(join, torch.minimum(lab[a], lab[b]), big)
+                new = lab.scatter_reduce(0, a, m, "amin").scatter_reduce(0, b, m, "amin")
+                prev, lab = lab, new[new]                  # pointer jumping
+            if torch.equal(prev, lab):
+                return lab

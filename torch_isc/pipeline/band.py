@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING
 
 import torch
 
+from torch_isc.core.curve import crossed_triangles
 from torch_isc.core.subdivide import subdivide
 from torch_isc.pipeline.evidence import triangle_moments
 from torch_isc.pipeline.knobs import check_section, knob
@@ -62,13 +63,8 @@ def band_marks(ws: "WorkingSet", cfg: BandConfig) -> torch.Tensor:
     that have a curve."""
     with torch.no_grad():
         m = ws.mesh
-        fneg = ws.values[m.faces] < 0
-        marked = fneg.any(1) & ~fneg.all(1)
-        nb = m.face_neighbors
-        for _ in range(cfg.band_rings):
-            marked = marked | (marked[nb.clamp_min(0)] & (nb >= 0)).any(1)
-        p = m.verts.detach()[m.faces]
-        longest = (p - p.roll(1, 1)).norm(dim=2).amax(1)
+        marked = crossed_triangles(m, ws.values, cfg.band_rings)
+        longest = m.kernel.longest_edge(m.verts.detach()[m.faces])
         fi = m.face_item
         return marked & (longest > cfg.band_min_size * ws.noise[fi]) & ~ws.flat[fi]
 
@@ -135,10 +131,7 @@ def band_stage(ws: "WorkingSet", cfg: BandConfig, geometry: GeometryConfig, slac
         # neighbours): a point farther out is an outlier to this topology, and in a triangle
         # where f is flat (magnitudes at the floor) it would weigh without bound
         m = ws.mesh
-        fneg = ws.values[m.faces] < 0
-        near_t = fneg.any(1) & ~fneg.all(1)
-        nb = m.face_neighbors
-        near_t = near_t | (near_t[nb.clamp_min(0)] & (nb >= 0)).any(1)
+        near_t = crossed_triangles(m, ws.values, 1)
         face = torch.where((ws.face >= 0) & near_t[ws.face.clamp_min(0)], ws.face, torch.full_like(ws.face, -1))
         mom = triangle_moments(m, ws.points, face, ws.bary)
         near = vertex_data_distance_near(m, ws.points, ws.face) if gcfg.crossing_weight > 0 else None
@@ -160,5 +153,5 @@ def band_stage(ws: "WorkingSet", cfg: BandConfig, geometry: GeometryConfig, slac
                                  slack=slack)
         values = values.detach()
     # flat items keep what the loop made (no curve)
-    values = torch.where(ws.flat[ws.mesh.vert_item], ws.values, values.detach())
+    values = torch.where(ws.flat[ws.mesh.vert_item], ws.values, values)
     return ws.replace(values=values, signs=torch.where(values < 0, -1.0, 1.0).to(values.dtype))

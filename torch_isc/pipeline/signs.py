@@ -16,7 +16,7 @@ import torch
 
 from torch_isc.core.mesh import MeshBatch
 from torch_isc.core.points import PointSetError
-from torch_isc.core.segments import first_index, hash_keys, hash_to_unit, mix32, segment_count, segment_max, segment_min
+from torch_isc.core.segments import edge_components, first_index, hash_keys, hash_to_unit, mix32, segment_count, segment_max, segment_min
 from torch_isc.pipeline.knobs import check_section, knob
 
 if TYPE_CHECKING:
@@ -396,24 +396,10 @@ def anneal(mesh: MeshBatch, H: torch.Tensor, init: torch.Tensor, fixed: torch.Te
 
 def sign_islands(mesh: MeshBatch, signs: torch.Tensor) -> torch.Tensor:
     """``(V,)`` long: a label per vertex, equal for vertices joined by a path of edges whose
-    ends have the same sign (the label is the smallest vertex index of the region). Label
-    propagation with pointer jumping: a few tensor ops per round, rounds ~ log of the regions'
-    diameters in practice."""
-    with torch.no_grad():
-        V = signs.shape[0]
-        e = mesh.edges
-        same = (signs[e[:, 0]] < 0) == (signs[e[:, 1]] < 0)
-        a, b = e[:, 0], e[:, 1]
-        lab = torch.arange(V, device=signs.device)
-        big = torch.full_like(a, V)                       # an edge between signs proposes no label
-        # a round after convergence changes nothing: converge is read every other round
-        while True:
-            for _ in range(2):
-                m = torch.where(same, torch.minimum(lab[a], lab[b]), big)
-                new = lab.scatter_reduce(0, a, m, "amin").scatter_reduce(0, b, m, "amin")
-                prev, lab = lab, new[new]                  # pointer jumping
-            if torch.equal(prev, lab):
-                return lab
+    ends have the same sign (the label is the smallest vertex index of the region;
+    :func:`~torch_isc.core.segments.edge_components`)."""
+    e = mesh.edges
+    return edge_components(signs.shape[0], e, (signs[e[:, 0]] < 0) == (signs[e[:, 1]] < 0))
 
 
 def remove_small_islands(mesh: MeshBatch, signs: torch.Tensor, keep: torch.Tensor, min_vertices: int) -> torch.Tensor:

@@ -26,24 +26,9 @@ from __future__ import annotations
 import torch
 
 from torch_isc.core.mesh import MeshBatch
+from torch_isc.core.segments import edge_components
 
-__all__ = ["edge_components", "cluster_flip_change", "descend_clusters"]
-
-
-def edge_components(num_verts: int, edges: torch.Tensor, join: torch.Tensor) -> torch.Tensor:
-    """``(V,)`` long: a label per vertex (the smallest vertex index of its component) of the
-    graph of the ``edges (E, 2)`` where ``join (E,)`` holds. Label propagation with pointer
-    jumping."""
-    with torch.no_grad():
-        a, b = edges[join, 0], edges[join, 1]
-        lab = torch.arange(num_verts, device=edges.device)
-        while True:
-            m = torch.minimum(lab[a], lab[b])
-            new = lab.scatter_reduce(0, a, m, "amin").scatter_reduce(0, b, m, "amin")
-            new = new[new]
-            if torch.equal(new, lab):
-                return lab
-            lab = new
+__all__ = ["cluster_flip_change", "descend_clusters"]
 
 
 def cluster_flip_change(edges: torch.Tensor, H: torch.Tensor, signs: torch.Tensor, lab: torch.Tensor) -> torch.Tensor:

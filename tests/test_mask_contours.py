@@ -39,7 +39,7 @@ def _blobs():
     return out
 
 
-def _check(mask, mode, ours):
+def _check(mask, mode, ours, tips=None):
     c, h = cv2.findContours(mask, mode, cv2.CHAIN_APPROX_NONE)
     oc, oh = ours
     assert len(oc) == len(c)
@@ -49,10 +49,15 @@ def _check(mask, mode, ours):
     np.testing.assert_array_equal(oh, h)
     for q, (a, b) in enumerate(zip(oc, c)):
         A, Bp = a.reshape(-1, 2).astype(float), b.reshape(-1, 2).astype(float)
-        # every sub-pixel point lies within a pixel (Chebyshev) of the chain, and the two
-        # contours have the same orientation
+        # every sub-pixel point lies within a pixel (Chebyshev) of the chain, but near a corner
+        # tip restored beyond the band (within 3 px of the chain), and the two contours have
+        # the same orientation
         d = np.abs(A[:, None] - Bp[None]).max(2).min(1)
-        assert d.max() <= 1.0 + 1e-6, (q, d.max())
+        far = d > 1.0 + 1e-6
+        if far.any():
+            assert tips is not None and len(tips), (q, d.max())
+            near_tip = np.linalg.norm(A[far][:, None] - tips[None], axis=2).min(1) <= 5.5
+            assert near_tip.all() and d.max() <= 3.0, (q, d.max())
         if len(Bp) > 2:
             assert np.sign(cv2.contourArea(a, True)) == np.sign(cv2.contourArea(b, True)) or \
                 abs(cv2.contourArea(b, True)) == 0
@@ -62,8 +67,10 @@ def _check(mask, mode, ours):
 def test_same_contours_as_cv2(mode):
     masks = _hard_cases() + _blobs()
     res = images.find_contours_batch(masks, mode)
-    for m, r in zip(masks, res):
-        _check(m, mode, r)
+    gc = images.trace_masks([torch.from_numpy(m.astype(bool)) for m in masks])
+    tips = gc.tips.numpy() - 0.5                      # OpenCV's pixel centres are integers
+    for b, (m, r) in enumerate(zip(masks, res)):
+        _check(m, mode, r, tips[gc.tip_item.numpy() == b])
 
 
 def test_names_int32_drawcontours_min_area_simple():
@@ -125,12 +132,13 @@ def test_accuracy_corners_mean(name):
     assert d["hausdorff"] <= ds["hausdorff"] + 0.25
 
 
-@pytest.mark.parametrize("name, bound", [("square 20 deg", 0.50), ("square axis", 0.05), ("triangle", 0.78),
-                                         ("star (notches)", 1.30)])
+@pytest.mark.parametrize("name, bound", [("square 20 deg", 0.50), ("square axis", 0.05), ("triangle", 0.55),
+                                         ("star (notches)", 0.75)])
 def test_corner_tips_restored(name, bound):
-    """Sharp corners are drawn from their extended sides, to a vertex at their tip: the maximum
-    distance is at most marching squares' (the triangle's and the star's tips lie beyond the
-    band's reach, so only part of the way), and better than without the corner step."""
+    """Sharp corners are drawn from their extended sides, to a vertex at their tip (the band
+    stretched past tips that lie beyond it): the maximum distance is at most marching squares',
+    and better than without the corner step. The star's 36-degree tips are only partly restored:
+    its mask is the same with the tip cut 1.2-1.9 px short (see test_acute_tip_unrecoverable)."""
     from skimage import measure
     m, _, truth = shape_mask(name)
     d = _dist([p.numpy() for p in images.trace_masks([torch.from_numpy(m)]).polylines.polyline_list()], truth)
@@ -170,3 +178,48 @@ def test_tip_vertices_keep_the_curve_a_zero_set():
     assert da.max() < 1e-9
     for m, n in zip(ms, gc.polylines.per_item_counts().tolist()):
         assert n == len(cv2.findContours(m.numpy().astype(np.uint8), cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)[-2])
+
+
+WEDGES = [("wedge 30 deg rot 353 (seed 1)", 1), ("wedge 45 deg rot 359 (seed 0)", 0),
+          ("wedge 90 deg rot 49 (seed 0)", 0), ("star 5 r=30/15 rot 289 (seed 1)", 1)]
+
+
+@pytest.mark.parametrize("name, seed", WEDGES)
+def test_acute_tips_beyond_the_band(name, seed):
+    """Acute convex tips whose apex lies beyond the band of pixel centres (truth more than a
+    pixel from OpenCV's chain): with the band stretched to them the maximum distance to the
+    analytic truth is at most 0.55 px, and no worse than without the stretch; the topology is
+    cv2's, the mesh positively oriented, the curve inside the image frame."""
+    from torch_isc.images.shapes import corner_shapes, shape_mask_of
+    m, _, truth = shape_mask_of(corner_shapes(seed)[name.rsplit(" (seed", 1)[0]])
+    gc = images.trace_masks([torch.from_numpy(m)])
+    d = _dist([p.numpy() for p in gc.polylines.polyline_list()], truth)
+    d0 = _dist([p.numpy() for p in images.trace_masks([torch.from_numpy(m)], stretch_tips=False).polylines.polyline_list()],
+               truth)
+    assert d["hausdorff"] <= 0.55
+    assert d["hausdorff"] <= d0["hausdorff"] + 1e-3
+    assert bool((gc.mesh.signed_areas() > 0).all())
+    assert len(gc.polylines) == len(cv2.findContours(m.astype(np.uint8), cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)[-2])
+    P = gc.polylines.points.numpy()
+    assert P.min() >= 0 and (P[:, 0] <= m.shape[1]).all() and (P[:, 1] <= m.shape[0]).all()
+
+
+def test_acute_tip_unrecoverable():
+    """The bound is out of reach from the mask alone where a tip is thinner than a pixel: cutting
+    the star's tip 1.2 px short of its apex gives the same mask, so any curve drawn from it is
+    at least 0.6 px from one of the two truths (skimage: 1.54 px from the full star)."""
+    from torch_isc.images.shapes import _polys, _star
+    H, W, inside, truth = SHAPES["star (notches)"]
+    poly = truth[0]
+    k = int(np.argmin(poly[:, 1]))                        # the top tip (54.6, 8.9), 36 degrees
+    v, u, w = poly[k], poly[k - 1] - poly[k], poly[(k + 1) % len(poly)] - poly[k]
+    u, w = u / np.linalg.norm(u), w / np.linalg.norm(w)
+    r = 1.2
+    s = r / np.cos(np.arccos(np.clip(u @ w, -1, 1)) / 2)
+    cut = np.concatenate([poly[:k], [v + s * u, v + s * w], poly[k + 1:]])
+    from torch_isc.images.shapes import shape_mask_of
+    m_full = shape_mask_of((H, W, inside, truth))[0]
+    m_cut = shape_mask_of((H, W, *_polys([cut])))[0]
+    assert (m_full == m_cut).all()
+    dd = _dist([cut], [poly])
+    assert dd["b_to_a_max"] >= r - 0.05                    # the two truths are 1.2 px apart at the tip

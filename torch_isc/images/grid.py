@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Dict, List, Optional, Sequence, Tuple, Union
+from typing import Callable, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 import torch
@@ -168,6 +168,10 @@ class GridCurves:
         sizes: ``(B, 2)`` the masks' ``(H, W)``.
         inner: ``(Q, 2)`` for each point of ``polylines``, the centre of the foreground pixel at
             the end of its edge (OpenCV's chain of boundary pixels, repeats aside).
+        tips: ``(M, 2)`` the corner tips found (:func:`_corner_tips`; inserted as vertices
+            where they fit, :func:`_insert_tips`), and tip_item ``(M,)`` their items. An acute tip may lie up to a few pixels beyond the
+            band of pixel centres (:func:`_stretch_band`); everywhere else the curve is within a
+            pixel of OpenCV's chain.
     """
     mesh: MeshBatch
     values: torch.Tensor
@@ -177,6 +181,8 @@ class GridCurves:
     start: torch.Tensor
     sizes: torch.Tensor
     inner: Optional[torch.Tensor] = None
+    tips: Optional[torch.Tensor] = None
+    tip_item: Optional[torch.Tensor] = None
 
     def loop_ranges(self) -> torch.Tensor:
         """``(B + 1,)`` the loops of item ``b`` are ``ranges[b]:ranges[b+1]``."""
@@ -230,7 +236,9 @@ def _smooth(a: torch.Tensor, d: torch.Tensor, prev: torch.Tensor, nxt: torch.Ten
 def _corner_tips(a: torch.Tensor, d: torch.Tensor, t: torch.Tensor, prev: torch.Tensor, nxt: torch.Tensor,
                  n_loop: torch.Tensor, side: Tuple[int, int] = (2, 7), zone: int = 3, radius: float = 2.0,
                  straight: float = 0.16, min_turn: float = 0.35, max_cos: float = 0.5,
-                 min_loop: int = 64, min_side: float = 2.0, max_cos_smooth: float = 0.8
+                 min_loop: int = 64, min_side: float = 2.0, max_cos_smooth: float = 0.8,
+                 max_radius: float = 5.0, straight_long: float = 0.25, stretch_side: int = 16, long_sides: Sequence[int] = (11, 16, 24),
+                 stretch: Optional[Callable] = None
                  ) -> Tuple[torch.Tensor, Optional[Tuple[torch.Tensor, torch.Tensor, torch.Tensor]]]:
     """Crossing parameters ``t`` with the sharp corners restored: at each corner of the loops
     (a turn of the chords 3 nodes either side with cosine below ``max_cos`` on the crack
@@ -243,6 +251,12 @@ def _corner_tips(a: torch.Tensor, d: torch.Tensor, t: torch.Tensor, prev: torch.
     foreground half-planes; notches: the union). The tip a mask cuts off is drawn again, to
     within the edges' reach; smooth curves have no such corner (their sides are not straight or
     meet at too small a turn, ``sin`` below ``min_turn``) and are left as they are.
+    An acute tip lies farther out: the mask loses it where the wedge is narrower than about a
+    pixel, ``0.5 / tan(apex / 2)`` from the apex, so ``radius`` grows to that plus a pixel
+    (at most ``max_radius``). ``stretch(nodes (C, Z), tip (C, 2), convex (C,), out (C, 2))``,
+    when given, may move band vertices out toward the tips (``out``: the unit bisector beyond
+    the apex) and returns the crossings' edges ``(a, d)`` on the moved mesh, on which the zone
+    is then projected.
 
     Returns ``(t, corners)``: ``corners`` is ``(node (C,), tip (C, 2), convex (C,))`` of the
     corners found (for :func:`_insert_tips`), None when there is none."""
@@ -272,7 +286,7 @@ def _corner_tips(a: torch.Tensor, d: torch.Tensor, t: torch.Tensor, prev: torch.
     c = c[keep]
     if c.numel() == 0:
         return t, None
-    steps = max(side[1], zone)
+    steps = max([side[1], zone] + list(long_sides))
     back, fwd = [c], [c]
     for _ in range(steps):
         back.append(prev[back[-1]])
@@ -290,19 +304,50 @@ def _corner_tips(a: torch.Tensor, d: torch.Tensor, t: torch.Tensor, prev: torch.
         resid = ((x[..., 0] * v[:, None, 1] - x[..., 1] * v[:, None, 0]) ** 2).mean(1).sqrt()
         return mu, v, torch.where(travel.norm(dim=1) >= min_side, resid, torch.full_like(resid, float("inf")))
 
-    K = range(side[0], side[1] + 1)
-    mu1, v1, r1 = fit(torch.stack([back[j] for j in reversed(K)], 1), False)     # before the corner
-    mu2, v2, r2 = fit(torch.stack([fwd[j] for j in K], 1), True)                 # after it
+    def longest(nodes_of):
+        # the longest straight fit of nodes side[0]..L, L in side_ends: a staircase of a shallow
+        # side is straight only over a whole step, and a short fit on one step tilts the line
+        best = None
+        for L in side_ends:
+            mu, v, r = fit(nodes_of(range(side[0], L + 1)), True)
+            if best is None:
+                best = (mu, v, r, torch.full_like(r, float(L)))
+            else:
+                take = (r < (straight if L < 16 else straight_long))[:, None]
+                best = (torch.where(take, mu, best[0]), torch.where(take, v, best[1]),
+                        torch.where(take[:, 0], r, best[2]), torch.where(take[:, 0], float(L), best[3]))
+        return best
+
+    side_ends = [side[1]] + [L for L in long_sides if L > side[1]]
+    mu1, v1, r1, L1 = longest(lambda K: torch.stack([back[j] for j in reversed(K)], 1))    # before the corner
+    mu2, v2, r2, L2 = longest(lambda K: torch.stack([fwd[j] for j in K], 1))              # after it
     den = v1[:, 0] * v2[:, 1] - v1[:, 1] * v2[:, 0]                             # > 0: a left turn, convex
     dm = mu2 - mu1
     sol = (dm[:, 0] * v2[:, 1] - dm[:, 1] * v2[:, 0]) / torch.where(den.abs() > 1e-9, den, torch.ones_like(den))
     tip = mu1 + sol[:, None] * v1
-    ok = (den.abs() > min_turn) & (r1 < straight) & (r2 < straight) & ((tip - p[c]).norm(dim=1) < radius + 0.5)
+    cos_turn = (v1 * v2).sum(1)
+    half = 0.5 * torch.acos((-cos_turn).clamp(-1.0, 1.0))                      # half the apex angle
+    reach_tip = (0.5 / torch.tan(half).clamp_min(1e-3) + 1.0).clamp(min=radius, max=max_radius)
+    # a turn of at least asin(min_turn) (any acute apex too), lines not near parallel
+    turn_ok = (cos_turn < math.sqrt(1.0 - min_turn ** 2)) & (den.abs() > 0.1)
+    ok = turn_ok & (r1 < straight_long) & (r2 < straight_long) & ((tip - p[c]).norm(dim=1) < reach_tip + 0.5)
     if not bool(ok.any()):
         return t, None
+    back, fwd = [x[ok] for x in back], [x[ok] for x in fwd]
+    ok_idx = ok.nonzero().squeeze(1)
+    c, tip, den, v1, v2, reach_tip, ok = c[ok], tip[ok], den[ok], v1[ok], v2[ok], reach_tip[ok], ok[ok]
+    # only corners with long straight sides on both hands may reach beyond the band
+    sure = torch.minimum(L1[ok_idx], L2[ok_idx]) >= stretch_side
+
     # the zone's nodes, (C, 2 zone + 1)
     nodes = torch.stack([back[j] for j in range(zone, 0, -1)] + [c] + [fwd[j] for j in range(1, zone + 1)], 1)
     C, Z = nodes.shape
+    if stretch is not None:
+        out_dir = v1 - v2
+        out_dir = out_dir / out_dir.norm(dim=1, keepdim=True).clamp_min(1e-12)
+        wide = torch.stack([back[j] for j in range(2 * zone, 0, -1)] + [c] + [fwd[j] for j in range(1, 2 * zone + 1)], 1)
+        if bool(sure.any()):
+            a, d = stretch(wide[sure], tip[sure], den[sure] > 0, out_dir[sure])
     T = tip[:, None].expand(C, Z, 2)
     convex = (den > 0)[:, None].expand(C, Z)
     n1 = torch.stack([v1[:, 1], -v1[:, 0]], 1)[:, None].expand(C, Z, 2)          # outward (background) normals
@@ -321,11 +366,101 @@ def _corner_tips(a: torch.Tensor, d: torch.Tensor, t: torch.Tensor, prev: torch.
         exits.append(torch.where(me > 1e-12, -h0 / torch.where(me > 1e-12, me, torch.ones_like(me)), inf))
     s = torch.minimum(exits[0], exits[1])
     tn = torch.where(convex, s, 1 - s)
-    near = (p[nodes] - T).norm(dim=-1) < radius
+    near = (p[nodes] - T).norm(dim=-1) < reach_tip[:, None]
     use = ok[:, None] & inside & (s <= 1) & near
     out = t.clone()
     out[nodes[use]] = tn[use].clamp(0.02, 0.98)
     return out, (c[ok], tip[ok], den[ok] > 0)
+
+
+def _stretch_band(verts: torch.Tensor, faces: torch.Tensor, pix: torch.Tensor, W2: int, fg: torch.Tensor, fg_v: torch.Tensor,
+                  bg_v: torch.Tensor, frame: torch.Tensor, nodes: torch.Tensor, tip: torch.Tensor,
+                  convex: torch.Tensor, out_dir: torch.Tensor, margin: float = 0.25,
+                  margins: Sequence[float] = (0.25, 0.5, 0.1), partial: bool = True,
+                  fractions: Sequence[float] = (1.0, 0.8, 0.6, 0.4, 0.2), min_area: float = 1e-3) -> torch.Tensor:
+    """Vertices with the band reaching past each acute tip: of the corner's crossings (``nodes``),
+    the vertex of the other class (background for a convex corner, foreground for a notch) nearest
+    to ``tip + margin * out_dir`` moves there (clipped to the image ``frame (C, 2)`` = ``(W, H)``),
+    so that :func:`_insert_tips` finds the tip inside a triangle of the band and the zero set can
+    reach it. The sign of the moved vertex is kept, so the topology is; only a vertex whose every
+    crossing belongs to the corner's zone moves (no other curve is touched), one corner per vertex,
+    and only as far (``fractions`` of the way) as keeps each of its triangles at least
+    ``min_area`` px^2 (positively oriented). Vertex ``(x, y)`` of padded pixel ``(i, j)`` is
+    ``(j - 0.5, i - 0.5)`` before the move; ``pix`` keeps naming the pixel after it."""
+    dev, dt = verts.device, verts.dtype
+    C, Z = nodes.shape
+    if C == 0:
+        return verts
+    zero = torch.zeros((), dtype=dt, device=dev)
+
+    def clip(x):
+        return torch.stack([torch.minimum(torch.maximum(x[..., 0], zero), frame[:, None, 0] if x.dim() == 3 else frame[:, 0]),
+                            torch.minimum(torch.maximum(x[..., 1], zero), frame[:, None, 1] if x.dim() == 3 else frame[:, 1])], -1)
+
+    tipc = clip(tip)
+    target = clip(tip + margin * out_dir)
+    cand = torch.where(convex[:, None], bg_v[nodes], fg_v[nodes])                  # (C, Z)
+    zone_v = torch.cat([fg_v[nodes], bg_v[nodes]], 1)                               # (C, 2Z)
+    total = torch.bincount(torch.cat([fg_v, bg_v]), minlength=verts.shape[0])
+    in_zone = (cand[:, :, None] == zone_v[:, None, :]).sum(-1)
+    q = verts[cand]                                                                 # (C, Z, 2)
+    dist = (q - target[:, None]).norm(dim=-1)
+    outward = ((target[:, None] - q) * out_dir[:, None]).sum(-1) > 0
+    elig = (in_zone == total[cand]) & outward & torch.isfinite(dist)
+    r = torch.arange(C, device=dev)
+    # the (up to) 8 triangles around each candidate: the two of each of the 4 cells that have
+    # its pixel as a corner
+    cell_key = pix[faces[0::2, 0]]                                                  # ascending TL pixels
+    qp = pix[cand]
+    fs, oks = [], []
+    for off in (-W2 - 1, -W2, -1, 0):
+        key = qp + off
+        ci = torch.searchsorted(cell_key, key).clamp(max=max(cell_key.shape[0] - 1, 0))
+        hit = cell_key[ci] == key
+        fs += [2 * ci, 2 * ci + 1]
+        oks += [hit, hit]
+    f = torch.stack(fs, -1)                                                         # (C, Z, 8)
+    fok = torch.stack(oks, -1)
+    fv = faces[f]                                                                   # (C, Z, 8, 3)
+    P = verts[fv]                                                                   # (C, Z, 8, 3, 2)
+    # where a candidate may go: just past the tip (margins), else part of the way there
+    fr = torch.tensor(list(fractions), dtype=dt, device=dev)
+    beyond = clip(tip[:, None] + torch.tensor(list(margins), dtype=dt, device=dev)[None, :, None] * out_dir[:, None])
+    q0 = verts[cand]                                                                # (C, Z, 2)
+    part = q0[:, :, None] + fr[None, None, :, None] * (target[:, None] - q0)[:, :, None]
+    moved = torch.cat([beyond[:, None].expand(C, Z, -1, 2), part], 2)               # (C, Z, S, 2)
+    S = moved.shape[2]
+    isq = (fv == cand[..., None, None])[:, :, None, :, :, None]                     # (C, Z, 1, 8, 3, 1)
+    P2 = torch.where(isq, moved[:, :, :, None, None, :], P[:, :, None])             # (C, Z, S, 8, 3, 2)
+    area = 0.5 * _cross2(P2[..., 1, :] - P2[..., 0, :], P2[..., 2, :] - P2[..., 0, :])
+    fok_s = fok[:, :, None]
+    flat_ok = ((area >= min_area) | ~fok_s).all(-1) & elig[..., None]                # (C, Z, S)
+    # the tip inside one of the moved triangles that holds both classes: it can be inserted whole
+    tq = tipc[:, None, None, None]
+    lam = torch.stack([_cross2(P2[..., 1, :] - tq, P2[..., 2, :] - tq), _cross2(P2[..., 2, :] - tq, P2[..., 0, :] - tq),
+                       _cross2(P2[..., 0, :] - tq, P2[..., 1, :] - tq)], -1)
+    nfg = fg[fv].sum(-1)[:, :, None]                                                # (C, Z, 1, 8)
+    holds = ((lam.min(-1).values > 1e-6) & (nfg > 0) & (nfg < 3) & fok_s).any(-1)
+    whole = flat_ok & holds
+    # the nearest candidate that takes the tip whole (its first position); else the nearest
+    # movable one, as far as it goes (the tip is then pulled back into the band by _insert_tips)
+    cost_w = torch.where(whole, dist[..., None] + 1e-3 * torch.arange(S, device=dev, dtype=dt), torch.full_like(area[..., 0], float("inf")))
+    part_ok = flat_ok & (torch.arange(S, device=dev) >= len(margins))
+    cost_p = torch.where(part_ok, dist[..., None] + 1e-3 * torch.arange(S, device=dev, dtype=dt), torch.full_like(cost_w, float("inf")))
+    use_w = torch.isfinite(cost_w).flatten(1).any(1)
+    cost = torch.where(use_w[:, None, None] | (not partial), cost_w, cost_p).flatten(1)   # (C, Z * S)
+    pick = cost.argmin(1)
+    go = torch.isfinite(cost[r, pick])
+    zi, si = pick // S, pick % S
+    Q = cand[r, zi]
+    # one corner per vertex (the first)
+    uq, inv = torch.unique(Q, return_inverse=True)
+    firstc = torch.full((uq.shape[0],), C, dtype=torch.long, device=dev).scatter_reduce_(
+        0, inv, torch.where(go, r, torch.full_like(r, C)), "amin")
+    go &= firstc[inv] == r
+    out = verts.clone()
+    out[Q[go]] = moved[r, zi, si][go]
+    return out
 
 
 def _cross2(u: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
@@ -484,7 +619,7 @@ def _insert_tips(mesh: MeshBatch, values: torch.Tensor, fg: torch.Tensor, pix: t
     values2[new_v] = values
     values2[tid] = fT
     mesh2 = MeshBatch(V2, F2, mesh.verts_per_item + add, mesh.faces_per_item + 2 * add)
-    return mesh2, values2, (pts2, fg2, bg2, ed2, first2, counts2)
+    return mesh2, values2, (pts2, fg2, bg2, ed2, first2, counts2), (T, itm)
 
 
 def _realize(t: torch.Tensor, fg_v: torch.Tensor, bg_v: torch.Tensor, loop: torch.Tensor, k: torch.Tensor,
@@ -518,7 +653,7 @@ def _realize(t: torch.Tensor, fg_v: torch.Tensor, bg_v: torch.Tensor, loop: torc
 
 
 def trace_masks(masks: Sequence[torch.Tensor], connectivity: int = 8, smooth: int = 12, reach: float = 0.5,
-                dtype: torch.dtype = torch.float64, corners: bool = True) -> GridCurves:
+                dtype: torch.dtype = torch.float64, corners: bool = True, stretch_tips: bool = True) -> GridCurves:
     """The curves of a batch of bool masks ``[(H_b, W_b)]``, in one pass (module docstring).
 
     Args:
@@ -552,8 +687,26 @@ def trace_masks(masks: Sequence[torch.Tensor], connectivity: int = 8, smooth: in
     # small loops (a few pixels) get fewer iterations: their curvature is all signal
     t = _smooth(a, d, prev, nxt, smooth, reach, pl.counts[loop] // 3) if smooth > 0 else torch.full((N,), 0.5, dtype=dtype, device=dev)
     tips = None
+    verts0 = mesh.verts
     if corners and smooth > 0:
-        t, tips = _corner_tips(a, d, t, prev, nxt, pl.counts[loop])
+        frame = sizes.to(dev).flip(1).to(dtype)                   # (W, H) of each item
+
+        def stretch(nodes, tip, convex, out_dir):
+            nonlocal mesh
+            item = mesh.vert_item[fg_v[nodes[:, 0]]]
+            # a side along the image border is the frame's, not the shape's: no tip from it
+            pi, pj = (pix // W2) % H2, pix % W2
+            vi = mesh.vert_item
+            pad = (pi == 0) | (pj == 0) | (pi == sizes[vi, 0].to(dev) + 1) | (pj == sizes[vi, 1].to(dev) + 1)
+            inner_c = ~(pad[fg_v[nodes]] | pad[bg_v[nodes]]).any(1)
+            if not bool(inner_c.any()):
+                return mesh.verts[fg_v], mesh.verts[bg_v] - mesh.verts[fg_v]
+            nodes, tip, convex, out_dir, item = nodes[inner_c], tip[inner_c], convex[inner_c], out_dir[inner_c], item[inner_c]
+            v2 = _stretch_band(mesh.verts, mesh.faces, pix, W2, fg, fg_v, bg_v, frame[item], nodes, tip, convex, out_dir)
+            mesh = mesh.with_verts(v2)
+            return v2[fg_v], v2[bg_v] - v2[fg_v]
+
+        t, tips = _corner_tips(a, d, t, prev, nxt, pl.counts[loop], stretch=stretch if stretch_tips else None)
     s = _realize(t, fg_v, bg_v, loop, k, pl.first, pl.counts, nxt, V)
     mag = torch.exp(s - s.max().clamp_min(0) if V else s)
     values = torch.where(fg, -mag, mag)
@@ -562,9 +715,14 @@ def trace_masks(masks: Sequence[torch.Tensor], connectivity: int = 8, smooth: in
     first, counts, edge, out_mesh = pl.first, pl.counts, pl.edge, mesh
     spliced = None if tips is None else _insert_tips(mesh, values, fg, pix, (B, H2, W2), sizes.to(dev), pts, fg_v,
                                                      bg_v, edge, loop, k, first, counts, nxt, tips)
+    a = verts0[fg_v]
+    if tips is None:
+        tip_pts, tip_item = verts0.new_zeros((0, 2)), torch.zeros(0, dtype=torch.long, device=dev)
+    else:
+        tip_pts, tip_item = tips[1], mesh.vert_item[fg_v[tips[0]]]
     if spliced is not None:
-        out_mesh, values, (pts, fg_v, bg_v, edge, first, counts) = spliced
-        a = mesh.verts[fg_v]
+        out_mesh, values, (pts, fg_v, bg_v, edge, first, counts), _ = spliced
+        a = verts0[fg_v]
         loop, k, prev, nxt = _loop_index(first, counts, pts.shape[0])
     pl = Polylines(pts, first, counts, pl.closed, pl.item, edge, pl.num_items)
 
@@ -606,7 +764,7 @@ def trace_masks(masks: Sequence[torch.Tensor], connectivity: int = 8, smooth: in
     # a loop whose chain ends without a different-kind loop on its left has no parent
     parent = torch.where((term_near >= 0) & (outer[term_near.clamp(min=0)] != outer), parent,
                          torch.full_like(parent, -1))
-    return GridCurves(out_mesh, values, pl, outer, parent, start, sizes, a)
+    return GridCurves(out_mesh, values, pl, outer, parent, start, sizes, a, tip_pts, tip_item)
 
 
 def cv_layout(outer: np.ndarray, parent: np.ndarray, start: np.ndarray, mode: str = "tree",

@@ -17,7 +17,10 @@ topology. :func:`trace_masks` builds, for a whole batch of masks at once (tensor
    one. Every zero crossing therefore lies on an edge between two pixel centres of different
    classes: the zero set has exactly the mask's boundaries (one closed curve per border of an
    8-connected component or of a 4-connected hole, single pixels included) and no point of it
-   is more than a pixel away from the crack-edge boundary.
+   is more than a pixel away from the crack-edge boundary, but at an acute corner tip, which the
+   mask loses where the shape is thinner than a pixel: there the band vertex of the other class
+   next to the tip moves just past the apex of the extended sides (its sign kept, its triangles
+   positive), so the tip vertex sits on the apex, up to a few pixels out (:func:`_stretch_band`).
 3. **The magnitudes.** Only they are fitted. The crossings start at the edge midpoints (the
    crack-midpoint polygon of marching squares) and are smoothed along each curve by Taubin's
    non-shrinking lambda|mu filter, each step projected back onto the crossing's own edge and

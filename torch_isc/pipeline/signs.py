@@ -51,6 +51,11 @@ class TopologyConfig:
     unsupported_noise_widths: float = knob(3.0, ge=0)
     #: rounds of cluster moves after annealing (pipeline/simplify.py); 0 disables
     cluster_rounds: int = knob(2, ge=0)
+    #: opening of the signs at this many noise widths (pipeline/simplify.py: open_signs); 0 disables
+    open_noise_widths: float = knob(0.0, ge=0)
+    #: ...its distance rounds along edges, and whether only whole sign regions flip
+    open_rounds: int = knob(16, ge=1)
+    open_whole_regions: bool = knob(False)
 
     def __post_init__(self):
         check_section(self)
@@ -451,7 +456,7 @@ class IsingSigns:
         from torch_isc.pipeline.evidence import local_fits
         with torch.no_grad():
             mesh = ws.mesh
-            fits = local_fits(mesh, ev.moments, ev.fits, self.evidence)
+            fits = local_fits(mesh, ev.moments, ev.fits, self.evidence, noise=ws.noise)
             H = edge_weights(mesh, fits.L, fits.eps, ev.moments.count, self.evidence.min_points_fit,
                              self.cfg.empty_weight, pooled_count=fits.support, reach=fits.reach,
                              noise2=ws.noise ** 2)
@@ -466,6 +471,10 @@ class IsingSigns:
             if self.cfg.cluster_rounds > 0:
                 from torch_isc.pipeline.simplify import descend_clusters
                 s = descend_clusters(mesh, H, s, fixed, far, self.cfg.cluster_rounds)
+            if self.cfg.open_noise_widths > 0:
+                from torch_isc.pipeline.simplify import open_signs
+                s = open_signs(mesh, s, fixed, (self.cfg.open_noise_widths * ws.noise).to(s.dtype)[mesh.vert_item],
+                               self.cfg.open_rounds, self.cfg.open_whole_regions)
             return remove_small_islands(mesh, s, fixed, self.cfg.min_island_vertices)
 
     def marks(self, ws: "WorkingSet", values: torch.Tensor, min_len: torch.Tensor) -> Optional[torch.Tensor]:

@@ -28,7 +28,7 @@ import torch
 from torch_isc.core.mesh import MeshBatch
 from torch_isc.core.segments import edge_components
 
-__all__ = ["cluster_flip_change", "descend_clusters"]
+__all__ = ["cluster_flip_change", "descend_clusters", "zero_set_distance", "ball_cover", "open_signs"]
 
 
 def cluster_flip_change(edges: torch.Tensor, H: torch.Tensor, signs: torch.Tensor, lab: torch.Tensor) -> torch.Tensor:
@@ -65,4 +65,76 @@ def descend_clusters(mesh: MeshBatch, H: torch.Tensor, signs: torch.Tensor, pinn
                     blocked = torch.zeros(V, dtype=torch.bool, device=s.device).index_fill_(0, lab[pinned], True)
                     flip = mine & (dE[lab] < -tiny) & ~blocked[lab]
                     s = torch.where(flip, -s, s)
+        return s
+
+
+# ------------------------------------------------------------------- opening at the noise's scale
+def zero_set_distance(mesh: MeshBatch, signs: torch.Tensor, cap: torch.Tensor, rounds: int) -> torch.Tensor:
+    """``(V,)`` each vertex's distance to the zero set along paths of edges within its own sign
+    region, capped at ``cap (V,)``: ``ℓ/2`` at the ends of an edge of length ``ℓ`` that changes
+    sign (the crossing of equal magnitudes), then ``rounds`` rounds of ``d_v = min(d_v, d_u +
+    |uv|)`` over the edges whose ends agree (a fixed count: no host read). A region with no
+    sign change keeps ``cap``."""
+    with torch.no_grad():
+        e = mesh.edges
+        v = mesh.verts.detach()
+        a, b = e[:, 0], e[:, 1]
+        ell = (v[a] - v[b]).norm(dim=1).to(cap.dtype)
+        same = signs[a] == signs[b]
+        half = torch.where(same, torch.full_like(ell, float("inf")), 0.5 * ell)
+        d = cap.clone()
+        d = d.scatter_reduce(0, a, half, "amin").scatter_reduce(0, b, half, "amin")
+        w = torch.where(same, ell, torch.full_like(ell, float("inf")))
+        for _ in range(int(rounds)):
+            d = d.scatter_reduce(0, a, d[b] + w, "amin").scatter_reduce(0, b, d[a] + w, "amin")
+        return torch.minimum(d, cap)
+
+
+def ball_cover(mesh: MeshBatch, signs: torch.Tensor, depth: torch.Tensor, radius: torch.Tensor,
+               rounds: int) -> torch.Tensor:
+    """``(V,)`` bool: is the vertex inside a ball of radius at least ``radius (V,)`` that fits in
+    its sign region? The balls are centred at the core vertices (``depth >= radius``) with
+    radius ``depth``; the remaining radius ``q_v = max_c (depth_c − path(c, v))`` spreads along
+    the edges whose ends agree for ``rounds`` rounds, and a vertex is covered where ``q_v >= 0``.
+    The uncovered vertices are what a morphological opening of radius ``radius`` removes."""
+    with torch.no_grad():
+        e = mesh.edges
+        v = mesh.verts.detach()
+        a, b = e[:, 0], e[:, 1]
+        ell = (v[a] - v[b]).norm(dim=1).to(depth.dtype)
+        w = torch.where(signs[a] == signs[b], ell, torch.full_like(ell, float("inf")))
+        q = torch.where(depth >= radius, depth, torch.full_like(depth, -float("inf")))
+        for _ in range(int(rounds)):
+            q = q.scatter_reduce(0, a, q[b] - w, "amax").scatter_reduce(0, b, q[a] - w, "amax")
+        return q >= 0
+
+
+def open_signs(mesh: MeshBatch, signs: torch.Tensor, pinned: torch.Tensor, radius: torch.Tensor,
+               rounds: int, whole_regions: bool = False) -> torch.Tensor:
+    """``signs (V,)`` after a morphological opening of radius ``radius (V,)`` (per vertex, its
+    item's), first of the negative and then of the positive vertices: a vertex that no ball of
+    that radius inside its sign region covers (a speck, a bridge, a channel, a tip thinner
+    than two radii) takes the other sign, unless ``pinned``. With ``whole_regions`` only the
+    sign regions with no covered vertex at all (specks, small holes) flip.
+
+    The depth of a region (its deepest vertex's distance to the zero set) is the barrier of
+    removing it: the change of a distance-like ``f`` that would make it vanish, the persistence
+    of its extremum. A region, bridge or channel whose barrier is below the noise is noise."""
+    with torch.no_grad():
+        s = signs.clone()
+        e = mesh.edges
+        V = s.shape[0]
+        for sgn in (-1.0, 1.0):
+            depth = zero_set_distance(mesh, s, 2.0 * radius, rounds)
+            cov = ball_cover(mesh, s, depth, radius, rounds)
+            mine = s == sgn
+            if whole_regions:
+                join = mine[e[:, 0]] & mine[e[:, 1]]
+                lab = edge_components(V, e, join)
+                any_cov = torch.zeros(V, dtype=torch.bool, device=s.device).index_fill_(0, lab[mine & cov], True)
+                held = torch.zeros(V, dtype=torch.bool, device=s.device).index_fill_(0, lab[mine & pinned], True)
+                flip = mine & ~any_cov[lab] & ~held[lab]
+            else:
+                flip = mine & ~cov & ~pinned
+            s = torch.where(flip, -s, s)
         return s

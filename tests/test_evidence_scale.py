@@ -107,3 +107,38 @@ def test_wide_fits_cross_only_the_triangles_the_true_line_crosses():
     assert a0 < 0.7 and a1 >= 0.9, (a0, a1)      # measured 0.56 and 0.92
     # without a noise level or with the knob at 0 nothing changes
     np.testing.assert_array_equal(narrow.L.numpy(), local_fits(mesh, mom, own, cfg).L.numpy())
+
+
+def test_two_lines_split_a_strip_by_hand():
+    """Points on x = 0.4 ± 0.05 (10 each) in one big triangle: the
+    line fit is vertical through the centroid, the sides are the two lines, their offsets ∓0.05
+    along the normal and their pooled variance 0 (noise 0.01: 10 noise widths apart). The apex
+    (0.4, 2) lies between them: its product is negative, the other corners' positive."""
+    from torch_isc.core.mesh import MeshBatch
+    from torch_isc.pipeline.evidence import line_fits, two_line_evidence, two_lines, LineFits
+    dtype = torch.float64
+    v = torch.tensor([[-1.0, -1.0], [1.5, -1.0], [0.4, 2.0]], dtype=dtype)
+    mesh = MeshBatch(v, torch.tensor([[0, 1, 2]]), torch.tensor([3]), torch.tensor([1]))
+    y = torch.linspace(-0.8, 1.5, 10, dtype=dtype)
+    pts = torch.cat([torch.stack([torch.full_like(y, 0.35), y], 1), torch.stack([torch.full_like(y, 0.45), y], 1)])
+    face, bary = locate_grid(mesh, pts, torch.zeros(20, dtype=torch.long))
+    assert (face == 0).all()
+    mom = triangle_moments(mesh, pts, face, bary)
+    L, eps, nrm = line_fits(mesh, mom)
+    own = LineFits(L, eps, nrm)
+    own.two = two_lines(mesh, mom, nrm, pts, face)
+    assert own.two.n.tolist() == [[10.0, 10.0]]
+    np.testing.assert_allclose(own.two.mean.numpy(), [[-0.05, 0.05]], atol=1e-12)
+    np.testing.assert_allclose(own.two.var.numpy(), [0.0], atol=1e-12)
+    assert abs(float(eps[0]) - 0.05 ** 2) < 1e-12                     # one line: residual 0.05²
+    cfg = EvidenceConfig(two_line_separation=4.0)
+    two, Q, var = two_line_evidence(mesh, own, torch.tensor([0.01], dtype=dtype), cfg)
+    assert two.tolist() == [True]
+    # by hand: corner offsets along the normal from the centroid x = 0.4
+    off = (v[:, 0] - 0.4) * float(nrm[0, 0])
+    np.testing.assert_allclose(Q[0].numpy(), ((off + 0.05) * (off - 0.05)).numpy(), atol=1e-12)
+    assert (Q[0] < 0).tolist() == [False, False, True]
+    # not two lines when 12 noise widths are asked for, nor with noise 0.04 (2.5 widths apart)
+    assert not two_line_evidence(mesh, own, torch.tensor([0.01], dtype=dtype),
+                                 EvidenceConfig(two_line_separation=12.0))[0].any()
+    assert not two_line_evidence(mesh, own, torch.tensor([0.04], dtype=dtype), cfg)[0].any()

@@ -238,3 +238,26 @@ def test_open_signs_removes_a_speck_and_a_neck_and_keeps_thick_discs():
     assert torch.equal(out2[~speck], s[~speck])
     # a radius below the mesh's resolution changes nothing
     assert torch.equal(open_signs(mesh, s, pinned, torch.full_like(rad, 0.2 * h), 32), s)
+
+
+def test_open_signs_merge_joins_a_cut_off_tip_and_removes_a_lone_speck():
+    mesh = mesh_of(24)
+    h = 1.0 / 24
+    v = mesh.verts
+    V = v.shape[0]
+    body = ((v[:, 0] + 0.2) ** 2 + v[:, 1] ** 2) < 0.3 ** 2
+    # a tip: the vertices on the row y = 0 from one edge past the body's rim, 3 edges long
+    row = v[:, 1].abs() < 0.1 * h
+    tip = row & (v[:, 0] > 0.1 + 1.5 * h) & (v[:, 0] < 0.1 + 4.5 * h)
+    gap = row & (v[:, 0] > 0.1) & (v[:, 0] < 0.1 + 1.5 * h) & ~body       # the wall vertex
+    lone = ((v[:, 0] + 0.2) ** 2 + (v[:, 1] - 0.65) ** 2) < (1.2 * h) ** 2
+    assert int(gap.sum()) == 1 and int(tip.sum()) >= 2 and int(lone.sum()) >= 1
+    s = torch.where(body | tip | lone, -1.0, 1.0).double()
+    pinned = mesh.is_boundary_vert
+    rad = torch.full((V,), 2.5 * h, dtype=torch.float64)
+    # by hand: without merging both specks go; with it the tip joins the body through the
+    # wall vertex, the lone speck (no region of its sign one vertex away) goes
+    out = open_signs(mesh, s, pinned, rad, 32, whole_regions=True)
+    assert torch.equal(out < 0, body)
+    out = open_signs(mesh, s, pinned, rad, 32, whole_regions=True, merge=True)
+    assert torch.equal(out < 0, body | tip | gap)

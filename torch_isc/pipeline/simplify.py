@@ -109,13 +109,37 @@ def ball_cover(mesh: MeshBatch, signs: torch.Tensor, depth: torch.Tensor, radius
         return q >= 0
 
 
+def _specks(e: torch.Tensor, V: int, mine: torch.Tensor, cov: torch.Tensor, pinned: torch.Tensor) -> torch.Tensor:
+    """``(V,)`` bool: the vertices of the regions of ``mine`` with no ``cov`` and no ``pinned`` vertex."""
+    lab = edge_components(V, e, mine[e[:, 0]] & mine[e[:, 1]])
+    z = torch.zeros(V, dtype=torch.bool, device=mine.device)
+    any_cov = z.clone().index_fill_(0, lab[mine & cov], True)
+    held = z.index_fill_(0, lab[mine & pinned], True)
+    return mine & ~any_cov[lab] & ~held[lab]
+
+
+def _bridges(e: torch.Tensor, V: int, mine: torch.Tensor, speck: torch.Tensor, pinned: torch.Tensor) -> torch.Tensor:
+    """``(V,)`` bool: the vertices not of ``mine`` (and not pinned) adjacent to a ``speck`` region
+    and to another region of ``mine``."""
+    lab = edge_components(V, e, mine[e[:, 0]] & mine[e[:, 1]])
+    src = torch.cat([e[:, 0], e[:, 1]])
+    dst = torch.cat([e[:, 1], e[:, 0]])
+    into = mine[src] & ~mine[dst]
+    big = torch.full((V,), V, dtype=lab.dtype, device=lab.device)
+    lo = big.scatter_reduce(0, dst[into], lab[src[into]], "amin")
+    hi = torch.full_like(big, -1).scatter_reduce(0, dst[into], lab[src[into]], "amax")
+    near = torch.zeros(V, dtype=torch.bool, device=mine.device).index_fill_(0, dst[into & speck[src]], True)
+    return ~mine & ~pinned & near & (hi > lo) & (lo < V)
+
+
 def open_signs(mesh: MeshBatch, signs: torch.Tensor, pinned: torch.Tensor, radius: torch.Tensor,
-               rounds: int, whole_regions: bool = False) -> torch.Tensor:
+               rounds: int, whole_regions: bool = False, merge: bool = False) -> torch.Tensor:
     """``signs (V,)`` after a morphological opening of radius ``radius (V,)`` (per vertex, its
     item's), first of the negative and then of the positive vertices: a vertex that no ball of
     that radius inside its sign region covers (a speck, a bridge, a channel, a tip thinner
     than two radii) takes the other sign, unless ``pinned``. With ``whole_regions`` only the
-    sign regions with no covered vertex at all (specks, small holes) flip.
+    sign regions with no covered vertex at all (specks, small holes) flip; with ``merge`` too, a
+    speck first joins another region of its sign across a vertex of the other sign next to both.
 
     The depth of a region (its deepest vertex's distance to the zero set) is the barrier of
     removing it: the change of a distance-like ``f`` that would make it vanish, the persistence
@@ -129,11 +153,17 @@ def open_signs(mesh: MeshBatch, signs: torch.Tensor, pinned: torch.Tensor, radiu
             cov = ball_cover(mesh, s, depth, radius, rounds)
             mine = s == sgn
             if whole_regions:
-                join = mine[e[:, 0]] & mine[e[:, 1]]
-                lab = edge_components(V, e, join)
-                any_cov = torch.zeros(V, dtype=torch.bool, device=s.device).index_fill_(0, lab[mine & cov], True)
-                held = torch.zeros(V, dtype=torch.bool, device=s.device).index_fill_(0, lab[mine & pinned], True)
-                flip = mine & ~any_cov[lab] & ~held[lab]
+                speck = _specks(e, V, mine, cov, pinned)
+                if merge:
+                    # a speck one vertex of the other sign away from another region of its sign
+                    # (a tip cut off its body) joins it through that vertex: the topology is the
+                    # same as without the speck, and the speck's data stay on the curve; two
+                    # specks joined are still a speck
+                    bridge = _bridges(e, V, mine, speck, pinned)
+                    s = torch.where(bridge, -s, s)
+                    mine = s == sgn
+                    speck = _specks(e, V, mine, cov & ~bridge, pinned)
+                flip = speck
             else:
                 flip = mine & ~cov & ~pinned
             s = torch.where(flip, -s, s)

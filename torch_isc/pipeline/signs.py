@@ -52,14 +52,14 @@ class TopologyConfig:
     #: rounds of cluster moves after annealing (pipeline/simplify.py); 0 disables
     cluster_rounds: int = knob(2, ge=0)
     #: opening of the signs at this many noise widths, or this many tolerances where that is more
-    #: (pipeline/simplify.py: open_signs); both 0 disables
+    #: (pipeline/simplify.py: open_stage); both 0 disables
     open_noise_widths: float = knob(0.0, ge=0)
-    open_tolerances: float = knob(0.0, ge=0)
+    open_tolerances: float = knob(4.0, ge=0)
     #: ...its distance rounds along edges, and whether only whole sign regions flip
     open_rounds: int = knob(16, ge=1)
-    open_whole_regions: bool = knob(False)
+    open_whole_regions: bool = knob(True)
     #: ...and whether such a region first joins a neighbour of its sign across one vertex
-    open_merge: bool = knob(False)
+    open_merge: bool = knob(True)
 
     def __post_init__(self):
         check_section(self)
@@ -476,10 +476,8 @@ class IsingSigns:
                 from torch_isc.pipeline.simplify import descend_clusters
                 s = descend_clusters(mesh, H, s, fixed, far, self.cfg.cluster_rounds)
             if self.cfg.open_noise_widths > 0 or self.cfg.open_tolerances > 0:
-                from torch_isc.pipeline.simplify import open_signs
-                r = torch.maximum(self.cfg.open_noise_widths * ws.noise, self.cfg.open_tolerances * ws.tol)
-                s = open_signs(mesh, s, fixed, r.to(s.dtype)[mesh.vert_item], self.cfg.open_rounds,
-                               self.cfg.open_whole_regions, self.cfg.open_merge)
+                from torch_isc.pipeline.simplify import open_stage
+                s = open_stage(ws, s, fixed, self.cfg)
             return remove_small_islands(mesh, s, fixed, self.cfg.min_island_vertices)
 
     def marks(self, ws: "WorkingSet", values: torch.Tensor, min_len: torch.Tensor) -> Optional[torch.Tensor]:

@@ -20,15 +20,29 @@ Clusters of one sign and one family never share an edge (an edge between two of 
 have joined them), so they are flipped together and their changes add up; the families and
 signs take turns, a fixed number of rounds. Every move lowers the energy, so the result is
 never worse than the annealer's by the model's own measure.
+
+Then the speck rule (:func:`open_signs`, :func:`open_stage`), which is not an energy move: a
+sign region's depth (its deepest vertex's distance to the zero set) is the barrier of removing
+it, the persistence of its extremum in distance units. A region shallower than a few
+tolerances (or noise widths) is below what the data resolve: if one vertex of the other sign
+separates it from another region of its sign (a tip cut off its body, an arm pinched off at
+a sharp inner corner), that vertex joins them; otherwise it flips (a speck, a sliver hole).
+Either way its loop goes; joining keeps its data on the curve.
 """
 from __future__ import annotations
+
+from typing import TYPE_CHECKING
 
 import torch
 
 from torch_isc.core.mesh import MeshBatch
 from torch_isc.core.segments import edge_components
 
-__all__ = ["cluster_flip_change", "descend_clusters", "zero_set_distance", "ball_cover", "open_signs"]
+if TYPE_CHECKING:
+    from torch_isc.pipeline.signs import TopologyConfig
+    from torch_isc.pipeline.workset import WorkingSet
+
+__all__ = ["cluster_flip_change", "descend_clusters", "zero_set_distance", "ball_cover", "open_signs", "open_stage"]
 
 
 def cluster_flip_change(edges: torch.Tensor, H: torch.Tensor, signs: torch.Tensor, lab: torch.Tensor) -> torch.Tensor:
@@ -168,3 +182,13 @@ def open_signs(mesh: MeshBatch, signs: torch.Tensor, pinned: torch.Tensor, radiu
                 flip = mine & ~cov & ~pinned
             s = torch.where(flip, -s, s)
         return s
+
+
+def open_stage(ws: "WorkingSet", signs: torch.Tensor, pinned: torch.Tensor, cfg: "TopologyConfig") -> torch.Tensor:
+    """:func:`open_signs` of the working set's annealed ``signs`` with the ``open_*`` knobs of
+    ``cfg``: the radius of an item is ``open_noise_widths`` noise widths or ``open_tolerances``
+    tolerances, whichever is more."""
+    mesh = ws.mesh
+    r = torch.maximum(cfg.open_noise_widths * ws.noise, cfg.open_tolerances * ws.tol)
+    return open_signs(mesh, signs, pinned, r.to(signs.dtype)[mesh.vert_item], cfg.open_rounds,
+                      cfg.open_whole_regions, cfg.open_merge)

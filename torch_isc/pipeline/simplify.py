@@ -126,10 +126,10 @@ def ball_cover(mesh: MeshBatch, signs: torch.Tensor, depth: torch.Tensor, radius
 def _specks(e: torch.Tensor, V: int, mine: torch.Tensor, cov: torch.Tensor, pinned: torch.Tensor) -> torch.Tensor:
     """``(V,)`` bool: the vertices of the regions of ``mine`` with no ``cov`` and no ``pinned`` vertex."""
     lab = edge_components(V, e, mine[e[:, 0]] & mine[e[:, 1]])
-    z = torch.zeros(V, dtype=torch.bool, device=mine.device)
-    any_cov = z.clone().index_fill_(0, lab[mine & cov], True)
-    held = z.index_fill_(0, lab[mine & pinned], True)
-    return mine & ~any_cov[lab] & ~held[lab]
+    z = torch.zeros(V, dtype=torch.long, device=mine.device)
+    # scatters, not boolean indexing: no host read
+    keep = z.scatter_reduce(0, lab, (mine & (cov | pinned)).long(), "amax") > 0
+    return mine & ~keep[lab]
 
 
 def _bridges(e: torch.Tensor, V: int, mine: torch.Tensor, speck: torch.Tensor, pinned: torch.Tensor) -> torch.Tensor:
@@ -140,9 +140,10 @@ def _bridges(e: torch.Tensor, V: int, mine: torch.Tensor, speck: torch.Tensor, p
     dst = torch.cat([e[:, 1], e[:, 0]])
     into = mine[src] & ~mine[dst]
     big = torch.full((V,), V, dtype=lab.dtype, device=lab.device)
-    lo = big.scatter_reduce(0, dst[into], lab[src[into]], "amin")
-    hi = torch.full_like(big, -1).scatter_reduce(0, dst[into], lab[src[into]], "amax")
-    near = torch.zeros(V, dtype=torch.bool, device=mine.device).index_fill_(0, dst[into & speck[src]], True)
+    lo = big.scatter_reduce(0, dst, torch.where(into, lab[src], V), "amin")
+    hi = torch.full_like(big, -1).scatter_reduce(0, dst, torch.where(into, lab[src], -1), "amax")
+    near = torch.zeros(V, dtype=torch.long, device=mine.device).scatter_reduce(
+        0, dst, (into & speck[src]).long(), "amax") > 0
     return ~mine & ~pinned & near & (hi > lo) & (lo < V)
 
 

@@ -135,3 +135,129 @@ def test_unsupported_coupling_by_hand():
     gap = torch.tensor([0.0, 1.0, 1.5, 2.0, 3.0, math.inf], dtype=torch.float64)
     got = unsupported_coupling(gap, torch.ones(6, dtype=torch.float64), 2.0)
     assert got.tolist() == [0.0, 0.0, -1.0, -2.0, -2.0, -2.0]
+
+
+# ----------------------------------------------------------------------------- opening (open_signs)
+from torch_isc.pipeline.simplify import ball_cover, open_signs, zero_set_distance  # noqa: E402
+
+
+def dijkstra_within_regions(mesh, s):
+    """Distances to the zero set along same-sign edge paths, from ℓ/2 at crossing edges (heapq)."""
+    import heapq
+    V = s.shape[0]
+    v = mesh.verts.tolist()
+    nb = [[] for _ in range(V)]
+    d = [math.inf] * V
+    for a, b in mesh.edges.tolist():
+        ell = math.dist(v[a], v[b])
+        if s[a] == s[b]:
+            nb[a].append((b, ell))
+            nb[b].append((a, ell))
+        else:
+            d[a] = min(d[a], ell / 2)
+            d[b] = min(d[b], ell / 2)
+    h = [(x, i) for i, x in enumerate(d) if x < math.inf]
+    heapq.heapify(h)
+    while h:
+        x, i = heapq.heappop(h)
+        if x > d[i]:
+            continue
+        for j, w in nb[i]:
+            if x + w < d[j]:
+                d[j] = x + w
+                heapq.heappush(h, (d[j], j))
+    return d, nb
+
+
+def disc_signs(mesh, discs):
+    v = mesh.verts
+    inside = torch.zeros(v.shape[0], dtype=torch.bool)
+    for cx, cy, r in discs:
+        inside |= ((v[:, 0] - cx) ** 2 + (v[:, 1] - cy) ** 2) < r * r
+    return torch.where(inside, -1.0, 1.0).double()
+
+
+def test_zero_set_distance_and_ball_cover_against_dijkstra():
+    mesh = mesh_of(12)
+    s = disc_signs(mesh, [(0.1, 0.0, 0.45), (-0.55, 0.3, 0.12)])
+    V = s.shape[0]
+    cap = torch.full((V,), 10.0, dtype=torch.float64)
+    d = zero_set_distance(mesh, s, cap, 64)
+    ref, nb = dijkstra_within_regions(mesh, s)
+    ref = [min(x, 10.0) for x in ref]
+    assert torch.allclose(d, torch.tensor(ref, dtype=torch.float64), atol=1e-12)
+    # ball cover by brute force: covered iff some core vertex c (d_c >= r) has path(c, v) <= d_c
+    r = 0.12
+    rad = torch.full((V,), r, dtype=torch.float64)
+    cov = ball_cover(mesh, s, d, rad, 64).tolist()
+    import heapq
+    want = [False] * V
+    for c in range(V):
+        if ref[c] < r:
+            continue
+        dist = {c: 0.0}
+        h = [(0.0, c)]
+        while h:
+            x, i = heapq.heappop(h)
+            if x > dist[i] or x > ref[c]:
+                continue
+            want[i] = True
+            for j, w in nb[i]:
+                if x + w < dist.get(j, math.inf):
+                    dist[j] = x + w
+                    heapq.heappush(h, (x + w, j))
+    assert cov == want
+    assert 0 < sum(want) < V
+
+
+def test_open_signs_removes_a_speck_and_a_neck_and_keeps_thick_discs():
+    mesh = mesh_of(24)                                # edges 1/24 of the unit hexagon
+    h = 1.0 / 24
+    # two discs of radius 0.25 (6 edges) joined by a neck of width ~1.5 edges, and a speck of radius 1.2 edges
+    v = mesh.verts
+    inside = (((v[:, 0] + 0.45) ** 2 + v[:, 1] ** 2) < 0.25 ** 2) | (((v[:, 0] - 0.45) ** 2 + v[:, 1] ** 2) < 0.25 ** 2)
+    inside |= (v[:, 1].abs() < 0.8 * h) & (v[:, 0].abs() < 0.3)
+    speck = ((v[:, 0] - 0.0) ** 2 + (v[:, 1] - 0.6) ** 2) < (1.2 * h) ** 2
+    s = torch.where(inside | speck, -1.0, 1.0).double()
+    pinned = mesh.is_boundary_vert
+    rad = torch.full((s.shape[0],), 2.5 * h, dtype=torch.float64)
+    out = open_signs(mesh, s, pinned, rad, 32)
+    # the speck and the neck are gone: two negative regions, each holding a disc centre
+    neg = out < 0
+    lab = edge_components(s.shape[0], mesh.edges, neg[mesh.edges[:, 0]] & neg[mesh.edges[:, 1]])
+    regions = set(lab[neg].tolist())
+    assert len(regions) == 2
+    assert not (neg & speck).any()
+    assert not (neg & (v[:, 0].abs() < 0.02)).any()                      # the neck's middle
+    # the discs keep their vertices deeper than a radius inside (nothing thick is eroded)
+    deep = (((v[:, 0] + 0.45) ** 2 + v[:, 1] ** 2) < 0.15 ** 2) | (((v[:, 0] - 0.45) ** 2 + v[:, 1] ** 2) < 0.15 ** 2)
+    assert neg[deep].all()
+    # whole regions only: the speck goes, the neck stays (it is part of a deep region)
+    out2 = open_signs(mesh, s, pinned, rad, 32, whole_regions=True)
+    assert not (out2[speck] < 0).any()
+    assert torch.equal(out2[~speck], s[~speck])
+    # a radius below the mesh's resolution changes nothing
+    assert torch.equal(open_signs(mesh, s, pinned, torch.full_like(rad, 0.2 * h), 32), s)
+
+
+def test_open_signs_merge_joins_a_cut_off_tip_and_removes_a_lone_speck():
+    mesh = mesh_of(24)
+    h = 1.0 / 24
+    v = mesh.verts
+    V = v.shape[0]
+    body = ((v[:, 0] + 0.2) ** 2 + v[:, 1] ** 2) < 0.3 ** 2
+    # a tip: the vertices on the row y = 0 from one edge past the body's rim, 3 edges long
+    row = v[:, 1].abs() < 0.1 * h
+    tip = row & (v[:, 0] > 0.1 + 1.5 * h) & (v[:, 0] < 0.1 + 4.5 * h)
+    gap = row & (v[:, 0] > 0.1) & (v[:, 0] < 0.1 + 1.5 * h) & ~body       # the wall vertex
+    lone = ((v[:, 0] + 0.2) ** 2 + (v[:, 1] - 0.65) ** 2) < (1.2 * h) ** 2
+    assert int(gap.sum()) == 1 and int(tip.sum()) >= 2 and int(lone.sum()) >= 1
+    s = torch.where(body | tip | lone, -1.0, 1.0).double()
+    pinned = mesh.is_boundary_vert
+    rad = torch.full((V,), 2.5 * h, dtype=torch.float64)
+    # by hand: without merging both specks go; with it the tip joins the body through the
+    # wall vertex, the lone speck (no region of its sign one vertex away) goes
+    out = open_signs(mesh, s, pinned, rad, 32, whole_regions=True)
+    assert torch.equal(out < 0, body)
+    out = open_signs(mesh, s, pinned, rad, 32, whole_regions=True, merge=True)
+    assert torch.equal(out < 0, body | tip | gap)

@@ -203,7 +203,7 @@ def run_loop(batch: PointBatch, cfg: ReconstructConfig, source: SignSource,
     t_start = time.perf_counter()
     ws = _start(batch, cfg, rec)
     for level in range(cfg.limits.max_level + 1):
-        ev = gather_evidence(ws)                                       # EstimateTopology
+        ev = gather_evidence(ws, cfg.evidence)                         # EstimateTopology
         ws = ws.replace(signs=source.signs(ws, ev, level))
         rec.tick("topology")
         slack = effective_tolerance(ws.tol, ws.noise, cfg.test.noise_factor)

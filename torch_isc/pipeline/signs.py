@@ -51,6 +51,15 @@ class TopologyConfig:
     unsupported_noise_widths: float = knob(3.0, ge=0)
     #: rounds of cluster moves after annealing (pipeline/simplify.py); 0 disables
     cluster_rounds: int = knob(2, ge=0)
+    #: opening of the signs at this many noise widths, or this many tolerances where that is more
+    #: (pipeline/simplify.py: open_stage); both 0 disables
+    open_noise_widths: float = knob(0.0, ge=0)
+    open_tolerances: float = knob(4.0, ge=0)
+    #: ...its distance rounds along edges, and whether only whole sign regions flip
+    open_rounds: int = knob(16, ge=1)
+    open_whole_regions: bool = knob(True)
+    #: ...and whether such a region first joins a neighbour of its sign across one vertex
+    open_merge: bool = knob(True)
 
     def __post_init__(self):
         check_section(self)
@@ -451,7 +460,7 @@ class IsingSigns:
         from torch_isc.pipeline.evidence import local_fits
         with torch.no_grad():
             mesh = ws.mesh
-            fits = local_fits(mesh, ev.moments, ev.fits, self.evidence)
+            fits = local_fits(mesh, ev.moments, ev.fits, self.evidence, noise=ws.noise)
             H = edge_weights(mesh, fits.L, fits.eps, ev.moments.count, self.evidence.min_points_fit,
                              self.cfg.empty_weight, pooled_count=fits.support, reach=fits.reach,
                              noise2=ws.noise ** 2)
@@ -466,6 +475,9 @@ class IsingSigns:
             if self.cfg.cluster_rounds > 0:
                 from torch_isc.pipeline.simplify import descend_clusters
                 s = descend_clusters(mesh, H, s, fixed, far, self.cfg.cluster_rounds)
+            if self.cfg.open_noise_widths > 0 or self.cfg.open_tolerances > 0:
+                from torch_isc.pipeline.simplify import open_stage
+                s = open_stage(ws, s, fixed, self.cfg)
             return remove_small_islands(mesh, s, fixed, self.cfg.min_island_vertices)
 
     def marks(self, ws: "WorkingSet", values: torch.Tensor, min_len: torch.Tensor) -> Optional[torch.Tensor]:

@@ -496,6 +496,8 @@ class RefitProblem:
             keep = None if lo is None else self.pad(((gp == g) | (s > lo)).to(dt))
             d = self.unpad(self._block_solve(H, -self.pad(gp), lam, keep))
             d = torch.where(done[vi], torch.zeros_like(d), d)
+            # the damped Newton decrement gᵀ(H + λI)⁻¹g: what the (convex) damped model can still gain
+            dec = torch.zeros(B, dtype=dt, device=dev).index_add_(0, vi, -gp * d)
             # a trust region in s (a factor e^2 per step): the iterates stay in s0's basin
             big = gmax(d)
             d = d * (max_step / big.clamp_min(max_step))[vi]
@@ -523,7 +525,7 @@ class RefitProblem:
             # or (float32: the objective's sums round at about 1e-7 of it) a nearly undamped
             # model whose whole predicted decrease is at rounding level: no step can do better
             done = (done | (ok & (step < step_tol) & (mu <= 1e-10)) | (~ok & (gn <= 1e4 * eps * E0)) | (mu > 1e12)
-                    | (rounding_stop & (pred <= 16 * eps * E_old.abs()) & (mu <= 1e-3)))
+                    | (rounding_stop & (dec <= 16 * eps * E_old.abs()) & (mu <= 1e-3)))
             # damping: /10 where the quadratic model predicted the decrease well, kept where it
             # did so poorly, x2, x4, x8... on rejections (a ratio of quadratic forms is not convex)
             shrink = torch.where(rho > 0.5, 0.1, torch.where(rho > 0.1, 1.0, 2.0)).to(dt)

@@ -116,6 +116,9 @@ class RefitProblem:
             #: ``(V,)`` lower bound of ``s``: a magnitude within 1e-3 of its floor is at the floor (the
             #: objective's infimum there lies at ``s = -inf``, which no step count reaches)
             self.lower = torch.log(1e-3 * fl).clamp_min(torch.finfo(dt).min)
+            # what a sub-batch's problem is rebuilt from (:meth:`solve` drops finished items)
+            self._inputs = (count, signs, init_mag, tol, magnitude_floor, smoothness, crossing_weight, data_dist,
+                            slack, reg, scale_reg)
             #: the starting damping: the start (distances to the data) is far from the optimum
             self.mu0 = 1e-2
         return self
@@ -447,12 +450,16 @@ class RefitProblem:
 
     # ----------------------------------------------------------- solver
     def solve(self, M: torch.Tensor, max_iter: int = 100, step_tol: Optional[float] = None,
-              max_step: float = 2.0, trace: Optional[list] = None) -> torch.Tensor:
+              max_step: float = 2.0, trace: Optional[list] = None, start: Optional[torch.Tensor] = None,
+              state: Optional[tuple] = None) -> torch.Tensor:
         """``(V,)`` the minimizer ``s*`` (damped Newton, per-item damping and stopping).
 
-        ``M``: the full ``(T, 3, 3)`` moments."""
+        ``M``: the full ``(T, 3, 3)`` moments. ``start``, ``state``: the iterate and the
+        per-item damping and first objective ``(mu, nu, E0)`` to go on from (default: ``s0`` and a fresh start). A
+        problem made by :meth:`geometry` drops its finished items once at most half remain
+        (a smaller problem is rebuilt for the others; per-item results do not change)."""
         Ma = M[self.act]
-        s = self.s0.clone()
+        s = self.s0.clone() if start is None else start.clone()
         B, dt, dev = self.B, self.dt, self.dev
         self.converged = torch.ones(B, dtype=torch.bool, device=dev)
         self.item_iterations = torch.zeros(B, dtype=torch.long, device=dev)
@@ -461,8 +468,11 @@ class RefitProblem:
         eps = torch.finfo(dt).eps
         step_tol = 0.1 * eps ** 0.5 if step_tol is None else step_tol
         avi = self.av_item
-        mu = torch.full((B,), getattr(self, "mu0", 1e-4), dtype=dt, device=dev)
-        nu = torch.full((B,), 2.0, dtype=dt, device=dev)
+        if state is None:
+            mu = torch.full((B,), getattr(self, "mu0", 1e-4), dtype=dt, device=dev)
+            nu = torch.full((B,), 2.0, dtype=dt, device=dev)
+        else:
+            mu, nu = state[0].clone(), state[1].clone()
         done = torch.zeros(B, dtype=torch.bool, device=dev)
         n_act = self.n_act
         E, g, H = self.terms(s, Ma, hessian=True)
@@ -483,13 +493,17 @@ class RefitProblem:
 
         gp = free_grad(s, g)
         gn = gmax(gp)
-        E0 = E.abs().clone()
+        E0 = E.abs().clone() if state is None else state[2].clone()
         self.iterations = 0
         item_iters = torch.zeros(B, dtype=torch.long, device=dev)
         for it in range(max_iter):
             done = done | (gn <= 256 * eps * E.abs())
-            if bool(done.all()):
+            n_left = int((~done).sum())                        # the iteration's one host read
+            if n_left == 0:
                 break
+            if getattr(self, "_inputs", None) is not None and 2 * n_left <= B and it > 0:
+                return self._go_on_without_done(M, done, s, (mu, nu, E0), max_iter - it, step_tol, max_step, trace,
+                                                item_iters, it)
             self.iterations = it + 1
             lam = mu * item_sum(H[self.hdiag].abs() * (1.0 - self.pad_flat)) / n_act
             # projected Newton: the bound vertices leave the system (their rows and columns)
@@ -538,6 +552,23 @@ class RefitProblem:
         self.converged = done | (gn <= 256 * eps * E.abs())
         self.item_iterations = item_iters
         return s
+
+    def _go_on_without_done(self, M, done, s, state, max_iter, step_tol, max_step, trace, item_iters, it):
+        """:meth:`solve`'s remaining iterations on the unfinished items alone."""
+        keep = (~done).nonzero().squeeze(1)
+        mesh, kv, kf = self.mesh.select_items(keep)
+        count, signs, init, tol, mf, sm, cw, near, slack, reg, scale_reg = self._inputs
+        sub = RefitProblem.geometry(mesh, count[kf], signs[kv], init[kv], tol[keep], mf, sm, cw,
+                                    None if near is None else near[kv], None if slack is None else slack[keep],
+                                    reg=reg, scale_reg=scale_reg)
+        s_sub = sub.solve(M[kf], max_iter, step_tol=step_tol, max_step=max_step, trace=trace, start=s[kv],
+                          state=tuple(x[keep] for x in state))
+        self.converged = done.clone()
+        self.converged[keep] = sub.converged
+        self.item_iterations = item_iters.index_add(0, keep, sub.item_iterations)
+        self.iterations = it + sub.iterations
+        return s.index_copy(0, kv, s_sub)
+
 
 class _ImplicitRefit(torch.autograd.Function):
     """``M (T, 3, 3) -> s* (V,)``; backward by the implicit function theorem (closed form)."""

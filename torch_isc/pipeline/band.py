@@ -48,7 +48,7 @@ class BandConfig:
     #: the final refit's solver: "newton" (damped Newton on closed-form Hessians, run to
     #: convergence; :class:`~torch_isc.pipeline.refit.RefitProblem`) or "lbfgs" (``band_iterations``
     #: L-BFGS iterations of the loop's objective)
-    band_solver: str = knob("newton", choices=("newton", "lbfgs"))
+    band_solver: str = knob("lbfgs", choices=("newton", "lbfgs"))
     #: iteration cap of the final refit (Newton iterations; L-BFGS iterations with band_solver=lbfgs)
     band_iterations: int = knob(40, ge=0)
     #: Newton: an item with more vertices near its curve than this is refitted by L-BFGS (its

@@ -12,6 +12,13 @@ kept, see :meth:`ImplicitCurve.refine_band`). The magnitudes are then refitted w
 loop's objective (:class:`~torch_isc.pipeline.values.GeometryObjective`: ``Δ1`` plus the
 jump of ``∇f`` across interior edges plus the dead-zoned crossing term) with a stronger
 smoothness weight, so residuals of points on both sides of the curve cancel rather than bend it.
+
+``band_solver`` picks the refit's solver: ``lbfgs`` (``band_iterations`` L-BFGS iterations,
+which stop short of the minimum) or ``newton`` (:meth:`RefitProblem.geometry
+<torch_isc.pipeline.refit.RefitProblem.geometry>`: the same objective plus tiny ``reg``/scale
+terms, solved to convergence by projected damped Newton). Newton's dense per-item Hessians are
+bounded: items in groups of at most ``_DENSE_BUDGET`` entries, items with more than
+``band_dense_max`` vertices near the curve by L-BFGS.
 """
 from __future__ import annotations
 

@@ -21,15 +21,31 @@ term fixes that flat direction and those vertices (they stay at ``s0`` exactly),
 minimizer ``s*`` is unique near ``s0`` and ``∂²E/∂s²`` invertible.
 
 Solver: a damped Newton method (Levenberg–Marquardt) on per-item dense Hessians over the
-*active* vertices (those of triangles holding points), assembled with one ``index_add_``
-from closed-form per-triangle 3×3 Hessians: with ``q = FᵀMF / d``, ``d = FᵀNF`` (``N = GGᵀ``),
+*active* vertices (those of triangles holding points, of band edges and of crossings),
+assembled with one ``index_add_`` (indices made once) from closed-form per-triangle 3×3
+Hessians: with ``q = FᵀMF / d``, ``d = FᵀNF`` (``N = GGᵀ``),
 ``∇_F q = 2(MF − qNF)/d`` and ``∇²_F q = (2/d)(M − qN − NF ∇qᵀ − ∇q (NF)ᵀ)``, chained to ``s``
 by ``∂F/∂s = diag(F)``; ``J/S`` is a ratio of quadratic forms too (the same formula, with a
-rank-2 dense part per item). Damping, acceptance and stopping are per item, so an item's iterates
-never depend on the other items. An item stops when its gradient is at rounding level
+rank-2 dense part per item, added with the scale term's rank 1 in one batched product). The
+blocks are ragged: an item's block has its own active count rounded up to a size class
+(``8 · 1.5^k``), a class is one batched ``(n, A, A)`` view of one flat buffer, so padding
+stays below 2.25x of the entries and there is one Cholesky call per class. A damped block
+that is not positive definite (``H`` of a ratio of quadratic forms can be indefinite) gives a
+rejected step and more damping. Damping, acceptance and stopping are per item, so an item's
+iterates never depend on the other items. An item stops when its gradient is at rounding level
 relative to its objective (``‖∇E‖∞ ≤ 256 ε E``), or when an accepted undamped Newton step
 is below ``step_tol`` with the damping at most 1e-10 of the mean curvature (quadratic convergence:
 the error left is about its square).
+
+:meth:`RefitProblem.geometry` builds the band stage's objective (the loop's
+:class:`~torch_isc.pipeline.values.GeometryObjective`: its weights, floor, start, smoothness
+band and dead-zoned crossing term, with exact Hessians of the crossing hinge) plus ``reg`` and
+``scale_reg``. There ``s`` has a lower bound (a magnitude within 1e-3 of the floor: the
+infimum of a collapsing magnitude lies at ``s = −∞``) handled by projected Newton (bound
+vertices whose gradient points below leave the system), the damping follows the gain ratio
+(/10 on a good model, x2, x4, ... on rejections), a float32 item also stops once the damped
+Newton decrement is at rounding level of its objective, and finished items are dropped once
+at most half remain (the problem is rebuilt for the others).
 
 The backward pass does not unroll the iterations: ``∇_s E(s*, M) = 0`` gives
 ``ds*/dM = −H⁻¹ ∂²E/∂s∂M``, so the vector-Jacobian product solves ``H λ = ḡ`` (``H``

@@ -61,6 +61,9 @@ class BandConfig:
     #: Newton: an item with more vertices near its curve than this is refitted by L-BFGS (its
     #: dense Hessian would be too large); a batch is solved in groups of at most 2**24 entries
     band_dense_max: int = knob(1500, ge=0)
+    #: Newton: weight of the mean squared log-magnitude change from the start (each vertex's
+    #: distance to the data); it also makes the minimizer unique
+    band_reg: float = knob(1e-4, ge=0)
     #: rounds of the spike rule (flip simple vertices the curve wraps around, then refit); 0 disables
     spike_rounds: int = knob(2, ge=0)
     #: a vertex is a spike's tip when more than this fraction of the angle around it lies across the curve
@@ -224,7 +227,7 @@ def _refit(ws: "WorkingSet", cfg: BandConfig, gcfg: GeometryConfig, slack: torch
         else:
             with torch.no_grad():
                 pb = RefitProblem.geometry(m, mom.count, signs, start, slack, gcfg.magnitude_floor, gcfg.smoothness,
-                                           gcfg.crossing_weight, near, slack)
+                                           gcfg.crossing_weight, near, slack, reg=cfg.band_reg)
                 values = pb.values(pb.solve(mom.M, cfg.band_iterations))
         values = values.detach()
     return values

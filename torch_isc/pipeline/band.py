@@ -63,7 +63,7 @@ class BandConfig:
     band_dense_max: int = knob(1500, ge=0)
     #: Newton: weight of the mean squared log-magnitude change from the start (each vertex's
     #: distance to the data); it also makes the minimizer unique
-    band_reg: float = knob(1e-4, ge=0)
+    band_reg: float = knob(0.1, ge=0)
     #: rounds of the spike rule (flip simple vertices the curve wraps around, then refit); 0 disables
     spike_rounds: int = knob(2, ge=0)
     #: a vertex is a spike's tip when more than this fraction of the angle around it lies across the curve

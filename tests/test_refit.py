@@ -93,3 +93,89 @@ def test_attach_point_gradients_keeps_values():
     # without requires_grad nothing happens
     plain = [s.detach() for s in sets]
     assert attach_point_gradients(curves, plain) == curves
+
+
+# ----------------------------------------------------------------------------- the band stage's problem
+
+def _band_problem(B=2, reg=1e-4, scale_reg=1.0, slack=0.0):
+    """Items of different sizes (so different Hessian size classes): points near circles of
+    radius 0.6, signs from a circle of 0.45 (the crossings lie far from the data: the crossing
+    term is active), the loop's start (distances to the data)."""
+    from torch_isc.core.locate import barycentric, locate_grid
+    from torch_isc.pipeline.evidence import triangle_moments
+    from torch_isc.pipeline.refit import RefitProblem
+    from torch_isc.pipeline.values import vertex_data_distance, vertex_data_distance_near
+    from torch_isc.core.mesh import MeshBatch
+    meshes, sets = [], []
+    for b in range(B):
+        m = hexagon_mesh(torch.tensor([[3.0 * b, 0.0]], dtype=D), torch.ones(1, dtype=D), 3 + b)
+        meshes.append(m)
+        sets.append(circle_pts(40 + 10 * b, 0.6, c=(3.0 * b, 0.0), noise=0.01, seed=b))
+    m = MeshBatch.cat(meshes) if B > 1 else meshes[0]
+    pts = torch.cat(sets)
+    item = torch.repeat_interleave(torch.arange(B), torch.tensor([s.shape[0] for s in sets]))
+    face, _ = locate_grid(m, pts, item)
+    mom = triangle_moments(m, pts, face, barycentric(m.verts, m.faces, face, pts))
+    cen = torch.tensor([[3.0 * b, 0.0] for b in range(B)], dtype=D)
+    signs = torch.where((m.verts - cen[m.vert_item]).norm(dim=1) < 0.45, -1.0, 1.0).to(D)
+    init = vertex_data_distance(m, pts, face)
+    near = vertex_data_distance_near(m, pts, face)
+    tol = torch.full((B,), 0.02, dtype=D)
+    sl = torch.full((B,), slack, dtype=D)
+    pb = RefitProblem.geometry(m, mom.count, signs, init, tol, 0.02, 3.0, 1.0, near, sl, reg=reg, scale_reg=scale_reg)
+    return pb, m, mom, signs, init, tol, near, sl
+
+
+def test_band_problem_is_the_loops_objective_with_exact_derivatives():
+    """RefitProblem.geometry against an independent implementation: its objective (reg terms
+    off) equals GeometryObjective.value (the loop's, plain tensor code), its gradient and its
+    Hessian (assembled in per-item blocks of two size classes) equal autograd's in float64."""
+    from torch_isc.pipeline.values import GeometryConfig, GeometryObjective
+    pb, m, mom, signs, init, tol, near, sl = _band_problem(reg=0.0, scale_reg=0.0)
+    assert len(pb.groups) == 2 and pb.cross is not None
+    obj = GeometryObjective(m, mom, signs, init, tol, GeometryConfig(smoothness=3.0), near, sl)
+    assert obj.cross and torch.equal(obj.s0, pb.s0)
+    g0 = torch.Generator().manual_seed(0)
+    s = obj.s0 + 0.3 * torch.randn(obj.s0.shape, generator=g0, dtype=D)
+    E, g, H = pb.terms(s, mom.M[pb.act], hessian=True)
+    assert torch.allclose(E, obj.value(s), rtol=1e-13, atol=0)
+    # the crossing term is active: without it the objective differs
+    assert float((obj.value(s) - GeometryObjective(m, mom, signs, init, tol, GeometryConfig(smoothness=3.0)).value(s)).abs().min()) > 1e-6
+    sr = s.clone().requires_grad_()
+    (ga,) = torch.autograd.grad(obj.value(sr).sum(), sr)
+    assert torch.allclose(g, ga, rtol=1e-12, atol=1e-14)
+    Ha = torch.autograd.functional.hessian(lambda x: obj.value(x).sum(), s)
+    for its, Hg, vs in pb._views(H):
+        for j, b in enumerate(its.tolist()):
+            sel = pb.av_item == b
+            v, loc = pb.av[sel], pb.av_loc[sel]
+            assert torch.allclose(Hg[j][loc[:, None], loc[None, :]], Ha[v[:, None], v[None, :]], rtol=1e-11, atol=1e-12)
+            pad = torch.ones(Hg.shape[1], dtype=torch.bool)
+            pad[loc] = False
+            assert torch.equal(Hg[j][pad][:, pad], torch.eye(int(pad.sum()), dtype=D))   # identity padding
+    inactive = torch.ones(s.shape[0], dtype=torch.bool)
+    inactive[pb.av] = False
+    assert float(Ha[inactive].abs().max()) == 0.0 and float(ga[inactive].abs().max()) == 0.0
+
+
+def test_band_newton_converges_to_a_kkt_point_item_by_item():
+    """The projected Newton solve ends at a first-order point of the bound-constrained problem
+    (autograd's gradient: ~0 at free vertices, >= 0 where s sits on its lower bound), before
+    the cap, and each item's solution is the one it gets alone."""
+    pb, m, mom, signs, init, tol, near, sl = _band_problem()
+    s = pb.solve(mom.M, 100)
+    assert bool(pb.converged.all()) and pb.iterations < 100
+    sr = s.clone().requires_grad_()
+    (g,) = torch.autograd.grad(pb.energy(sr, mom.M).sum(), sr)
+    at = s <= pb.lower
+    assert float(g[~at].abs().max()) < 1e-9
+    assert bool((g[at] >= -1e-12).all())
+    E = pb.energy(s, mom.M)
+    for d in (1e-3, -1e-3):                      # and it is a minimum along random feasible moves
+        g1 = torch.Generator().manual_seed(int(d > 0))
+        t = torch.maximum(s + d * torch.randn(s.shape, generator=g1, dtype=D), pb.lower)
+        assert bool((pb.energy(t, mom.M) >= E - 1e-14).all())
+    pb1, m1, mom1, *_ = _band_problem(B=1)
+    s1 = pb1.solve(mom1.M, 100)
+    k = m.vert_item == 0
+    assert torch.allclose(pb.values(s)[k], pb1.values(s1), rtol=1e-10, atol=1e-14)

@@ -12,6 +12,13 @@ kept, see :meth:`ImplicitCurve.refine_band`). The magnitudes are then refitted w
 loop's objective (:class:`~torch_isc.pipeline.values.GeometryObjective`: ``Δ1`` plus the
 jump of ``∇f`` across interior edges plus the dead-zoned crossing term) with a stronger
 smoothness weight, so residuals of points on both sides of the curve cancel rather than bend it.
+
+``band_solver`` picks the refit's solver: ``lbfgs`` (``band_iterations`` L-BFGS iterations,
+which stop short of the minimum) or ``newton`` (:meth:`RefitProblem.geometry
+<torch_isc.pipeline.refit.RefitProblem.geometry>`: the same objective plus tiny ``reg``/scale
+terms, solved to convergence by projected damped Newton). Newton's dense per-item Hessians are
+bounded: items in groups of at most ``_DENSE_BUDGET`` entries, items with more than
+``band_dense_max`` vertices near the curve by L-BFGS.
 """
 from __future__ import annotations
 
@@ -25,6 +32,7 @@ from torch_isc.core.curve import crossed_triangles
 from torch_isc.core.subdivide import subdivide
 from torch_isc.pipeline.evidence import triangle_moments
 from torch_isc.pipeline.knobs import check_section, knob
+from torch_isc.pipeline.refit import RefitProblem
 from torch_isc.pipeline.values import GeometryConfig, fit_geometry, vertex_data_distance, vertex_data_distance_near
 
 if TYPE_CHECKING:
@@ -44,8 +52,18 @@ class BandConfig:
     band_min_size: float = knob(4.0, ge=0)
     #: smoothness weight of the final refit (the loop's is ``smoothness``)
     band_smoothness: float = knob(3.0, ge=0)
-    #: L-BFGS iterations of the final refit
+    #: the final refit's solver: "newton" (damped Newton on closed-form Hessians, run to
+    #: convergence; :class:`~torch_isc.pipeline.refit.RefitProblem`) or "lbfgs" (``band_iterations``
+    #: L-BFGS iterations of the loop's objective)
+    band_solver: str = knob("lbfgs", choices=("newton", "lbfgs"))
+    #: iteration cap of the final refit (Newton iterations; L-BFGS iterations with band_solver=lbfgs)
     band_iterations: int = knob(40, ge=0)
+    #: Newton: an item with more vertices near its curve than this is refitted by L-BFGS (its
+    #: dense Hessian would be too large); a batch is solved in groups of at most 2**24 entries
+    band_dense_max: int = knob(1500, ge=0)
+    #: Newton: weight of the mean squared log-magnitude change from the start (each vertex's
+    #: distance to the data); it also makes the minimizer unique
+    band_reg: float = knob(0.1, ge=0)
     #: rounds of the spike rule (flip simple vertices the curve wraps around, then refit); 0 disables
     spike_rounds: int = knob(2, ge=0)
     #: a vertex is a spike's tip when more than this fraction of the angle around it lies across the curve
@@ -114,6 +132,10 @@ def _flip_spikes(ws: "WorkingSet", values: torch.Tensor, cfg: BandConfig) -> tor
         return c.values
 
 
+#: the most entries of the dense Hessians one Newton group holds (items x Amax x Amax)
+_DENSE_BUDGET = 2 ** 24
+
+
 def band_stage(ws: "WorkingSet", cfg: BandConfig, geometry: GeometryConfig, slack: torch.Tensor) -> "WorkingSet":
     """The working set with its mesh refined around the curve and its magnitudes refitted
     (signs of every old vertex kept; new vertices take the sign of ``f`` where they sit).
@@ -126,6 +148,56 @@ def band_stage(ws: "WorkingSet", cfg: BandConfig, geometry: GeometryConfig, slac
             break
         ws = ws.follow(subdivide(ws.mesh, marked))
     gcfg = dataclasses.replace(geometry, smoothness=cfg.band_smoothness, lbfgs_iterations=cfg.band_iterations)
+    if cfg.band_solver == "lbfgs":
+        values = _refit(ws, cfg, gcfg, slack, "lbfgs")
+    else:
+        values = _refit_grouped(ws, cfg, gcfg, slack)
+    # flat items keep what the loop made (no curve)
+    values = torch.where(ws.flat[ws.mesh.vert_item], ws.values, values)
+    return ws.replace(values=values, signs=torch.where(values < 0, -1.0, 1.0).to(values.dtype))
+
+
+def _refit_grouped(ws: "WorkingSet", cfg: BandConfig, gcfg: GeometryConfig, slack: torch.Tensor) -> torch.Tensor:
+    """:func:`_refit` by Newton with the dense Hessians bounded: items in groups of at most
+    ``_DENSE_BUDGET`` entries (by an upper bound of their active vertices: those of the
+    triangles within 3 rings of the crossed ones), items above ``band_dense_max`` by L-BFGS.
+    One group (no selection) in the common case; one host read of the bounds."""
+    m = ws.mesh
+    with torch.no_grad():
+        near = crossed_triangles(m, ws.values, 3)
+        vmask = torch.zeros(m.verts.shape[0], dtype=torch.bool, device=m.device)
+        vmask[m.faces[near].reshape(-1)] = True
+        bound = torch.zeros(ws.num_items, dtype=torch.long, device=m.device).index_add_(0, m.vert_item, vmask.long())
+        ub = bound.tolist()
+    big = [b > cfg.band_dense_max for b in ub]
+    groups, cur, cmax = [], [], 0
+    for b, u in enumerate(ub):
+        if big[b]:
+            continue
+        if cur and (len(cur) + 1) * max(cmax, u) ** 2 > _DENSE_BUDGET:
+            groups.append(("newton", cur))
+            cur, cmax = [], 0
+        cur.append(b)
+        cmax = max(cmax, u)
+    if cur:
+        groups.append(("newton", cur))
+    if any(big):
+        groups.append(("lbfgs", [b for b in range(len(ub)) if big[b]]))
+    if len(groups) == 1 and len(groups[0][1]) == ws.num_items:
+        return _refit(ws, cfg, gcfg, slack, groups[0][0])
+    values = ws.values.clone()
+    for solver, items in groups:
+        keep = torch.tensor(items, dtype=torch.long, device=m.device)
+        sub = ws.select(keep)
+        kmask = torch.zeros(ws.num_items, dtype=torch.bool, device=m.device)
+        kmask[keep] = True
+        values[kmask[m.vert_item]] = _refit(sub, cfg, gcfg, slack[keep], solver)
+    return values
+
+
+def _refit(ws: "WorkingSet", cfg: BandConfig, gcfg: GeometryConfig, slack: torch.Tensor, solver: str) -> torch.Tensor:
+    """``(V,)`` the refitted values: ``spike_rounds`` rounds of spike flips, each followed by
+    a fit of the magnitudes with the signs fixed."""
     with torch.no_grad():
         # the fit explains the points near the curve it has (crossed triangles and their
         # neighbours): a point farther out is an outlier to this topology, and in a triangle
@@ -149,9 +221,13 @@ def band_stage(ws: "WorkingSet", cfg: BandConfig, geometry: GeometryConfig, slac
         if cfg.spike_rounds > 0:
             values = _flip_spikes(ws, values, cfg)
         signs = torch.where(values < 0, -1.0, 1.0).to(values.dtype)
-        values, _ = fit_geometry(m, mom, signs, init if r == 0 else values.abs(), slack, gcfg, data_dist=near,
-                                 slack=slack)
+        start = init if r == 0 else values.abs()
+        if solver == "lbfgs":
+            values, _ = fit_geometry(m, mom, signs, start, slack, gcfg, data_dist=near, slack=slack)
+        else:
+            with torch.no_grad():
+                pb = RefitProblem.geometry(m, mom.count, signs, start, slack, gcfg.magnitude_floor, gcfg.smoothness,
+                                           gcfg.crossing_weight, near, slack, reg=cfg.band_reg)
+                values = pb.values(pb.solve(mom.M, cfg.band_iterations))
         values = values.detach()
-    # flat items keep what the loop made (no curve)
-    values = torch.where(ws.flat[ws.mesh.vert_item], ws.values, values)
-    return ws.replace(values=values, signs=torch.where(values < 0, -1.0, 1.0).to(values.dtype))
+    return values

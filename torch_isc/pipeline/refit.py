@@ -21,15 +21,31 @@ term fixes that flat direction and those vertices (they stay at ``s0`` exactly),
 minimizer ``s*`` is unique near ``s0`` and ``∂²E/∂s²`` invertible.
 
 Solver: a damped Newton method (Levenberg–Marquardt) on per-item dense Hessians over the
-*active* vertices (those of triangles holding points), assembled with one ``index_add_``
-from closed-form per-triangle 3×3 Hessians: with ``q = FᵀMF / d``, ``d = FᵀNF`` (``N = GGᵀ``),
+*active* vertices (those of triangles holding points, of band edges and of crossings),
+assembled with one ``index_add_`` (indices made once) from closed-form per-triangle 3×3
+Hessians: with ``q = FᵀMF / d``, ``d = FᵀNF`` (``N = GGᵀ``),
 ``∇_F q = 2(MF − qNF)/d`` and ``∇²_F q = (2/d)(M − qN − NF ∇qᵀ − ∇q (NF)ᵀ)``, chained to ``s``
 by ``∂F/∂s = diag(F)``; ``J/S`` is a ratio of quadratic forms too (the same formula, with a
-rank-2 dense part per item). Damping, acceptance and stopping are per item, so an item's iterates
-never depend on the other items. An item stops when its gradient is at rounding level
+rank-2 dense part per item, added with the scale term's rank 1 in one batched product). The
+blocks are ragged: an item's block has its own active count rounded up to a size class
+(``8 · 1.5^k``), a class is one batched ``(n, A, A)`` view of one flat buffer, so padding
+stays below 2.25x of the entries and there is one Cholesky call per class. A damped block
+that is not positive definite (``H`` of a ratio of quadratic forms can be indefinite) gives a
+rejected step and more damping. Damping, acceptance and stopping are per item, so an item's
+iterates never depend on the other items. An item stops when its gradient is at rounding level
 relative to its objective (``‖∇E‖∞ ≤ 256 ε E``), or when an accepted undamped Newton step
 is below ``step_tol`` with the damping at most 1e-10 of the mean curvature (quadratic convergence:
 the error left is about its square).
+
+:meth:`RefitProblem.geometry` builds the band stage's objective (the loop's
+:class:`~torch_isc.pipeline.values.GeometryObjective`: its weights, floor, start, smoothness
+band and dead-zoned crossing term, with exact Hessians of the crossing hinge) plus ``reg`` and
+``scale_reg``. There ``s`` has a lower bound (a magnitude within 1e-3 of the floor: the
+infimum of a collapsing magnitude lies at ``s = −∞``) handled by projected Newton (bound
+vertices whose gradient points below leave the system), the damping follows the gain ratio
+(/10 on a good model, x2, x4, ... on rejections), a float32 item also stops once the damped
+Newton decrement is at rounding level of its objective, and finished items are dropped once
+at most half remain (the problem is rebuilt for the others).
 
 The backward pass does not unroll the iterations: ``∇_s E(s*, M) = 0`` gives
 ``ds*/dM = −H⁻¹ ∂²E/∂s∂M``, so the vector-Jacobian product solves ``H λ = ḡ`` (``H``
@@ -40,6 +56,7 @@ to the vertex positions through the refit).
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import List, Optional, Sequence
 
 import torch
@@ -62,29 +79,88 @@ class RefitProblem:
     def __init__(self, curve: ImplicitCurve, count: torch.Tensor, reg: float, rel_scale: float,
                  smoothness: float = 0.0, floor: float = 0.0, scale_reg: float = 1.0):
         mesh = curve.mesh.detach()
-        self.mesh = mesh
         B, dt, dev = mesh.num_items, mesh.dtype, mesh.device
         with torch.no_grad():
             v = curve.values.detach().to(dt)
-            V = v.shape[0]
-            self.act = (count > 0).nonzero().squeeze(1)              # triangles with points
             fi, vi = mesh.face_item, mesh.vert_item
             nb = torch.zeros(B, dtype=dt, device=dev).index_add_(0, fi, count.to(dt))
             bbox = mesh.item_bbox()
             h = rel_scale * (bbox[:, 2:] - bbox[:, :2]).norm(dim=1)
-            self.w = (count.to(dt) / nb[fi].clamp_min(1) / (h * h)[fi])[self.act]
+            w = count.to(dt) / nb[fi].clamp_min(1) / (h * h)[fi]
+            nv = mesh.verts_per_item.to(dt)
+            mean_mag = torch.zeros(B, dtype=dt, device=dev).index_add_(0, vi, v.abs()) / nv.clamp_min(1)
+            # each magnitude stays above ``floor`` times its start (the start is exactly the curve)
+            self._build(mesh, torch.sign(v), count, w, floor * v.abs(), torch.log((1.0 - floor) * v.abs()),
+                        (1e-10 * mean_mag) ** 2, reg, smoothness, scale_reg)
+
+    @classmethod
+    def geometry(cls, mesh, count: torch.Tensor, signs: torch.Tensor, init_mag: torch.Tensor, tol: torch.Tensor,
+                 magnitude_floor: float, smoothness: float, crossing_weight: float = 0.0,
+                 data_dist: Optional[torch.Tensor] = None, slack: Optional[torch.Tensor] = None,
+                 reg: float = 1e-4, scale_reg: float = 1.0) -> "RefitProblem":
+        """The objective of :class:`~torch_isc.pipeline.values.GeometryObjective` (same weights,
+        floor, start, smoothness band and dead-zoned crossing term, built the same way) plus
+        this class's ``reg`` and ``scale_reg`` terms, which make its minimizer unique: ``Δ1``,
+        ``J/S`` and the crossing term are invariant to scaling ``F`` and only the floor breaks
+        that, so without them the global scale is a nearly flat direction (and the vertices
+        no term sees are flat ones)."""
+        self = object.__new__(cls)
+        mesh = mesh.detach()
+        B, dt, dev = mesh.num_items, mesh.dtype, mesh.device
+        with torch.no_grad():
+            fi, vi = mesh.face_item, mesh.vert_item
+            cnt = count.to(dt)
+            nb = torch.zeros(B, dtype=dt, device=dev).index_add_(0, fi, cnt)
+            w = cnt / nb[fi].clamp_min(1) / (tol * tol)[fi]
+            nv = mesh.verts_per_item.to(dt)
+            mean_mag = torch.zeros(B, dtype=dt, device=dev).index_add_(0, vi, init_mag) / nv.clamp_min(1)
+            fl = (magnitude_floor * mean_mag)[vi]
+            s0 = torch.log((init_mag - fl).clamp_min(1e-3 * mean_mag[vi]).clamp_min(torch.finfo(dt).tiny))
+            cross = None
+            if crossing_weight > 0 and data_dist is not None and slack is not None:
+                v = mesh.verts
+                ce = mesh.edges[signs[mesh.edges[:, 0]] != signs[mesh.edges[:, 1]]]
+                c_item = vi[ce[:, 0]]
+                c_len = (v[ce[:, 0]] - v[ce[:, 1]]).norm(dim=1)
+                c_lim = (data_dist[ce] - slack[c_item][:, None]).clamp_min(0)
+                c_lim = torch.where(torch.isfinite(c_lim), c_lim, torch.zeros_like(c_lim))
+                n_cross = torch.zeros(B, dtype=dt, device=dev).index_add_(0, c_item, torch.ones_like(c_len))
+                c_w = crossing_weight / n_cross.clamp_min(1)[c_item] / (tol * tol)[c_item]
+                cross = (ce, c_item, c_len, c_lim, c_w)
+            self._build(mesh, signs.to(dt), count, w, fl, s0, (1e-10 * mean_mag) ** 2, reg, smoothness, scale_reg,
+                        cross)
+            #: ``(V,)`` lower bound of ``s``: a magnitude within 1e-3 of its floor is at the floor (the
+            #: objective's infimum there lies at ``s = -inf``, which no step count reaches)
+            self.lower = torch.log(1e-3 * fl).clamp_min(torch.finfo(dt).min)
+            # what a sub-batch's problem is rebuilt from (:meth:`solve` drops finished items)
+            self._inputs = (count, signs, init_mag, tol, magnitude_floor, smoothness, crossing_weight, data_dist,
+                            slack, reg, scale_reg)
+            #: the starting damping: the start (distances to the data) is far from the optimum
+            self.mu0 = 1e-2
+        return self
+
+    def _build(self, mesh, sig, count, w, floor, s0, guard, reg, smoothness, scale_reg, cross=None):
+        """Set the fixed parts: ``w (T,)`` the weight of each triangle's ``FᵀMF/|∇f|²``,
+        ``floor, s0 (V,)``, ``guard (B,)`` (added to ``|∇f|²``), ``cross``: the crossing term's
+        ``(edges (C,2), item (C,), length (C,), limits (C,2), weight (C,))`` or None."""
+        B, dt, dev = mesh.num_items, mesh.dtype, mesh.device
+        self.mesh = mesh
+        self.dt_, self.dev_ = dt, dev
+        with torch.no_grad():
+            V = sig.shape[0]
+            self.act = (count > 0).nonzero().squeeze(1)              # triangles with points
+            fi, vi = mesh.face_item, mesh.vert_item
+            self.w = w[self.act]
             self.faces = mesh.faces[self.act]
             self.G = mesh.bary_gradients()[self.act]                   # (A,3,2)
             self.N = self.G @ self.G.transpose(1, 2)                   # (A,3,3)
             self.tri_item = fi[self.act]
             nv = mesh.verts_per_item.to(dt)
             self.reg_w = (reg / nv.clamp_min(1))[vi]
-            mean_mag = torch.zeros(B, dtype=dt, device=dev).index_add_(0, vi, v.abs()) / nv.clamp_min(1)
-            self.sig = torch.sign(v)
-            # each magnitude stays above ``floor`` times its start (the start is exactly the curve)
-            self.floor = floor * v.abs()
-            self.s0 = torch.log((1.0 - floor) * v.abs())
-            self.guard = ((1e-10 * mean_mag) ** 2)[self.tri_item]
+            self.sig = sig
+            self.floor = floor
+            self.s0 = s0
+            self.guard = guard[self.tri_item]
             # smoothness: interior edges next to a triangle with points or a sign change (the band)
             self.smoothness = float(smoothness)
             fneg = self.sig[mesh.faces] < 0
@@ -111,10 +187,13 @@ class RefitProblem:
             self.e_faces = sm_loc[ef]                                  # (Eb,2) into the band faces
             self.e_len = el
             self.e_item = mesh.edge_item[band_e]
-            # active vertices (of triangles with points or of band edges), numbered per item
+            self.cross = cross if cross is not None and cross[0].shape[0] > 0 else None
+            # active vertices (of triangles with points, of band edges, of crossings), numbered per item
             av = torch.zeros(V, dtype=torch.bool, device=dev)
             av[self.faces.reshape(-1)] = True
             av[self.sm_faces.reshape(-1)] = True
+            if self.cross is not None:
+                av[self.cross[0].reshape(-1)] = True
             self.av = av.nonzero().squeeze(1)                          # (Va,) item-contiguous
             n_act = torch.zeros(B, dtype=torch.long, device=dev).index_add_(0, vi, av.long())
             start = torch.cumsum(n_act, 0) - n_act
@@ -124,13 +203,114 @@ class RefitProblem:
             loc[self.av] = self.av_loc
             self.face_loc = loc[self.faces]                            # (A,3)
             self.sm_loc = loc[self.sm_faces]
-            self.amax = int(n_act.max()) if B else 0
-            pad = torch.ones(B, self.amax, dtype=dt, device=dev)
-            pad[self.av_item, self.av_loc] = 0.0
-            self.pad_eye = torch.diag_embed(pad)
+            self.c_loc = loc[self.cross[0]] if self.cross is not None else None
+            #: ``(B,)`` active vertices per item (the dense Hessians are ``Amax x Amax``)
+            self.active_counts = n_act
+            self._layout(n_act)
             self.n_act = n_act.to(dt).clamp_min(1.0)
             self.scale_reg = float(scale_reg)
         self.B, self.dt, self.dev = B, dt, dev
+
+    def _layout(self, n_act: torch.Tensor) -> None:
+        """The Hessians' storage: one flat buffer of per-item dense blocks, an item's block
+        ``A_b x A_b`` with ``A_b`` its active count rounded up to a size class (``8 · 1.5^k``),
+        items of a class stored together so that each class is one batched ``(n, A, A)`` view:
+        little padding and one factorization call per class. One host read (the counts)."""
+        B, dt, dev = n_act.shape[0], self.dt_, self.dev_
+        na = n_act.tolist()
+        ladder, k = [0], 8.0
+        while ladder[-1] < (max(na) if na else 0):
+            ladder.append(int(math.ceil(k)))
+            k *= 1.5
+        size = [next(a for a in ladder if a >= n) for n in na]
+        classes = sorted(set(a for a in size if a > 0))
+        blk, hoff, voff = [0] * B, [0] * B, [0] * B
+        self.groups = []                      # (A, items (n,), H offset, vector offset)
+        ho = vo = 0
+        for a in classes:
+            its = [b for b in range(B) if size[b] == a]
+            self.groups.append((a, torch.tensor(its, dtype=torch.long, device=dev), ho, vo))
+            for b in its:
+                blk[b], hoff[b], voff[b] = a, ho, vo
+                ho += a * a
+                vo += a
+        self.hsize, self.vsize = ho, vo
+        self.amax = max(size) if B else 0
+        self.blk = torch.tensor(blk, dtype=torch.long, device=dev)
+        self.hoff = torch.tensor(hoff, dtype=torch.long, device=dev)
+        self.voff = torch.tensor(voff, dtype=torch.long, device=dev)
+        self.av_slot = self.voff[self.av_item] + self.av_loc            # (Va,) into the flat vectors
+        pad = torch.ones(self.vsize, dtype=dt, device=dev)
+        pad[self.av_slot] = 0.0
+        self.pad_flat = pad                                                # 1 at padding slots
+        slot_item = torch.zeros(self.vsize, dtype=torch.long, device=dev)
+        diag = torch.zeros(self.vsize, dtype=torch.long, device=dev)
+        for a, its, ho_, vo_ in self.groups:
+            n = its.shape[0]
+            slot_item[vo_:vo_ + n * a] = its.repeat_interleave(a, output_size=n * a)
+            diag[vo_:vo_ + n * a] = (ho_ + torch.arange(n, device=dev)[:, None] * (a * a)
+                                     + torch.arange(a, device=dev)[None, :] * (a + 1)).reshape(-1)
+        self.slot_item, self.hdiag = slot_item, diag
+        h_item = torch.zeros(self.hsize, dtype=torch.long, device=dev)
+        for a, its, ho_, vo_ in self.groups:
+            n = its.shape[0]
+            h_item[ho_:ho_ + n * a * a] = its.repeat_interleave(a * a, output_size=n * a * a)
+        self.h_item = h_item                                               # (hsize,) each entry's item
+        # the scatter indices of every Hessian term and the constant 6x6 Gram blocks of the
+        # gradient jumps, made once (the sparsity does not change between iterations)
+        li = self.face_loc
+        self.ix_tri = self._hidx(self.tri_item[:, None, None], li[:, :, None], li[:, None, :]).reshape(-1)
+        self.ix_reg = self._hidx(self.av_item, self.av_loc, self.av_loc)
+        if self.cross is not None:
+            cl = self.c_loc
+            self.ix_c = self._hidx(self.cross[1][:, None, None], cl[:, :, None], cl[:, None, :]).reshape(-1)
+        ea, eb = self.e_faces[:, 0], self.e_faces[:, 1]
+        Dg = torch.cat([self.sm_G[ea], -self.sm_G[eb]], 1)              # (Eb,6,2)
+        self.jump_gram = Dg @ Dg.transpose(1, 2)
+        l6 = torch.cat([self.sm_loc[ea], self.sm_loc[eb]], 1)
+        self.ix_jump = self._hidx(self.e_item[:, None, None], l6[:, :, None], l6[:, None, :]).reshape(-1)
+        ls = self.sm_loc
+        self.ix_sm = self._hidx(self.sm_item[:, None, None], ls[:, :, None], ls[:, None, :]).reshape(-1)
+        self.ix_smv = (self.voff[self.sm_item][:, None] + ls).reshape(-1)
+
+    def _hidx(self, item: torch.Tensor, li: torch.Tensor, lj: torch.Tensor) -> torch.Tensor:
+        return self.hoff[item] + li * self.blk[item] + lj
+
+    def _views(self, H: torch.Tensor):
+        """Per size class: ``(items (n,), its H blocks as an (n, A, A) view, its slice of the flat vectors)``."""
+        for a, its, ho, vo in self.groups:
+            n = its.shape[0]
+            yield its, H[ho:ho + n * a * a].view(n, a, a), slice(vo, vo + n * a)
+
+    def _block_solve(self, H: torch.Tensor, rhs: torch.Tensor, lam: Optional[torch.Tensor] = None,
+                     keep: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """Flat ``x`` with ``(H_b + lam_b I) x_b = rhs_b`` per item. With ``lam`` (LM damping):
+        Cholesky, NaN where the damped block is not positive definite (the caller rejects the
+        step and damps more); ``keep`` (flat, 0/1): rows and columns left out (projected Newton).
+        Without: LU (the implicit gradient's solve at the optimum)."""
+        out = []
+        for its, Hg, vs in self._views(H):
+            n, a = Hg.shape[0], Hg.shape[1]
+            r = rhs[vs].view(n, a)
+            if lam is None:
+                x = torch.linalg.solve_ex(Hg, r[..., None])[0][..., 0]
+            else:
+                Hg = Hg.clone()
+                dg = lam[its][:, None].expand(n, a)
+                if keep is not None:
+                    # a left-out vertex: a diagonal 1e8 times the largest keeps its step at ~0
+                    big = 1e8 * Hg.diagonal(dim1=1, dim2=2).abs().amax(1, keepdim=True)
+                    dg = dg + (1.0 - keep[vs].view(n, a)) * big
+                Hg.diagonal(dim1=1, dim2=2).add_(dg)
+                L, info = torch.linalg.cholesky_ex(Hg)
+                x = torch.cholesky_solve(r[..., None], L)[..., 0]
+                x = torch.where((info == 0)[:, None], x, torch.full_like(x, float("nan")))
+            out.append(x.reshape(-1))
+        return torch.cat(out) if out else rhs.new_zeros(0)
+
+    def _block_matvec(self, H: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        out = [(Hg @ x[vs].view(Hg.shape[0], -1, 1)).reshape(-1) for _, Hg, vs in self._views(H)]
+        return torch.cat(out) if out else x.new_zeros(0)
 
     # ----------------------------------------------------------- objective
     def terms(self, s: torch.Tensor, M: torch.Tensor, hessian: bool = False):
@@ -161,23 +341,67 @@ class RefitProblem:
             R, Fs, dR, dS, S, ea, eb = sm
             E = E + self.smoothness * R
             g = g.index_add_(0, self.sm_faces.reshape(-1), (self.smoothness * Fs * dR).reshape(-1))   # Fs: dF/ds
+        cr = None
+        if self.cross is not None:
+            Ec, gc, cr = self._cross_terms(s, hessian)
+            E = E + Ec
+            g = g.index_add_(0, self.cross[0].reshape(-1), gc.reshape(-1))
         if not hessian:
             return E, g, None
-        A = self.amax
         Hq = (2.0 / d)[:, None, None] * (M - q[:, None, None] * self.N
                                          - NF[:, :, None] * dq[:, None, :] - dq[:, :, None] * NF[:, None, :])
         Hs = D[:, :, None] * Hq * D[:, None, :] + torch.diag_embed(D * dq)
         Hs = self.w[:, None, None] * Hs
-        li = self.face_loc
-        idx = (self.tri_item[:, None, None] * A + li[:, :, None]) * A + li[:, None, :]
-        H = torch.zeros(B * A * A, dtype=dt, device=dev).index_add_(0, idx.reshape(-1), Hs.reshape(-1))
-        di = (self.av_item * A + self.av_loc) * A + self.av_loc
-        H = H.index_add_(0, di, 2.0 * self.reg_w[self.av])
-        ind = 1.0 - torch.diagonal(self.pad_eye, dim1=1, dim2=2)                         # (B,A) active slots
-        H = H + ((2.0 * self.scale_reg / self.n_act ** 2)[:, None, None] * ind[:, :, None] * ind[:, None, :]).reshape(-1)
+        H = torch.zeros(self.hsize, dtype=dt, device=dev).index_add_(0, self.ix_tri, Hs.reshape(-1))
+        H = H.index_add_(0, self.ix_reg, 2.0 * self.reg_w[self.av])
+        lowl, lowr = [], []
         if sm is not None:
-            H = H + self.smoothness * self._smooth_hessian(R, Fs, dR, dS, S, ea, eb)
-        return E, g, H.view(B, A, A) + self.pad_eye
+            l2, r2 = self._smooth_hessian(H, R, Fs, dR, dS, S, ea, eb)
+            lowl.append(l2)
+            lowr.append(r2)
+        if cr is not None:
+            ci, Hc = cr[0], cr[1]
+            H = H.index_add_(0, self.ix_c, Hc.reshape(-1))
+        # the scale term: rank 1 over each item's active slots; identity on the padding
+        ind = 1.0 - self.pad_flat
+        cs = (2.0 * self.scale_reg / self.n_act ** 2)[self.slot_item]
+        lowl.append((cs * ind)[:, None])
+        lowr.append(ind[:, None])
+        L, Rt = torch.cat(lowl, 1), torch.cat(lowr, 1)
+        k = L.shape[1]
+        for its, Hg, vs in self._views(H):      # all low-rank parts in one product per size class
+            n = Hg.shape[0]
+            Hg.baddbmm_(L[vs].view(n, -1, k), Rt[vs].view(n, -1, k).transpose(1, 2))
+        H.index_add_(0, self.hdiag, self.pad_flat)
+        return E, g, H
+
+    def _cross_terms(self, s: torch.Tensor, hessian: bool):
+        """The crossing term of :func:`~torch_isc.pipeline.values.fit_geometry` per crossing
+        edge ``(i, j)``: ``w (max(0, lim_i − u)² + max(0, lim_j − (ℓ − u))²)`` with
+        ``u = ℓ m_i/(m_i + m_j)`` (``m = exp(s) + floor``). Returns its ``(B,)`` sum, the ``(C, 2)``
+        gradients in ``s`` and, with ``hessian``, ``(item (C,), the (C, 2, 2) Hessians)``:
+        ``E_uu ∇u ∇uᵀ + E_u ∇²u`` (``E_uu`` the hinge's second derivative, 0 past the kink)."""
+        ce, c_item, cl, clim, cw = self.cross
+        Dm = torch.exp(s[ce])                                          # (C,2) dm/ds
+        m = Dm + self.floor[ce]
+        tot = m.sum(1)
+        u = cl * m[:, 0] / tot
+        over0 = (clim[:, 0] - u).clamp_min(0)
+        over1 = (clim[:, 1] - (cl - u)).clamp_min(0)
+        E = torch.zeros(self.B, dtype=self.dt, device=self.dev).index_add_(0, c_item, cw * (over0 * over0 + over1 * over1))
+        Eu = 2.0 * cw * (over1 - over0)
+        um = torch.stack([cl * m[:, 1], -cl * m[:, 0]], 1) / (tot * tot)[:, None]     # du/dm
+        us = um * Dm                                                   # du/ds
+        g = Eu[:, None] * us
+        if not hessian:
+            return E, g, None
+        Euu = 2.0 * cw * ((over0 > 0).to(self.dt) + (over1 > 0).to(self.dt))
+        t3 = cl / (tot * tot * tot)
+        h00, h01, h11 = -2.0 * t3 * m[:, 1], t3 * (m[:, 0] - m[:, 1]), 2.0 * t3 * m[:, 0]
+        umm = torch.stack([torch.stack([h00, h01], 1), torch.stack([h01, h11], 1)], 1)   # d²u/dm²
+        uss = Dm[:, :, None] * umm * Dm[:, None, :] + torch.diag_embed(um * Dm)
+        H = Euu[:, None, None] * us[:, :, None] * us[:, None, :] + Eu[:, None, None] * uss
+        return E, g, (c_item, H)
 
     def _smooth_terms(self, s: torch.Tensor):
         """(``Fs`` returned is ``∂F/∂s`` on the band faces.) ``R = J / S`` per item with ``J = Σ_e ℓ_e |∇f_a − ∇f_b|²`` over the band edges and
@@ -200,31 +424,27 @@ class RefitProblem:
         dR = (dJ - R[self.sm_item, None] * dS) / Si[:, None]
         return R, Fs, dR, dS, S, ea, eb
 
-    def _smooth_hessian(self, R, Fs, dR, dS, S, ea, eb) -> torch.Tensor:
-        """Flat ``(B·A·A,)`` Hessian of ``R`` in ``s``: ``diag(F) ∇²_F R diag(F) + diag(F ⊙ ∇_F R)``,
+    def _smooth_hessian(self, H, R, Fs, dR, dS, S, ea, eb):
+        """Add ``smoothness ·`` the Hessian of ``R`` in ``s`` to the flat ``H`` but its rank-2 part,
+        returned as per-slot factors ``(left, right)`` (``Σ left rightᵀ`` per item):
+        ``diag(F) ∇²_F R diag(F) + diag(F ⊙ ∇_F R)``,
         ``∇²_F R = (∇²J − R ∇²S)/S − (∇R ∇Sᵀ + ∇S ∇Rᵀ)/S`` (the last part rank 2 per item)."""
-        B, dt, dev, A = self.B, self.dt, self.dev, self.amax
+        dt, dev, w = self.dt, self.dev, self.smoothness
         Si = S[self.sm_item]
         # ∇²J: per band edge the 6x6 block 2ℓ [G_a; −G_b][G_a; −G_b]ᵀ, in s
-        Dg = torch.cat([self.sm_G[ea], -self.sm_G[eb]], 1)              # (Eb,6,2)
         F6 = torch.cat([Fs[ea], Fs[eb]], 1)                             # (Eb,6)
-        l6 = torch.cat([self.sm_loc[ea], self.sm_loc[eb]], 1)
         it = self.e_item
-        blk = (2 * self.e_len / S[it])[:, None, None] * (Dg @ Dg.transpose(1, 2)) * F6[:, :, None] * F6[:, None, :]
-        idx = (it[:, None, None] * A + l6[:, :, None]) * A + l6[:, None, :]
-        H = torch.zeros(B * A * A, dtype=dt, device=dev).index_add_(0, idx.reshape(-1), blk.reshape(-1))
+        blk = (2 * w * self.e_len / S[it])[:, None, None] * self.jump_gram * F6[:, :, None] * F6[:, None, :]
+        H.index_add_(0, self.ix_jump, blk.reshape(-1))
         # −R ∇²S / S: per face −2 c_t R N_t / S, plus diag(F ⊙ ∇R)
         fb = (-2 * self.sm_c * R[self.sm_item] / Si)[:, None, None] * self.sm_N * Fs[:, :, None] * Fs[:, None, :]
-        fb = fb + torch.diag_embed(Fs * dR)
-        li = self.sm_loc
-        idx = (self.sm_item[:, None, None] * A + li[:, :, None]) * A + li[:, None, :]
-        H = H.index_add_(0, idx.reshape(-1), fb.reshape(-1))
-        # rank 2: −(v uᵀ + u vᵀ)/S with v = F ⊙ ∇R, u = F ⊙ ∇S (padded per item)
-        flat = self.sm_item[:, None] * A + li
-        v = torch.zeros(B * A, dtype=dt, device=dev).index_add_(0, flat.reshape(-1), (Fs * dR).reshape(-1)).view(B, A)
-        u = torch.zeros(B * A, dtype=dt, device=dev).index_add_(0, flat.reshape(-1), (Fs * dS).reshape(-1)).view(B, A)
-        r2 = (v[:, :, None] * u[:, None, :] + u[:, :, None] * v[:, None, :]) / S[:, None, None]
-        return H - r2.reshape(-1)
+        fb = w * (fb + torch.diag_embed(Fs * dR))
+        H.index_add_(0, self.ix_sm, fb.reshape(-1))
+        # rank 2: −(v uᵀ + u vᵀ)/S with v = F ⊙ ∇R, u = F ⊙ ∇S (per item block)
+        v = torch.zeros(self.vsize, dtype=dt, device=dev).index_add_(0, self.ix_smv, (Fs * dR).reshape(-1))
+        u = torch.zeros(self.vsize, dtype=dt, device=dev).index_add_(0, self.ix_smv, (Fs * dS).reshape(-1))
+        c = (-w / S)[self.slot_item]
+        return torch.stack([c * v, c * u], 1), torch.stack([u, v], 1)     # (vsize, 2) each: left, right factors
 
     def values(self, s: torch.Tensor) -> torch.Tensor:
         """``(V,)`` the nodal values ``σ ⊙ (exp(s) + floor)``."""
@@ -235,23 +455,27 @@ class RefitProblem:
         return self.terms(s, M[self.act])[0]
 
     def pad(self, x: torch.Tensor) -> torch.Tensor:
-        """``(V,)`` -> ``(B, Amax)``: the active vertices' entries."""
-        out = torch.zeros(self.B, self.amax, dtype=x.dtype, device=x.device)
-        return out.index_put((self.av_item, self.av_loc), x[self.av])
+        """``(V,)`` -> the flat per-item block vector: the active vertices' entries (0 on padding)."""
+        out = torch.zeros(self.vsize, dtype=x.dtype, device=x.device)
+        return out.index_copy(0, self.av_slot, x[self.av])
 
     def unpad(self, X: torch.Tensor) -> torch.Tensor:
-        """``(B, Amax)`` -> ``(V,)`` (0 at inactive vertices)."""
+        """flat block vector -> ``(V,)`` (0 at inactive vertices)."""
         out = torch.zeros(self.s0.shape[0], dtype=X.dtype, device=X.device)
-        return out.index_copy(0, self.av, X[self.av_item, self.av_loc])
+        return out.index_copy(0, self.av, X[self.av_slot])
 
     # ----------------------------------------------------------- solver
     def solve(self, M: torch.Tensor, max_iter: int = 100, step_tol: Optional[float] = None,
-              max_step: float = 2.0, trace: Optional[list] = None) -> torch.Tensor:
+              max_step: float = 2.0, trace: Optional[list] = None, start: Optional[torch.Tensor] = None,
+              state: Optional[tuple] = None) -> torch.Tensor:
         """``(V,)`` the minimizer ``s*`` (damped Newton, per-item damping and stopping).
 
-        ``M``: the full ``(T, 3, 3)`` moments."""
+        ``M``: the full ``(T, 3, 3)`` moments. ``start``, ``state``: the iterate and the
+        per-item damping and first objective ``(mu, nu, E0)`` to go on from (default: ``s0`` and a fresh start). A
+        problem made by :meth:`geometry` drops its finished items once at most half remain
+        (a smaller problem is rebuilt for the others; per-item results do not change)."""
         Ma = M[self.act]
-        s = self.s0.clone()
+        s = self.s0.clone() if start is None else start.clone()
         B, dt, dev = self.B, self.dt, self.dev
         self.converged = torch.ones(B, dtype=torch.bool, device=dev)
         self.item_iterations = torch.zeros(B, dtype=torch.long, device=dev)
@@ -260,46 +484,83 @@ class RefitProblem:
         eps = torch.finfo(dt).eps
         step_tol = 0.1 * eps ** 0.5 if step_tol is None else step_tol
         avi = self.av_item
-        eye = torch.eye(self.amax, dtype=dt, device=dev)
-        mu = torch.full((B,), 1e-4, dtype=dt, device=dev)
+        if state is None:
+            mu = torch.full((B,), getattr(self, "mu0", 1e-4), dtype=dt, device=dev)
+            nu = torch.full((B,), 2.0, dtype=dt, device=dev)
+        else:
+            mu, nu = state[0].clone(), state[1].clone()
         done = torch.zeros(B, dtype=torch.bool, device=dev)
-        pad_diag = torch.diagonal(self.pad_eye, dim1=1, dim2=2)
-        n_act = (1.0 - pad_diag).sum(1).clamp_min(1.0)
+        n_act = self.n_act
         E, g, H = self.terms(s, Ma, hessian=True)
 
         def gmax(x):
             return torch.zeros(B, dtype=dt, device=dev).scatter_reduce(0, avi, x[self.av].abs(), "amax")
 
-        gn = gmax(g)
-        E0 = E.abs().clone()
+        def item_sum(x):                 # flat block vector -> (B,)
+            return torch.zeros(B, dtype=dt, device=dev).index_add_(0, self.slot_item, x)
+
+        lo = getattr(self, "lower", None)
+        rounding_stop = lo is not None
+        vi = self.mesh.vert_item
+
+        def free_grad(s_, g_):
+            # projected gradient: 0 where s sits on its lower bound and the descent runs below it
+            return g_ if lo is None else torch.where((s_ <= lo) & (g_ > 0), torch.zeros_like(g_), g_)
+
+        gp = free_grad(s, g)
+        gn = gmax(gp)
+        E0 = E.abs().clone() if state is None else state[2].clone()
         self.iterations = 0
         item_iters = torch.zeros(B, dtype=torch.long, device=dev)
         for it in range(max_iter):
             done = done | (gn <= 256 * eps * E.abs())
-            if bool(done.all()):
+            n_left = int((~done).sum())                        # the iteration's one host read
+            if n_left == 0:
                 break
+            if getattr(self, "_inputs", None) is not None and 2 * n_left <= B and it > 0:
+                return self._go_on_without_done(M, done, s, (mu, nu, E0), max_iter - it, step_tol, max_step, trace,
+                                                item_iters, it)
             self.iterations = it + 1
-            lam = mu * (torch.diagonal(H, dim1=1, dim2=2).abs() - pad_diag).sum(1) / n_act
-            d = self.unpad(torch.linalg.solve(H + lam[:, None, None] * eye, -self.pad(g)[..., None])[..., 0])
-            d = torch.where(done[self.mesh.vert_item], torch.zeros_like(d), d)
+            lam = mu * item_sum(H[self.hdiag].abs() * (1.0 - self.pad_flat)) / n_act
+            # projected Newton: the bound vertices leave the system (their rows and columns)
+            keep = None if lo is None else self.pad(((gp == g) | (s > lo)).to(dt))
+            d = self.unpad(self._block_solve(H, -self.pad(gp), lam, keep))
+            d = torch.where(done[vi], torch.zeros_like(d), d)
+            # the damped Newton decrement gᵀ(H + λI)⁻¹g: what the (convex) damped model can still gain
+            dec = torch.zeros(B, dtype=dt, device=dev).index_add_(0, vi, -gp * d)
             # a trust region in s (a factor e^2 per step): the iterates stay in s0's basin
             big = gmax(d)
-            d = d * (max_step / big.clamp_min(max_step))[self.mesh.vert_item]
-            E2, g2, H2 = self.terms(s + d, Ma, hessian=True)
-            gn2 = gmax(g2)
+            d = d * (max_step / big.clamp_min(max_step))[vi]
+            s2 = s + d if lo is None else torch.maximum(s + d, lo)
+            # the quadratic model's predicted decrease, for the damping update (gain ratio)
+            dp = self.pad(s2 - s)
+            pred = item_sum(-self.pad(g) * dp - 0.5 * dp * self._block_matvec(H, dp))
+            E2, g2, H2 = self.terms(s2, Ma, hessian=True)
+            gp2 = free_grad(s2, g2)
+            gn2 = gmax(gp2)
             # near the optimum E changes at rounding level: there accept steps that shrink the gradient
             ok = ~done & torch.isfinite(E2) & ((E2 < E) | ((E2 <= E + 256 * eps * E.abs()) & (gn2 < gn)))
-            step = gmax(d)
-            okv = ok[self.mesh.vert_item]
-            s = torch.where(okv, s + d, s)
+            step = gmax(s2 - s)
+            okv = ok[vi]
+            s = torch.where(okv, s2, s)
             g = torch.where(okv, g2, g)
+            gp = torch.where(okv, gp2, gp)
+            rho = (E - E2) / pred.clamp_min(torch.finfo(dt).tiny)
+            E_old = E
             E = torch.where(ok, E2, E)
             gn = torch.where(ok, gn2, gn)
-            H = torch.where(ok[:, None, None], H2, H)
+            H = torch.where(ok[self.h_item], H2, H)
             # an accepted, nearly undamped step this small leaves an error of about its square
             # a rejected step with the gradient at rounding level relative to the starting objective
-            done = done | (ok & (step < step_tol) & (mu <= 1e-10)) | (~ok & (gn <= 1e4 * eps * E0)) | (mu > 1e12)
-            mu = torch.where(ok, (mu * 0.1).clamp_min(1e-15), mu * 10.0)
+            # or (float32: the objective's sums round at about 1e-7 of it) a nearly undamped
+            # model whose whole predicted decrease is at rounding level: no step can do better
+            done = (done | (ok & (step < step_tol) & (mu <= 1e-10)) | (~ok & (gn <= 1e4 * eps * E0)) | (mu > 1e12)
+                    | (rounding_stop & (dec <= 16 * eps * E_old.abs()) & (mu <= 1e-3)))
+            # damping: /10 where the quadratic model predicted the decrease well, kept where it
+            # did so poorly, x2, x4, x8... on rejections (a ratio of quadratic forms is not convex)
+            shrink = torch.where(rho > 0.5, 0.1, torch.where(rho > 0.1, 1.0, 2.0)).to(dt)
+            mu = torch.where(ok, (mu * shrink).clamp_min(1e-15), mu * nu)
+            nu = torch.where(ok, torch.full_like(nu, 2.0), nu * 2.0)
             item_iters = item_iters + (~done).long()
             if trace is not None:        # debugging: per iteration (E, |g|max, |step|max, mu, accepted)
                 trace.append((E.clone(), gn.clone(), step.clone(), mu.clone(), ok.clone()))
@@ -307,6 +568,23 @@ class RefitProblem:
         self.converged = done | (gn <= 256 * eps * E.abs())
         self.item_iterations = item_iters
         return s
+
+    def _go_on_without_done(self, M, done, s, state, max_iter, step_tol, max_step, trace, item_iters, it):
+        """:meth:`solve`'s remaining iterations on the unfinished items alone."""
+        keep = (~done).nonzero().squeeze(1)
+        mesh, kv, kf = self.mesh.select_items(keep)
+        count, signs, init, tol, mf, sm, cw, near, slack, reg, scale_reg = self._inputs
+        sub = RefitProblem.geometry(mesh, count[kf], signs[kv], init[kv], tol[keep], mf, sm, cw,
+                                    None if near is None else near[kv], None if slack is None else slack[keep],
+                                    reg=reg, scale_reg=scale_reg)
+        s_sub = sub.solve(M[kf], max_iter, step_tol=step_tol, max_step=max_step, trace=trace, start=s[kv],
+                          state=tuple(x[keep] for x in state))
+        self.converged = done.clone()
+        self.converged[keep] = sub.converged
+        self.item_iterations = item_iters.index_add(0, keep, sub.item_iterations)
+        self.iterations = it + sub.iterations
+        return s.index_copy(0, kv, s_sub)
+
 
 class _ImplicitRefit(torch.autograd.Function):
     """``M (T, 3, 3) -> s* (V,)``; backward by the implicit function theorem (closed form)."""
@@ -328,7 +606,7 @@ class _ImplicitRefit(torch.autograd.Function):
             return gM, None, None
         Ma = M[pb.act]
         _, _, H = pb.terms(s, Ma, hessian=True)
-        lam = pb.unpad(torch.linalg.solve(H, pb.pad(gs.to(pb.dt))[..., None])[..., 0])
+        lam = pb.unpad(pb._block_solve(H, pb.pad(gs.to(pb.dt))))
         Dv = pb.sig[pb.faces] * torch.exp(s[pb.faces])                 # (A,3) dF/ds
         F = Dv + pb.sig[pb.faces] * pb.floor[pb.faces]
         gf = (pb.G * F[..., None]).sum(1)

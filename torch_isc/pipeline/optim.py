@@ -28,7 +28,16 @@ import torch
 
 from torch_isc.core.segments import segment_sum
 
-__all__ = ["batched_lbfgs"]
+__all__ = ["batched_lbfgs", "true_indices"]
+
+
+def true_indices(mask: torch.Tensor, count: int) -> torch.Tensor:
+    """``(count,)`` the indices where the 1-D ``mask`` is True, ``count`` being their number
+    (read on the host already): no second host read, where the device has ``nonzero_static``."""
+    try:
+        return torch.nonzero_static(mask, size=count).squeeze(1)
+    except (NotImplementedError, RuntimeError):
+        return mask.nonzero().squeeze(1)
 
 
 def _segdot(a: torch.Tensor, b: torch.Tensor, seg: torch.Tensor, n: int) -> torch.Tensor:
@@ -256,8 +265,8 @@ def batched_lbfgs(fun: Callable[..., torch.Tensor], x0: torch.Tensor, seg: torch
                     break
                 if na <= shrink * Bw:
                     x_out, f_out, it_out = _put(x_out, f_out, it_out, ent, item, XG[0], f, iters)
-                    e = alive[seg].nonzero().squeeze(1)
-                    b = alive.nonzero().squeeze(1)
+                    ae = alive[seg]
+                    e, b = true_indices(ae, int(ae.sum())), true_indices(alive, na)
                     ent = e if ent is None else ent[e]
                     item = b if item is None else item[b]
                     renum = torch.cumsum(alive, 0) - 1

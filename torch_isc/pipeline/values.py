@@ -13,10 +13,10 @@ from typing import TYPE_CHECKING, Optional, Tuple
 
 import torch
 
-from torch_isc.core.segments import segment_sum
+from torch_isc.core.segments import segment_count, segment_sum
 
 from torch_isc.core.mesh import MeshBatch
-from torch_isc.pipeline.optim import batched_lbfgs
+from torch_isc.pipeline.optim import batched_lbfgs, true_indices
 from torch_isc.pipeline.evidence import TriangleMoments
 from torch_isc.pipeline.knobs import check_section, knob
 
@@ -171,7 +171,7 @@ class GeometryObjective:
             G = mesh.bary_gradients()
             nb = segment_sum(mom.count, fi, B)
             wt = mom.count / nb[fi].clamp_min(1)
-            nv = torch.bincount(vi, minlength=B).to(dt)
+            nv = segment_count(vi, B).to(dt)
             mean_mag = segment_sum(init_mag, vi, B) / nv.clamp_min(1)
             self.floor = (magnitude_floor * mean_mag)[vi]
             self.s0 = torch.log((init_mag - self.floor).clamp_min(1e-3 * mean_mag[vi])
@@ -184,20 +184,24 @@ class GeometryObjective:
             ef_all = mesh.edge_faces.clamp_min(0)
             interior = interior & (band_t[ef_all[:, 0]] | band_t[ef_all[:, 1]])
             v = mesh.verts.detach()
-            e = mesh.edges[interior]
+            self.cross = crossing_weight > 0 and data_dist is not None and slack is not None
+            crossed = signs[mesh.edges[:, 0]] != signs[mesh.edges[:, 1]]
+            # both edge selections from one host read
+            n_int, n_cross = torch.stack([interior.sum(), (crossed if self.cross else interior).sum()]).tolist()
+            ii = true_indices(interior, n_int)
+            e = mesh.edges[ii]
             self.inv_tol2 = 1.0 / (tol * tol)
             # per face: vertices, gradients, moments, weight (Δ1 in units of tol²), guard
             self.faces, self.G, self.M, self.fi = mesh.faces, G, mom.M, fi
             self.wt = wt * self.inv_tol2[fi]
             self.wt_raw = wt
             self.guard = ((1e-10 * mean_mag) ** 2)[fi]
-            self.ef = mesh.edge_faces[interior]
+            self.ef = mesh.edge_faces[ii]
             self.ef_ab = torch.cat([self.ef[:, 0], self.ef[:, 1]])
             self.el = (v[e[:, 0]] - v[e[:, 1]]).norm(dim=1)
-            self.eitem = mesh.edge_item[interior]
-            self.cross = crossing_weight > 0 and data_dist is not None and slack is not None
+            self.eitem = mesh.edge_item[ii]
             if self.cross:
-                ce = mesh.edges[signs[mesh.edges[:, 0]] != signs[mesh.edges[:, 1]]]
+                ce = mesh.edges[true_indices(crossed, n_cross)]
                 c_item = vi[ce[:, 0]]
                 self.cross = ce.shape[0] > 0
                 self.ce, self.c_item = ce, c_item
@@ -205,8 +209,8 @@ class GeometryObjective:
                 # how close to each end the crossing may come before it is provably off the data
                 c_lim = (data_dist[ce] - slack[c_item][:, None]).clamp_min(0)
                 self.c_lim = torch.where(torch.isfinite(c_lim), c_lim, torch.zeros_like(c_lim))
-                n_cross = torch.bincount(c_item, minlength=B).to(dt)
-                self.c_w = (crossing_weight / n_cross.clamp_min(1)[c_item]) * self.inv_tol2[c_item]
+                per_item = segment_count(c_item, B).to(dt)
+                self.c_w = (crossing_weight / per_item.clamp_min(1)[c_item]) * self.inv_tol2[c_item]
 
     def _evaluate(self, s: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
         if self.compiled:
@@ -227,29 +231,27 @@ class GeometryObjective:
     def restrict(self, items: torch.Tensor) -> "GeometryObjective":
         """The objective of the items ``items (B,)`` bool alone, items renumbered in order and
         their vertices, faces, edges and crossings kept in order (so every per-item sum, hence
-        every value, is bit-identical to the whole batch's). Host reads: a few, once."""
+        every value, is bit-identical to the whole batch's). One host read (the sizes)."""
         with torch.no_grad():
             sub = object.__new__(GeometryObjective)
             sub.__dict__.update(self.__dict__)
             renum = torch.cumsum(items, 0) - 1
-
-            def keep(owner):
-                k = items[owner]
-                return k.nonzero().squeeze(1), torch.cumsum(k, 0) - 1
-
-            v, vmap = keep(self.vi)
-            f, fmap = keep(self.fi)
-            e, _ = keep(self.eitem)
-            sub.B = int(items.sum())
-            sub.item_zero = self.item_zero[items]
+            owners = [self.vi, self.fi, self.eitem] + ([self.c_item] if self.cross else [])
+            kept = [items[o] for o in owners]
+            sizes = torch.stack([items.sum()] + [k.sum() for k in kept]).tolist()
+            idx = [true_indices(k, c) for k, c in zip([items] + kept, sizes)]
+            b, v, f, e = idx[:4]
+            vmap, fmap = torch.cumsum(kept[0], 0) - 1, torch.cumsum(kept[1], 0) - 1
+            sub.B = sizes[0]
+            sub.item_zero = self.item_zero[b]
             sub.vi, sub.signs, sub.floor = renum[self.vi[v]], self.signs[v], self.floor[v]
-            sub.s0, sub.wt_raw, sub.inv_tol2 = self.s0[v], self.wt_raw[f], self.inv_tol2[items]
+            sub.s0, sub.wt_raw, sub.inv_tol2 = self.s0[v], self.wt_raw[f], self.inv_tol2[b]
             sub.faces, sub.fi = vmap[self.faces[f]], renum[self.fi[f]]
             sub.G, sub.M, sub.wt, sub.guard = self.G[f], self.M[f], self.wt[f], self.guard[f]
             sub.ef, sub.el, sub.eitem = fmap[self.ef[e]], self.el[e], renum[self.eitem[e]]
             sub.ef_ab = torch.cat([sub.ef[:, 0], sub.ef[:, 1]])
             if self.cross:
-                c, _ = keep(self.c_item)
+                c = idx[4]
                 sub.ce, sub.c_item = vmap[self.ce[c]], renum[self.c_item[c]]
                 sub.c_len, sub.c_lim, sub.c_w = self.c_len[c], self.c_lim[c], self.c_w[c]
         return sub

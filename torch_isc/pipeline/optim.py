@@ -123,8 +123,8 @@ def batched_lbfgs(fun: Callable[..., torch.Tensor], x0: torch.Tensor, seg: torch
     work is laid out.
 
     While the history fills (the first ``history`` rounds) the rounds run in lockstep: the
-    search tries ``trials`` steps per stacked call and reads on the host whether another block
-    is needed. After that every round has fixed shapes and no host read: ``trials`` steps in
+    search tries ``trials`` steps in its first stacked call, twice as many in each further one,
+    and reads on the host whether another block is needed. After that every round has fixed shapes and no host read: ``trials`` steps in
     one stacked call over the whole working set, the first accepted taken per segment; a segment
     that accepted none keeps its state (hence its direction) and carries on halving in the next
     round; every segment keeps its own last ``history`` pairs in a fixed buffer. Whether any
@@ -178,13 +178,16 @@ def batched_lbfgs(fun: Callable[..., torch.Tensor], x0: torch.Tensor, seg: torch
     mb_t = torch.full((), mb, dtype=torch.long, device=dev)
     neg_inf = float("-inf")
     cols = torch.arange(n, device=dev)
-    jj = torch.arange(K, device=dev)[:, None]
-    halves = torch.pow(0.5, jj.to(dt))                       # (K, 1), exact powers of two
+    blocks = {}                                              # trials per block -> (j, 2^-j) as (k, 1)
 
-    def search(XG, f, d, gd, step0, left):
-        """One stacked block of trials ``step0 / 2^j`` for the segments with ``j < left``:
-        whether each accepted one, and the first accepted point with its gradient (stacked,
-        ``(2, n)``) and objective."""
+    def search(XG, f, d, gd, step0, left, K=K):
+        """One stacked block of trials ``step0 / 2^j`` (``j < K``) for the segments with
+        ``j < left``: whether each accepted one, and the first accepted point with its gradient
+        (stacked, ``(2, n)``) and objective."""
+        if K not in blocks:
+            j = torch.arange(K, device=dev)[:, None]
+            blocks[K] = j, torch.pow(0.5, j.to(dt))          # exact powers of two
+        jj, halves = blocks[K]
         step = step0[None] if K == 1 else step0 * halves     # (K, B); times 1 is exact
         X = XG[0] + step[:, seg] * d                         # (K, n) every trial, whole set
         FT, GT = evaluate(X)
@@ -219,7 +222,8 @@ def batched_lbfgs(fun: Callable[..., torch.Tensor], x0: torch.Tensor, seg: torch
     def converged(f, f_new, moved):
         return moved & ((f - f_new).abs() <= rel_tol * f.abs().clamp_min(tiny))
 
-    # the history fills: lockstep rounds, a host read per block of trials
+    # the history fills: lockstep rounds, a host read per block of trials; each block after the
+    # first tries twice as many steps (a few segments backtrack far: fewer blocks, fewer reads)
     r = 0
     while r < min(m, iterations):
         if not bool(active.any()):
@@ -228,15 +232,19 @@ def batched_lbfgs(fun: Callable[..., torch.Tensor], x0: torch.Tensor, seg: torch
         XGn, f_new = XG, f
         moved = torch.zeros_like(active)
         step0 = one
-        for tried in range(0, mb, K):
+        tried, kb = 0, K
+        while True:
+            kb = min(kb, mb - tried)
             left = (active & ~moved) * (mb - tried)
-            acc, xgt, ft = search(XG, f, d, gd, step0, left)
+            acc, xgt, ft = search(XG, f, d, gd, step0, left, kb)
             XGn = torch.where(acc[seg], xgt, XGn)
             f_new = torch.where(acc, ft, f_new)
             moved = moved | acc
-            if tried + K >= mb or not bool((active & ~moved).any()):
+            tried += kb
+            if tried >= mb or not bool((active & ~moved).any()):
                 break
-            step0 = step0 * 0.5 ** K
+            step0 = step0 * 0.5 ** kb
+            kb *= 2
         H, Q, gamma = _pair(H, Q, XGn - XG, seg, B, tiny, zero, one0, one64)
         small = converged(f, f_new, moved)
         iters = iters + moved

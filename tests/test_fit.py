@@ -777,6 +777,14 @@ def test_line_search_host_reads_bounded(device):
     assert rounds > 40 and len(reads) <= bound
 
 
+def test_true_indices_are_the_true_positions(device):
+    """The compaction's indices (count read beforehand): those of the True entries, ascending."""
+    from torch_isc.pipeline.optim import true_indices
+    m = torch.tensor([False, True, True, False, True], device=device)
+    assert true_indices(m, 3).tolist() == [1, 2, 4]
+    assert true_indices(m[:1], 0).shape == (0,) and true_indices(m[1:3], 2).tolist() == [0, 1]
+
+
 def test_with_grad_objective_follows_the_autograd_trajectory(device):
     """``with_grad=True`` (the objective returns its own gradient) gives the trajectory of the
     autograd path when that gradient is the same."""

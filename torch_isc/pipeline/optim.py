@@ -226,8 +226,6 @@ def batched_lbfgs(fun: Callable[..., torch.Tensor], x0: torch.Tensor, seg: torch
     # first tries twice as many steps (a few segments backtrack far: fewer blocks, fewer reads)
     r = 0
     while r < min(m, iterations):
-        if not bool(active.any()):
-            return XG[0], f, iters
         d, gd = descent(XG[1], H, Q, gamma, seg, B)
         XGn, f_new = XG, f
         moved = torch.zeros_like(active)
@@ -240,8 +238,14 @@ def batched_lbfgs(fun: Callable[..., torch.Tensor], x0: torch.Tensor, seg: torch
             XGn = torch.where(acc[seg], xgt, XGn)
             f_new = torch.where(acc, ft, f_new)
             moved = moved | acc
+            if tried == 0:
+                # whether any segment was still running is read with the first block's outcome
+                # (one read less per round; a round found idle costs its first block, once)
+                searching, running = torch.stack([(active & ~moved).any(), active.any()]).tolist()
+                if not running:
+                    return XG[0], f, iters
             tried += kb
-            if tried >= mb or not bool((active & ~moved).any()):
+            if tried >= mb or not (searching if tried == kb else bool((active & ~moved).any())):
                 break
             step0 = step0 * 0.5 ** kb
             kb *= 2

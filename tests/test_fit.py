@@ -675,7 +675,7 @@ def _two_loop_reference(g, pairs, gamma):
 
 def test_compact_lbfgs_direction_matches_two_loop(device):
     """The compact form gives the two-loop direction, per segment, with skipped (zero) pairs."""
-    from torch_isc.pipeline.optim import _direction, _segmat
+    from torch_isc.pipeline.optim import _neg_direction, _segmat
     gen = torch.Generator().manual_seed(3)
     sizes, k = [5, 3, 7], 4
     seg = torch.repeat_interleave(torch.arange(3), torch.tensor(sizes))
@@ -697,8 +697,9 @@ def test_compact_lbfgs_direction_matches_two_loop(device):
     # the stored convention: a skipped (zero) pair carries a unit s·y diagonal
     SY = SY + torch.diag_embed((torch.diagonal(SY, dim1=1, dim2=2) == 0).double())
     assert float(SY[1, 1, 1]) == 1.0
-    r = _direction(g.to(device), S.to(device), Y.to(device), SY.to(device), YY.to(device), gamma.to(device),
-                   seg.to(device), 3).cpu()
+    H, Q = torch.stack([S, Y]).to(device), torch.stack([SY, YY], 1).to(device)
+    gd, sd = gamma.to(device), seg.to(device)
+    r = -_neg_direction(g.to(device), -g.to(device) * gd[sd], H, Q, gd, sd, 3).cpu()
     o = 0
     for b, m in enumerate(sizes):
         sl = slice(o, o + m)
@@ -774,6 +775,14 @@ def test_line_search_host_reads_bounded(device):
     # the lockstep rounds read once per block of trials at most; later ones once per check
     bound = history * (1 + 12 // trials) + (rounds - history) // every + 1
     assert rounds > 40 and len(reads) <= bound
+
+
+def test_true_indices_are_the_true_positions(device):
+    """The compaction's indices (count read beforehand): those of the True entries, ascending."""
+    from torch_isc.pipeline.optim import true_indices
+    m = torch.tensor([False, True, True, False, True], device=device)
+    assert true_indices(m, 3).tolist() == [1, 2, 4]
+    assert true_indices(m[:1], 0).shape == (0,) and true_indices(m[1:3], 2).tolist() == [0, 1]
 
 
 def test_with_grad_objective_follows_the_autograd_trajectory(device):

@@ -28,7 +28,16 @@ import torch
 
 from torch_isc.core.segments import segment_sum
 
-__all__ = ["batched_lbfgs"]
+__all__ = ["batched_lbfgs", "true_indices"]
+
+
+def true_indices(mask: torch.Tensor, count: int) -> torch.Tensor:
+    """``(count,)`` the indices where the 1-D ``mask`` is True, ``count`` being their number
+    (read on the host already): no second host read, where the device has ``nonzero_static``."""
+    try:
+        return torch.nonzero_static(mask, size=count).squeeze(1)
+    except (NotImplementedError, RuntimeError):
+        return mask.nonzero().squeeze(1)
 
 
 def _segdot(a: torch.Tensor, b: torch.Tensor, seg: torch.Tensor, n: int) -> torch.Tensor:
@@ -37,58 +46,68 @@ def _segdot(a: torch.Tensor, b: torch.Tensor, seg: torch.Tensor, n: int) -> torc
 
 def _segmat(A: torch.Tensor, b: torch.Tensor, seg: torch.Tensor, n: int) -> torch.Tensor:
     """``(n, k)``: per segment, the dot products of the rows of ``A (k, N)`` with ``b (N,)``."""
-    return torch.zeros(n, A.shape[0], dtype=A.dtype, device=A.device).index_add_(0, seg, (A * b).T)
+    return _segrows(A * b, seg, n)
 
 
-def _direction(g: torch.Tensor, S: torch.Tensor, Y: torch.Tensor, SY: torch.Tensor, YY: torch.Tensor,
-               gamma: torch.Tensor, seg: torch.Tensor, B: int) -> torch.Tensor:
-    """``H g`` with ``H = γI + [S γY] [[R⁻ᵀ(D + γYᵀY)R⁻¹, −R⁻ᵀ], [−R⁻¹, 0]] [Sᵀ; γYᵀ]``, where
-    ``R`` is the upper triangle of ``SᵀY`` and ``D`` its diagonal (per segment). The small
-    ``k×k`` algebra runs in float64. A pair stored as zeros (skipped for its segment) carries a
-    unit ``s·y`` diagonal: a unit pivot, so it contributes nothing."""
-    k = S.shape[0]
+def _segrows(P: torch.Tensor, seg: torch.Tensor, n: int) -> torch.Tensor:
+    """``(n, k)``: per segment, the sums of the rows of ``P (k, N)`` (each column summed in
+    entry order, so a column's bits do not depend on the other rows)."""
+    return torch.zeros(n, P.shape[0], dtype=P.dtype, device=P.device).index_add_(0, seg, P.T)
+
+
+def _neg_direction(g: torch.Tensor, dg: torch.Tensor, H: torch.Tensor, Q: torch.Tensor, gamma: torch.Tensor,
+                   seg: torch.Tensor, B: int) -> torch.Tensor:
+    """``−H g`` with ``H = γI + [S γY] [[R⁻ᵀ(D + γYᵀY)R⁻¹, −R⁻ᵀ], [−R⁻¹, 0]] [Sᵀ; γYᵀ]``, where
+    ``R`` is the upper triangle of ``SᵀY`` and ``D`` its diagonal (per segment); ``dg = −γ g``
+    per entry. ``H (2, k, N)`` holds the pairs ``S, Y``, ``Q (B, 2, k, k)`` per segment ``SᵀY``
+    and ``YᵀY``. The small ``k×k`` algebra runs in float64. A pair stored as zeros (skipped for
+    its segment) carries a unit ``s·y`` diagonal: a unit pivot, so it contributes nothing."""
+    k = H.shape[1]
     if k == 0:
-        return gamma[seg] * g
-    W = torch.cat([S, Y])                                        # one product for both
+        return dg
+    W = H.reshape(2 * k, -1)                                     # S then Y: one product for both
     ab = _segmat(W, g, seg, B).double()[..., None]              # (B, 2k, 1)
     a, b = ab[:, :k], ab[:, k:]
     gm = gamma.double()[:, None, None]
-    R = torch.triu(SY)
+    SY, YY = Q[:, 0], Q[:, 1]
     DY = gm * YY
     DY.diagonal(dim1=1, dim2=2).add_(torch.diagonal(SY, dim1=1, dim2=2))     # D + γYᵀY
-    p = torch.linalg.solve_triangular(R, a, upper=True)                      # R⁻¹ Sᵀg
+    R = torch.triu(SY)
+    p = torch.linalg.solve_triangular(R, a, upper=True)                     # R⁻¹ Sᵀg
     q = torch.linalg.solve_triangular(R.transpose(1, 2), DY @ p - gm * b, upper=False)
-    c = torch.cat([q, -gm * p], 1)[..., 0].to(g.dtype)[seg]                 # (N, 2k)
-    return gamma[seg] * g + (c.T * W).sum(0)
+    c = torch.cat([-q, gm * p], 1)[..., 0].to(g.dtype)[seg]                 # (N, 2k), negated
+    return dg + (c.T * W).sum(0)
 
 
-def _pair(S, Y, s_new, y_new, seg, B, dt):
-    """The products of a new pair ``(s, y)`` with the pairs ``S, Y`` that stay, in two segmented
-    products (S·y, Y·y, s·y, y·y and Y·s, s·s), and the curvature test: a pair is kept only with
-    enough positive curvature, a skipped one is stored as zeros (with a unit ``s·y``). Returns the stored ``s, y``,
-    ``keep``, the next ``gamma`` and the new column ``s_i·y`` / rows ``y_j·y``, ``s·y_j``."""
-    k = S.shape[0]
-    P1 = _segmat(torch.cat([S, Y, s_new[None], y_new[None]]), y_new, seg, B)
-    P2 = _segmat(torch.cat([Y, s_new[None]]), s_new, seg, B)
-    sy, yy, ss = P1[:, -2], P1[:, -1], P2[:, -1]
-    keep = (sy > 1e-12 * yy.sqrt() * ss.sqrt()) & (sy > 0)
-    ks = keep[seg]
-    s_new = torch.where(ks, s_new, 0.0)
-    y_new = torch.where(ks, y_new, 0.0)
-    gamma = torch.where(keep & (yy > 0), sy / yy.clamp_min(torch.finfo(dt).tiny), 1.0)
-    kd = keep.double()[:, None]
-    col = P1[:, :k].double() * kd                                       # s_i · y_new
-    yrow = torch.cat([P1[:, k:2 * k], yy[:, None]], 1).double() * kd    # y_j · y_new
-    row = torch.cat([P2[:, :k].double() * kd, torch.where(keep, sy, 1.0).double()[:, None]], 1)   # s_new · y_j
-    return s_new, y_new, gamma, col, yrow, row
-
-
-def _grown(SY, YY, col, yrow, row):
-    """``SY, YY`` with the new pair's column and row appended."""
-    k = col.shape[1]
-    SY = torch.cat([torch.cat([SY, col[:, :, None]], 2), row[:, None, :]], 1)
-    YY = torch.cat([torch.cat([YY, yrow[:, :k, None]], 2), yrow[:, None, :]], 1)
-    return SY, YY
+def _pair(Hold: torch.Tensor, Qold: torch.Tensor, hn: torch.Tensor, seg: torch.Tensor, B: int, tiny: float,
+          zero: torch.Tensor, one: torch.Tensor, one64: torch.Tensor):
+    """The history with a new pair ``hn = (s, y) (2, N)`` appended to the pairs that stay,
+    ``Hold (2, k, N)`` with their products ``Qold (B, 2, k, k)``: the products of the new pair
+    (S·y, Y·y, s·y, y·y, Y·s, s·s) in one segmented sum, and the curvature test: a pair is kept
+    only with enough positive curvature, a skipped one is stored as zeros (with a unit ``s·y``).
+    Returns ``H (2, k+1, N)``, ``Q (B, 2, k+1, k+1)`` and the next ``gamma``."""
+    k, n = Hold.shape[1], hn.shape[1]
+    s, y = hn[0], hn[1]
+    Hn = torch.cat([Hold, hn[:, None]], 1)
+    Pr = hn.new_empty(3, k + 1, n)
+    torch.mul(Hn, y, out=Pr[:2])                             # s_i·y, s·y | y_i·y, y·y
+    torch.mul(Hold[1], s, out=Pr[2, :k])                     # y_i·s
+    torch.mul(s, s, out=Pr[2, k])                            # s·s
+    P = _segrows(Pr.view(3 * (k + 1), n), seg, B).view(B, 3, k + 1)
+    sy, yy = P[:, 0, k], P[:, 1, k]
+    r = P[:, 1:, k].sqrt()                                   # √(y·y), √(s·s)
+    keep = (sy > 1e-12 * r[:, 0] * r[:, 1]) & (sy > 0)
+    torch.where(keep[seg], hn, zero, out=Hn[:, k])           # a skipped pair is stored as zeros
+    gamma = torch.where(keep & (yy > 0), sy / yy.clamp_min(tiny), one)
+    Pd = P.double() * keep.double()[:, None, None]
+    Qn = Pd.new_empty(B, 2, k + 1, k + 1)
+    if k:
+        Qn[:, :, :k, :k] = Qold
+        Qn[:, :, :k, k] = Pd[:, :2, :k]                      # columns s_i·y and y_i·y
+        Qn[:, 0, k, :k] = Pd[:, 2, :k]                       # row s·y_j
+    Qn[:, 1, k, :] = Pd[:, 1, :]                             # row y_j·y, y·y
+    torch.where(keep, Pd[:, 0, k], one64, out=Qn[:, 0, k, k])   # s·y, a unit pivot when skipped
+    return Hn, Qn, gamma
 
 
 def batched_lbfgs(fun: Callable[..., torch.Tensor], x0: torch.Tensor, seg: torch.Tensor, num_segments: int,
@@ -104,8 +123,8 @@ def batched_lbfgs(fun: Callable[..., torch.Tensor], x0: torch.Tensor, seg: torch
     work is laid out.
 
     While the history fills (the first ``history`` rounds) the rounds run in lockstep: the
-    search tries ``trials`` steps per stacked call and reads on the host whether another block
-    is needed. After that every round has fixed shapes and no host read: ``trials`` steps in
+    search tries ``trials`` steps in its first stacked call, twice as many in each further one,
+    and reads on the host whether another block is needed. After that every round has fixed shapes and no host read: ``trials`` steps in
     one stacked call over the whole working set, the first accepted taken per segment; a segment
     that accepted none keeps its state (hence its direction) and carries on halving in the next
     round; every segment keeps its own last ``history`` pairs in a fixed buffer. Whether any
@@ -152,86 +171,98 @@ def batched_lbfgs(fun: Callable[..., torch.Tensor], x0: torch.Tensor, seg: torch
         fs, gs = zip(*(evaluate1(x) for x in X))
         return torch.stack(fs), torch.stack(gs)
 
+    # constants of every round, made once (a Python scalar in torch.where is one more kernel)
+    zero = torch.zeros((), dtype=dt, device=dev)
+    one0 = torch.ones((), dtype=dt, device=dev)
+    one64 = torch.ones((), dtype=torch.float64, device=dev)
+    mb_t = torch.full((), mb, dtype=torch.long, device=dev)
+    neg_inf = float("-inf")
     cols = torch.arange(n, device=dev)
-    rows = torch.arange(B, device=dev)
-    jj = torch.arange(K, device=dev)[:, None]
-    halves = torch.pow(0.5, jj.to(dt))                       # (K, 1), exact powers of two
+    blocks = {}                                              # trials per block -> (j, 2^-j) as (k, 1)
 
-    def search(x, f, d, gd, step0, left):
-        """One stacked block of trials ``step0 / 2^j`` for the segments with ``j < left``:
-        whether each accepted one, and the first accepted point with its objective and gradient."""
-        step = step0 * halves                                # (K, B)
-        X = x + step[:, seg] * d                             # (K, n) every trial, whole set
+    def search(XG, f, d, gd, step0, left, K=K):
+        """One stacked block of trials ``step0 / 2^j`` (``j < K``) for the segments with
+        ``j < left``: whether each accepted one, and the first accepted point with its gradient
+        (stacked, ``(2, n)``) and objective."""
+        if K not in blocks:
+            j = torch.arange(K, device=dev)[:, None]
+            blocks[K] = j, torch.pow(0.5, j.to(dt))          # exact powers of two
+        jj, halves = blocks[K]
+        step = step0[None] if K == 1 else step0 * halves     # (K, B); times 1 is exact
+        X = XG[0] + step[:, seg] * d                         # (K, n) every trial, whole set
         FT, GT = evaluate(X)
-        ok = (jj < left) & torch.isfinite(FT) & (FT <= f + c1 * step * gd)
+        # FT <= f + ... (f finite, the rest <= 0) is False for NaN and +inf: only -inf is left out
+        ok = (jj < left) & (FT <= f + c1 * step * gd) & (FT > neg_inf)
+        if K == 1:
+            return ok[0], torch.stack([X[0], GT[0]]), FT[0]
         acc = ok.any(0)
         first = ok.to(torch.uint8).argmax(0)                 # the first accepted trial
-        fseg = first[seg]
-        return acc, X[fseg, cols], FT[first, rows], GT[fseg, cols]
+        return acc, torch.stack([X, GT])[:, first[seg], cols], FT.gather(0, first[None])[0]
 
-    def descent(g, S, Y, SY, YY, gamma):
-        d = -_direction(g, S, Y, SY, YY, gamma, seg, B)
-        gd = _segdot(g, d, seg, B)
+    def descent(g, H, Q, gamma, seg, B):
+        dg = -g * gamma[seg]                                 # steepest descent, the fallback
+        d = _neg_direction(g, dg, H, Q, gamma, seg, B)
+        gds = _segmat(torch.stack([d, dg]), g, seg, B)       # g·d and g·dg in one sum
         # not a descent direction: fall back to steepest descent (no host read: where, always)
-        bad = ~(gd < 0)
-        d = torch.where(bad[seg], -g * gamma[seg], d)
-        gd = torch.where(bad, _segdot(g, d, seg, B), gd)
-        return d, gd
+        good = gds[:, 0] < 0
+        return torch.where(good[seg], d, dg), torch.where(good, gds[:, 0], gds[:, 1])
 
     x = x0.detach().clone()
     f, g = evaluate(x[None])
-    f, g = f[0], g[0]
-    S = torch.zeros(0, n, dtype=dt, device=dev)              # stored pairs, oldest first
-    Y = torch.zeros_like(S)
-    SY = torch.zeros(B, 0, 0, dtype=torch.float64, device=dev)  # per segment s_i·y_j
-    YY = torch.zeros_like(SY)                                    # per segment y_i·y_j
+    f = f[0]
+    XG = torch.stack([x, g[0]])                              # the point and its gradient
+    H = torch.zeros(2, 0, n, dtype=dt, device=dev)           # stored pairs S, Y, oldest first
+    Q = torch.zeros(B, 2, 0, 0, dtype=torch.float64, device=dev)   # per segment s_i·y_j, y_i·y_j
     active = torch.isfinite(f)
     iters = torch.zeros(B, dtype=torch.long, device=dev)
-    gamma = 1.0 / torch.sqrt(_segdot(g, g, seg, B)).clamp_min(1.0)
+    gamma = 1.0 / torch.sqrt(_segdot(XG[1], XG[1], seg, B)).clamp_min(1.0)
     tiny = torch.finfo(dt).tiny
     one = torch.ones(B, dtype=dt, device=dev)
 
     def converged(f, f_new, moved):
         return moved & ((f - f_new).abs() <= rel_tol * f.abs().clamp_min(tiny))
 
-    # the history fills: lockstep rounds, a host read per block of trials
+    # the history fills: lockstep rounds, a host read per block of trials; each block after the
+    # first tries twice as many steps (a few segments backtrack far: fewer blocks, fewer reads)
     r = 0
     while r < min(m, iterations):
-        if not bool(active.any()):
-            return x, f, iters
-        d, gd = descent(g, S, Y, SY, YY, gamma)
-        x_new, f_new, g_new = x, f, g
+        d, gd = descent(XG[1], H, Q, gamma, seg, B)
+        XGn, f_new = XG, f
         moved = torch.zeros_like(active)
         step0 = one
-        for tried in range(0, mb, K):
-            left = torch.where(active & ~moved, mb - tried, 0)
-            acc, xt, ft, gt = search(x, f, d, gd, step0, left)
-            x_new = torch.where(acc[seg], xt, x_new)
-            g_new = torch.where(acc[seg], gt, g_new)
+        tried, kb = 0, K
+        while True:
+            kb = min(kb, mb - tried)
+            left = (active & ~moved) * (mb - tried)
+            acc, xgt, ft = search(XG, f, d, gd, step0, left, kb)
+            XGn = torch.where(acc[seg], xgt, XGn)
             f_new = torch.where(acc, ft, f_new)
             moved = moved | acc
-            if tried + K >= mb or not bool((active & ~moved).any()):
+            if tried == 0:
+                # whether any segment was still running is read with the first block's outcome
+                # (one read less per round; a round found idle costs its first block, once)
+                searching, running = torch.stack([(active & ~moved).any(), active.any()]).tolist()
+                if not running:
+                    return XG[0], f, iters
+            tried += kb
+            if tried >= mb or not (searching if tried == kb else bool((active & ~moved).any())):
                 break
-            step0 = step0 * 0.5 ** K
-        s_new, y_new, gam, col, yrow, row = _pair(S, Y, x_new - x, g_new - g, seg, B, dt)
-        gamma = gam
-        S, Y = torch.cat([S, s_new[None]]), torch.cat([Y, y_new[None]])
-        SY, YY = _grown(SY, YY, col, yrow, row)
-        if S.shape[0] > m:
-            S, Y, SY, YY = S[1:], Y[1:], SY[:, 1:, 1:], YY[:, 1:, 1:]
+            step0 = step0 * 0.5 ** kb
+            kb *= 2
+        H, Q, gamma = _pair(H, Q, XGn - XG, seg, B, tiny, zero, one0, one64)
         small = converged(f, f_new, moved)
-        iters = iters + moved.long()
-        x, f, g = x_new, f_new, g_new
+        iters = iters + moved
+        XG, f = XGn, f_new
         active = active & moved & ~small
         r += 1
     if iterations <= m:
-        return x, f, iters
+        return XG[0], f, iters
 
     # fixed shapes from here on, no host read but every check_every rounds. left: trials left in
     # the segment's current iteration, 0 once it has stopped
-    left = torch.where(active & (iters < iterations), mb, 0)
+    left = (active & (iters < iterations)) * mb
     step0 = one
-    x_out, f_out, it_out = x, f, iters                      # the whole batch, once compacted
+    x_out, f_out, it_out = XG[0], f, iters                  # the whole batch, once compacted
     ent = item = None                                        # the working set's entries and segments
     Bw = B
     for r in range((iterations - m) * -(-mb // K)):
@@ -245,41 +276,35 @@ def batched_lbfgs(fun: Callable[..., torch.Tensor], x0: torch.Tensor, seg: torch
                 if na == 0:
                     break
                 if na <= shrink * Bw:
-                    x_out, f_out, it_out = _put(x_out, f_out, it_out, ent, item, x, f, iters)
-                    e = alive[seg].nonzero().squeeze(1)
-                    b = alive.nonzero().squeeze(1)
+                    x_out, f_out, it_out = _put(x_out, f_out, it_out, ent, item, XG[0], f, iters)
+                    ae = alive[seg]
+                    e, b = true_indices(ae, int(ae.sum())), true_indices(alive, na)
                     ent = e if ent is None else ent[e]
                     item = b if item is None else item[b]
                     renum = torch.cumsum(alive, 0) - 1
                     seg, Bw = renum[seg[e]], na
-                    B = Bw
-                    x, g, S, Y = x[e], g[e], S[:, e], Y[:, e]
+                    XG, H = XG[:, e], H[:, :, e]
                     f, iters, gamma, left, step0 = f[b], iters[b], gamma[b], left[b], step0[b]
-                    SY, YY = SY[b], YY[b]
+                    Q = Q[b]
                     one = one[b]
-                    cols = torch.arange(x.shape[0], device=dev)
-                    rows = torch.arange(Bw, device=dev)
+                    cols = torch.arange(XG.shape[1], device=dev)
                     fun, restrict = restrict(alive)
-        d, gd = descent(g, S, Y, SY, YY, gamma)
-        moved, xt, ft, gt = search(x, f, d, gd, step0, left)
+        d, gd = descent(XG[1], H, Q, gamma, seg, Bw)
+        moved, xgt, ft = search(XG, f, d, gd, step0, left)
         ms = moved[seg]
-        x_new = torch.where(ms, xt, x)
-        g_new = torch.where(ms, gt, g)
+        XGn = torch.where(ms, xgt, XG)
         f_new = torch.where(moved, ft, f)
         # the oldest pair drops out for a segment that moved; the others keep theirs
-        s_new, y_new, gam, col, yrow, row = _pair(S[1:], Y[1:], x_new - x, g_new - g, seg, B, dt)
+        Hn, Qn, gam = _pair(H[:, 1:], Q[:, :, 1:, 1:], XGn - XG, seg, Bw, tiny, zero, one0, one64)
         gamma = torch.where(moved, gam, gamma)
-        S = torch.where(ms, torch.cat([S[1:], s_new[None]]), S)
-        Y = torch.where(ms, torch.cat([Y[1:], y_new[None]]), Y)
-        SYn, YYn = _grown(SY[:, 1:, 1:], YY[:, 1:, 1:], col, yrow, row)
-        mv = moved[:, None, None]
-        SY, YY = torch.where(mv, SYn, SY), torch.where(mv, YYn, YY)
-        iters = iters + moved.long()
+        H = torch.where(ms, Hn, H)
+        Q = torch.where(moved[:, None, None, None], Qn, Q)
+        iters = iters + moved
         stop = converged(f, f_new, moved) | (iters >= iterations)
-        left = torch.where(moved, mb, left - K).clamp_min(0).masked_fill(stop, 0)
+        left = torch.where(moved, mb_t, left - K).clamp_min(0).masked_fill(stop, 0)
         step0 = torch.where(moved, one, step0 * 0.5 ** K)
-        x, f, g = x_new, f_new, g_new
-    return _put(x_out, f_out, it_out, ent, item, x, f, iters)
+        XG, f = XGn, f_new
+    return _put(x_out, f_out, it_out, ent, item, XG[0], f, iters)
 
 
 def _put(x_out, f_out, it_out, ent, item, x, f, iters):

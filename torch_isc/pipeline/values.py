@@ -13,10 +13,10 @@ from typing import TYPE_CHECKING, Optional, Tuple
 
 import torch
 
-from torch_isc.core.segments import segment_sum
+from torch_isc.core.segments import segment_count, segment_sum
 
 from torch_isc.core.mesh import MeshBatch
-from torch_isc.pipeline.optim import batched_lbfgs
+from torch_isc.pipeline.optim import batched_lbfgs, true_indices
 from torch_isc.pipeline.evidence import TriangleMoments
 from torch_isc.pipeline.knobs import check_section, knob
 
@@ -171,7 +171,7 @@ class GeometryObjective:
             G = mesh.bary_gradients()
             nb = segment_sum(mom.count, fi, B)
             wt = mom.count / nb[fi].clamp_min(1)
-            nv = torch.bincount(vi, minlength=B).to(dt)
+            nv = segment_count(vi, B).to(dt)
             mean_mag = segment_sum(init_mag, vi, B) / nv.clamp_min(1)
             self.floor = (magnitude_floor * mean_mag)[vi]
             self.s0 = torch.log((init_mag - self.floor).clamp_min(1e-3 * mean_mag[vi])
@@ -184,20 +184,24 @@ class GeometryObjective:
             ef_all = mesh.edge_faces.clamp_min(0)
             interior = interior & (band_t[ef_all[:, 0]] | band_t[ef_all[:, 1]])
             v = mesh.verts.detach()
-            e = mesh.edges[interior]
+            self.cross = crossing_weight > 0 and data_dist is not None and slack is not None
+            crossed = signs[mesh.edges[:, 0]] != signs[mesh.edges[:, 1]]
+            # both edge selections from one host read
+            n_int, n_cross = torch.stack([interior.sum(), (crossed if self.cross else interior).sum()]).tolist()
+            ii = true_indices(interior, n_int)
+            e = mesh.edges[ii]
             self.inv_tol2 = 1.0 / (tol * tol)
             # per face: vertices, gradients, moments, weight (Δ1 in units of tol²), guard
             self.faces, self.G, self.M, self.fi = mesh.faces, G, mom.M, fi
             self.wt = wt * self.inv_tol2[fi]
             self.wt_raw = wt
             self.guard = ((1e-10 * mean_mag) ** 2)[fi]
-            self.ef = mesh.edge_faces[interior]
+            self.ef = mesh.edge_faces[ii]
             self.ef_ab = torch.cat([self.ef[:, 0], self.ef[:, 1]])
             self.el = (v[e[:, 0]] - v[e[:, 1]]).norm(dim=1)
-            self.eitem = mesh.edge_item[interior]
-            self.cross = crossing_weight > 0 and data_dist is not None and slack is not None
+            self.eitem = mesh.edge_item[ii]
             if self.cross:
-                ce = mesh.edges[signs[mesh.edges[:, 0]] != signs[mesh.edges[:, 1]]]
+                ce = mesh.edges[true_indices(crossed, n_cross)]
                 c_item = vi[ce[:, 0]]
                 self.cross = ce.shape[0] > 0
                 self.ce, self.c_item = ce, c_item
@@ -205,8 +209,21 @@ class GeometryObjective:
                 # how close to each end the crossing may come before it is provably off the data
                 c_lim = (data_dist[ce] - slack[c_item][:, None]).clamp_min(0)
                 self.c_lim = torch.where(torch.isfinite(c_lim), c_lim, torch.zeros_like(c_lim))
-                n_cross = torch.bincount(c_item, minlength=B).to(dt)
-                self.c_w = (crossing_weight / n_cross.clamp_min(1)[c_item]) * self.inv_tol2[c_item]
+                per_item = segment_count(c_item, B).to(dt)
+                self.c_w = (crossing_weight / per_item.clamp_min(1)[c_item]) * self.inv_tol2[c_item]
+            self._constants()
+
+    def _constants(self) -> None:
+        """What every evaluation would otherwise recompute (exact rewrites: products by ±1 and 2,
+        sign patterns), from the fields above; :meth:`restrict` makes them again."""
+        self.sfloor = self.signs * self.floor                 # F = sfloor + signs·e = signs·(e + floor)
+        self.wt2, self.m2wt = 2.0 * self.wt, -2.0 * self.wt
+        self.el2 = torch.stack([self.el, 0.5 * self.el], -1)   # J and S in one sum: el·jump, el·size/2
+        self.zero = torch.zeros((), dtype=self.dt, device=self.dev)
+        if self.cross:
+            self.ce4 = torch.cat([self.ce, self.ce.flip(1)], 1)   # both ends, then swapped
+            self.cw2 = 2.0 * self.c_w
+            self.sgn_c = torch.stack([self.signs[self.ce[:, 0]], -self.signs[self.ce[:, 1]]], -1)
 
     def _evaluate(self, s: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
         if self.compiled:
@@ -227,31 +244,30 @@ class GeometryObjective:
     def restrict(self, items: torch.Tensor) -> "GeometryObjective":
         """The objective of the items ``items (B,)`` bool alone, items renumbered in order and
         their vertices, faces, edges and crossings kept in order (so every per-item sum, hence
-        every value, is bit-identical to the whole batch's). Host reads: a few, once."""
+        every value, is bit-identical to the whole batch's). One host read (the sizes)."""
         with torch.no_grad():
             sub = object.__new__(GeometryObjective)
             sub.__dict__.update(self.__dict__)
             renum = torch.cumsum(items, 0) - 1
-
-            def keep(owner):
-                k = items[owner]
-                return k.nonzero().squeeze(1), torch.cumsum(k, 0) - 1
-
-            v, vmap = keep(self.vi)
-            f, fmap = keep(self.fi)
-            e, _ = keep(self.eitem)
-            sub.B = int(items.sum())
-            sub.item_zero = self.item_zero[items]
+            owners = [self.vi, self.fi, self.eitem] + ([self.c_item] if self.cross else [])
+            kept = [items[o] for o in owners]
+            sizes = torch.stack([items.sum()] + [k.sum() for k in kept]).tolist()
+            idx = [true_indices(k, c) for k, c in zip([items] + kept, sizes)]
+            b, v, f, e = idx[:4]
+            vmap, fmap = torch.cumsum(kept[0], 0) - 1, torch.cumsum(kept[1], 0) - 1
+            sub.B = sizes[0]
+            sub.item_zero = self.item_zero[b]
             sub.vi, sub.signs, sub.floor = renum[self.vi[v]], self.signs[v], self.floor[v]
-            sub.s0, sub.wt_raw, sub.inv_tol2 = self.s0[v], self.wt_raw[f], self.inv_tol2[items]
+            sub.s0, sub.wt_raw, sub.inv_tol2 = self.s0[v], self.wt_raw[f], self.inv_tol2[b]
             sub.faces, sub.fi = vmap[self.faces[f]], renum[self.fi[f]]
             sub.G, sub.M, sub.wt, sub.guard = self.G[f], self.M[f], self.wt[f], self.guard[f]
             sub.ef, sub.el, sub.eitem = fmap[self.ef[e]], self.el[e], renum[self.eitem[e]]
             sub.ef_ab = torch.cat([sub.ef[:, 0], sub.ef[:, 1]])
             if self.cross:
-                c, _ = keep(self.c_item)
+                c = idx[4]
                 sub.ce, sub.c_item = vmap[self.ce[c]], renum[self.c_item[c]]
                 sub.c_len, sub.c_lim, sub.c_w = self.c_len[c], self.c_lim[c], self.c_w[c]
+            sub._constants()
         return sub
 
     def _restricted(self, items: torch.Tensor):
@@ -260,8 +276,9 @@ class GeometryObjective:
         return sub._evaluate, sub._restricted
 
     def _segsum(self, x: torch.Tensor, seg: torch.Tensor) -> torch.Tensor:
-        """``(K, B)`` per item sums of ``x (K, N)`` (B read off a tensor: a symbolic size when compiled)."""
-        return x.new_zeros(x.shape[0], self.item_zero.shape[0]).index_add_(1, seg, x)
+        """``(K, B, ...)`` per item sums of ``x (K, N, ...)`` (B read off a tensor: a symbolic size
+        when compiled)."""
+        return x.new_zeros((x.shape[0], self.item_zero.shape[0]) + x.shape[2:]).index_add_(1, seg, x)
 
     def value(self, s: torch.Tensor) -> torch.Tensor:
         """``(B,)`` the objective of every item (differentiable by autograd); ``s (K, V)``
@@ -297,49 +314,51 @@ class GeometryObjective:
         one = s.dim() == 1
         s = s[None] if one else s
         K = s.shape[0]
-        faces, G, M, fi, wt, guard, ef, el, eitem = (self.faces, self.G, self.M, self.fi, self.wt, self.guard,
-                                                      self.ef, self.el, self.eitem)
+        faces, G, M, fi, wt, guard, ef, eitem = (self.faces, self.G, self.M, self.fi, self.wt, self.guard,
+                                                 self.ef, self.eitem)
         e = torch.exp(s.clamp(-60.0, 60.0))
-        F = self.signs * (e + self.floor)                    # (K,V)
+        F = torch.addcmul(self.sfloor, self.signs, e)        # (K,V) signs·(e + floor), exactly
         Ft = F[:, faces]                                     # (K,T,3)
         grad = (G * Ft[..., None]).sum(-2)                   # (K,T,2) ∇f_t
         g2 = (grad * grad).sum(-1)
         MF = (M * Ft[..., None, :]).sum(-1)                  # (K,T,3) M_t F_t (M symmetric)
         num = (MF * Ft).sum(-1)
-        rden = 1.0 / (g2 + guard)
+        rden = (g2 + guard).reciprocal()
         q = num * rden
         obj = self._segsum(wt * q, fi)
         # d(num/den)/dF_t = 2 (M F − q G ∇f) / den, the G ∇f part added with the smoothness one
-        dgrad = (-2.0 * wt * q * rden)[..., None] * grad     # (K,T,2) d obj / d ∇f_t
-        dFt = (2.0 * wt * rden)[..., None] * MF
+        dgrad = (self.m2wt * q * rden)[..., None] * grad     # (K,T,2) d obj / d ∇f_t
+        dFt = (self.wt2 * rden)[..., None] * MF
         if self.smoothness > 0 and ef.shape[0]:
             a, b = ef[:, 0], ef[:, 1]
             ga, gb = grad[:, a], grad[:, b]
             diff = ga - gb
             jump = (diff * diff).sum(-1)
-            size = 0.5 * (g2[:, a] + g2[:, b])
-            J = self._segsum(el * jump, eitem)
-            S = self._segsum(el * size, eitem).clamp_min(torch.finfo(self.dt).tiny)
+            # el·jump and el·size (size = half the sum of the two g2) summed per item at once
+            JS = self._segsum(self.el2 * torch.stack([jump, g2[:, a] + g2[:, b]], -1), eitem)
+            J, S = JS[..., 0], JS[..., 1].clamp_min(torch.finfo(self.dt).tiny)
             obj = obj + self.smoothness * J / S
-            cj = (self.smoothness / S)[:, eitem] * el             # d obj / d jump
+            el = self.el
+            dj = ((2.0 * self.smoothness) / S)[:, eitem] * el     # 2 · d obj / d jump
             cs = (-self.smoothness * J / (S * S))[:, eitem] * el  # d obj / d size
-            dj = (2.0 * cj)[..., None] * diff
+            dj = dj[..., None] * diff
             dgrad = dgrad.index_add(1, self.ef_ab,
                                     torch.cat([dj + cs[..., None] * ga, cs[..., None] * gb - dj], 1))
         dFt = dFt + (G * dgrad[..., None, :]).sum(-1)
         dF = torch.zeros_like(F).index_add_(1, faces.reshape(-1), dFt.reshape(K, -1))
         if self.cross:
             ce, cl, clim, cw, cit = self.ce, self.c_len, self.c_lim, self.c_w, self.c_item
-            m = F[:, ce].abs()                               # (K,C,2)
+            m4 = F[:, self.ce4].abs()                        # (K,C,4) |F| at both ends, then swapped
+            m, mf = m4[..., :2], m4[..., 2:]
             msum = m.sum(-1)
             a = cl[:, None] * m / msum[..., None]
             over = (clim - a).clamp_min(0)
             obj = obj + self._segsum(cw * (over * over).sum(-1), cit)
             # a_0 = ℓ m_0/(m_0+m_1), a_1 = ℓ − a_0: d obj/d m_0 = (h_0 − h_1) ℓ m_1/Σ², h_k = −2 w over_k
-            h = (2.0 * cw) * (over[..., 1] - over[..., 0]) * cl / (msum * msum)
-            dm = torch.stack([h * m[..., 1], -h * m[..., 0]], -1)
-            dF = dF.index_add(1, ce.reshape(-1), (dm * self.signs[ce]).reshape(K, -1))
-        ds = dF * self.signs * torch.where(s.abs() < 60.0, e, 0.0)
+            h = self.cw2 * (over[..., 1] - over[..., 0]) * cl / (msum * msum)
+            # d obj/d F at both ends: (h m_1, −h m_0), times the signs
+            dF = dF.index_add(1, ce.reshape(-1), ((h[..., None] * mf) * self.sgn_c).reshape(K, -1))
+        ds = dF * self.signs * torch.where(s.abs() < 60.0, e, self.zero)
         return (obj[0], ds[0]) if one else (obj, ds)
 
 

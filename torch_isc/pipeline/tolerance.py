@@ -49,6 +49,11 @@ class TestConfig:
     min_split_size: float = knob(4.0, ge=0)
     #: also test curve-to-data (walls across rings, bridges between close curves)
     coverage_test: bool = knob(True)
+    #: a coverage failure whose piece of curve runs across the data (largest |cos| to the tangents
+    #: of the points that see it below this) splits below the data's reach too; 0 disables
+    coverage_transverse: float = knob(0.7, ge=0, le=1)
+    #: ...down to this many effective tolerances (instead of min_split_size)
+    transverse_split_size: float = knob(1.0, ge=0)
     #: points a far cluster needs (a point and its nearest far neighbours) to split its triangles
     #: whatever their counts (small components); 0 disables the rule
     far_cluster_points: int = knob(6, ge=0)
@@ -91,9 +96,11 @@ def mark_triangles(mesh: MeshBatch, residual: torch.Tensor, face: torch.Tensor, 
         line_eps: ``(T,)`` line-fit errors. tol, noise: ``(B,)`` distances (``cfg.tolerance``
             is not read: ``tol`` is it per item, in the working units).
         min_points_fit: the points a line fit needs to count (``EvidenceConfig``).
-        coverage: optional :func:`curve_coverage_excess` ``(excess, reach)``: a triangle whose
-            piece of curve is farther from the data than the effective tolerance is marked too,
-            while it is larger than the reach of the points near it (the data's resolution).
+        coverage: optional :func:`curve_coverage_excess` ``(excess, reach[, alignment])``: a
+            triangle whose piece of curve is farther from the data than the effective tolerance
+            is marked too, while it is larger than the reach of the points near it (the data's
+            resolution), or, when its alignment is below ``cfg.coverage_transverse``, down to
+            ``cfg.transverse_split_size`` effective tolerances (past ``min_split_size``).
         clusters: optional :func:`far_clusters` ``(member, radius)`` per point: a triangle
             holding a member is marked whatever its count, while its longest edge exceeds the
             member's cluster radius (finer, its triangles hold a point or two each).
@@ -120,12 +127,19 @@ def mark_triangles(mesh: MeshBatch, residual: torch.Tensor, face: torch.Tensor, 
     thin = torch.maximum(tol, thin_factor * noise)
     marked |= (count >= min_points_fit) & (line_eps > thin[fi] ** 2)
     longest = mesh.kernel.longest_edge(mesh.verts.detach()[mesh.faces])
+    across = None
     if coverage is not None:
         # the data-to-curve test cannot see curve where there are no data (a wall across a
         # ring, a bridge between two close curves): the curve-to-data side, down to the
         # resolution of the sampling (finer, the data cannot tell where the curve goes)
-        excess, reach = coverage
-        marked |= torch.isfinite(excess) & (excess > eff[fi]) & (longest > 2.0 * reach)
+        excess, reach = coverage[0], coverage[1]
+        off = torch.isfinite(excess) & (excess > eff[fi])
+        marked |= off & (longest > 2.0 * reach)
+        if len(coverage) > 2 and cfg.coverage_transverse > 0:
+            # a piece across the data (a bridge between two close curves a few spacings apart)
+            # is topology, not a detail the sampling cannot place: split below the reach and
+            # below the size guard, down to its own floor
+            across = off & (coverage[2] < cfg.coverage_transverse) & (longest > cfg.transverse_split_size * eff[fi])
     if clusters is not None:
         member, radius = clusters
         f = face.clamp_min(0)
@@ -134,6 +148,8 @@ def mark_triangles(mesh: MeshBatch, residual: torch.Tensor, face: torch.Tensor, 
     # below the resolution the tolerance allows, splitting only fits the noise
     if min_split_size > 0:
         marked &= longest > min_split_size * eff[fi]
+    if across is not None:
+        marked |= across
     worst = segment_max(stat, fi, mesh.num_items, fill=0)
     return marked, eff, worst.sqrt()
 
@@ -231,7 +247,7 @@ def point_curve_distance2(mesh: MeshBatch, values: torch.Tensor, points: torch.T
 
 
 def curve_coverage_excess(mesh: MeshBatch, values: torch.Tensor, points: torch.Tensor, face: torch.Tensor,
-                          frames: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+                          frames: torch.Tensor, alignment: bool = False) -> Tuple[torch.Tensor, ...]:
     """``(T,)`` how far the midpoint ``m_t`` of each triangle's zero-set segment lies off the
     data, sideways: the smallest ``|(m_t − p)·n_p|`` over the points ``p`` of the triangle and
     its three neighbours that see it, i.e. with ``|(m_t − p)·τ_p| ≤ r_p``, where ``τ_p, n_p``
@@ -241,7 +257,9 @@ def curve_coverage_excess(mesh: MeshBatch, values: torch.Tensor, points: torch.T
     the data into a sampling gap is seen by no point and left alone (splitting cannot fill a
     gap). ``-inf`` where the triangle holds no segment, ``inf`` where no point sees it. Also
     ``(T,)`` the smallest reach of those points (inf: none): the size below which the data
-    cannot place the curve."""
+    cannot place the curve. With ``alignment``, also ``(T,)`` the largest ``|cos|`` between the
+    segment and the tangents ``τ_p`` of those points (0 where none sees it): a small one is a
+    piece running *across* the data (a bridge between two close curves), not along it."""
     seg, has = triangle_segments(mesh, values)
     mid = seg.mean(1)                                              # (T,2)
     T = mid.shape[0]
@@ -267,7 +285,15 @@ def curve_coverage_excess(mesh: MeshBatch, values: torch.Tensor, points: torch.T
     rmin = torch.full((T,), float("inf"), dtype=mid.dtype, device=mid.device)
     r_seen = torch.where(seen, reach[:, None].expand_as(d), inf)
     rmin = rmin.scatter_reduce(0, c.reshape(-1), r_seen.reshape(-1), "amin")
-    return torch.where(has, out, torch.full_like(out, -float("inf"))), rmin
+    excess = torch.where(has, out, torch.full_like(out, -float("inf")))
+    if not alignment:
+        return excess, rmin
+    u = seg[:, 1] - seg[:, 0]
+    u = u / u.norm(dim=1, keepdim=True).clamp_min(torch.finfo(u.dtype).tiny)
+    cos = torch.where(seen, (u[c] * tau[:, None, :]).sum(-1).abs(), torch.zeros_like(d))
+    align = torch.zeros((T,), dtype=mid.dtype, device=mid.device)
+    align = align.scatter_reduce(0, c.reshape(-1), cos.reshape(-1), "amax")
+    return excess, rmin, align
 
 
 @dataclass
@@ -288,7 +314,8 @@ def test_fit(ws: "WorkingSet", values: torch.Tensor, ev: "Evidence", cfg: TestCo
     with torch.no_grad():
         mesh = ws.mesh
         residual = point_curve_distance2(mesh, values, ws.points, ws.face)
-        coverage = curve_coverage_excess(mesh, values, ws.points, ws.face, ws.frames) if cfg.coverage_test else None
+        coverage = (curve_coverage_excess(mesh, values, ws.points, ws.face, ws.frames,
+                                          alignment=cfg.coverage_transverse > 0) if cfg.coverage_test else None)
         clusters = None
         if cfg.far_cluster_points > 0:
             eff = effective_tolerance(ws.tol, ws.noise, cfg.noise_factor)

@@ -1,5 +1,6 @@
-"""The far-cluster split rule (pipeline.tolerance.far_clusters and its marks), against hand
-configurations and a brute-force reference of its definition (numpy, all pairs)."""
+"""The split rules for small components and close curves (pipeline.tolerance): far clusters
+(``far_clusters`` and its marks) against hand configurations and a brute-force reference of
+the definition (numpy, all pairs); the transverse coverage rule against hand values."""
 from __future__ import annotations
 
 import math
@@ -10,7 +11,7 @@ import torch
 
 from torch_isc.core.locate import locate_grid
 from torch_isc.core.mesh import hexagon_mesh
-from torch_isc.pipeline.tolerance import TestConfig, far_clusters, mark_triangles
+from torch_isc.pipeline.tolerance import TestConfig, curve_coverage_excess, far_clusters, mark_triangles
 
 
 def brute_force(pts, item, d, eff, k, far_factor, ratio):
@@ -135,3 +136,59 @@ def test_mark_triangles_splits_a_far_cluster_while_larger_than_it(device, dtype)
     # the size guard still holds: below 300 tolerances (1.2) nothing splits
     assert not mark_triangles(mesh, res, face, count, z, tol, noise, TestConfig(min_split_size=300.0), 3,
                               clusters=(member, radius))[0].any()
+
+
+def unit_hexagon_line(device, dtype):
+    """Unit hexagon (6 triangles, every edge 1 long) with f = y - 0.1: the zero set is y = 0.1."""
+    mesh = hexagon_mesh(torch.zeros(1, 2, device=device, dtype=dtype), torch.ones(1, device=device, dtype=dtype), 1)
+    return mesh, mesh.verts[:, 1] - 0.1
+
+
+def test_coverage_alignment_hand_values(device, dtype):
+    """The upper-right triangle's piece is horizontal (y = 0.1, midpoint (0.5, 0.1)). Data
+    running vertically at x = 0.45 (tangent (0, 1)) see it 0.05 across and at right angles:
+    alignment 0; data running along it (tangent (1, 0)) give alignment 1."""
+    mesh, values = unit_hexagon_line(device, dtype)
+    pts = torch.tensor([[0.45, 0.1]], device=device, dtype=dtype)
+    face, _ = locate_grid(mesh, pts, torch.zeros(1, dtype=torch.long, device=device))
+    tol = 1e-5 if dtype == torch.float32 else 1e-12
+    up = torch.tensor([[0.0, 1.0, 0.05]], device=device, dtype=dtype)
+    ex, reach, align = curve_coverage_excess(mesh, values, pts, face, up, alignment=True)
+    t = int(face[0])
+    assert float(ex[t]) == pytest.approx(0.05, abs=tol) and float(reach[t]) == pytest.approx(0.05, abs=tol)
+    assert float(align[t]) == pytest.approx(0.0, abs=tol)
+    ex2, reach2 = curve_coverage_excess(mesh, values, pts, face, up)          # without: as before
+    assert torch.equal(ex2, ex) and torch.equal(reach2, reach)
+    diag = torch.tensor([[math.sqrt(0.5), math.sqrt(0.5), 0.2]], device=device, dtype=dtype)
+    _, _, a45 = curve_coverage_excess(mesh, values, pts, face, diag, alignment=True)
+    assert float(a45[t]) == pytest.approx(math.sqrt(0.5), abs=tol)
+    along = torch.tensor([[1.0, 0.0, 0.1]], device=device, dtype=dtype)
+    _, _, a1 = curve_coverage_excess(mesh, values, pts, face, along, alignment=True)
+    assert float(a1[t]) == pytest.approx(1.0, abs=tol)
+
+
+def test_mark_triangles_transverse_coverage(device, dtype):
+    """Every triangle's piece is 0.1 off the data (0.001 for the fifth) and smaller than twice
+    the reach (1 < 1.2), so the plain coverage rule splits none; a piece across the data
+    (alignment below 0.7) is split, down to transverse_split_size tolerances, past
+    min_split_size."""
+    mesh, _ = unit_hexagon_line(device, dtype)
+    T = mesh.faces.shape[0]
+    z = torch.zeros(T, device=device, dtype=dtype)
+    f0 = torch.zeros(0, dtype=torch.long, device=device)
+    args = (mesh, torch.zeros(0, device=device, dtype=dtype), f0, z, z, torch.tensor([0.004], device=device, dtype=dtype),
+            torch.zeros(1, device=device, dtype=dtype))
+    excess = torch.tensor([0.1, 0.1, 0.1, 0.1, 0.001, 0.1], device=device, dtype=dtype)
+    reach = torch.full((T,), 0.6, device=device, dtype=dtype)
+    align = torch.tensor([0.2, 0.69, 0.71, 1.0, 0.0, 0.2], device=device, dtype=dtype)
+    cov = (excess, reach, align)
+    cfg = TestConfig(min_split_size=0.0, coverage_transverse=0.7)
+    assert mark_triangles(*args, cfg, 3, coverage=cov)[0].tolist() == [True, True, False, False, False, True]
+    assert not mark_triangles(*args, cfg, 3, coverage=(excess, reach))[0].any()
+    assert not mark_triangles(*args, TestConfig(min_split_size=0.0, coverage_transverse=0.0), 3, coverage=cov)[0].any()
+    # min_split_size 300 x 0.004 = 1.2 > 1 stops the other rules, not this one
+    big = TestConfig(min_split_size=300.0, coverage_transverse=0.7)
+    assert mark_triangles(*args, big, 3, coverage=cov)[0].tolist() == [True, True, False, False, False, True]
+    # its own floor: 300 tolerances
+    floor = TestConfig(min_split_size=0.0, coverage_transverse=0.7, transverse_split_size=300.0)
+    assert not mark_triangles(*args, floor, 3, coverage=cov)[0].any()

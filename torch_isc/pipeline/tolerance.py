@@ -8,7 +8,9 @@ item is never below ``noise_factor ×`` its estimated noise, a triangle needs
 line-fit error is far above the noise (two strokes of a thin feature in one triangle) is
 split even with few points. A cluster of points far from every curve (a small component the
 mesh has not resolved) splits its triangles whatever their counts (:func:`far_clusters`),
-while a lone outlier does not.
+while a lone outlier does not. A piece of curve that leaves the data *across* them (a bridge
+between two curves a few sample spacings apart) is split below the data's reach and below
+``min_split_size`` (``coverage_transverse``).
 """
 from __future__ import annotations
 

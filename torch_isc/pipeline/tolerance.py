@@ -53,7 +53,7 @@ class TestConfig:
     coverage_test: bool = knob(True)
     #: a coverage failure whose piece of curve runs across the data (largest |cos| to the tangents
     #: of the points that see it below this) splits below the data's reach too; 0 disables
-    coverage_transverse: float = knob(0.7, ge=0, le=1)
+    coverage_transverse: float = knob(0.0, ge=0, le=1)
     #: ...down to this many effective tolerances (instead of min_split_size)
     transverse_split_size: float = knob(1.0, ge=0)
     #: points a far cluster needs (a point and its nearest far neighbours) to split its triangles

@@ -6,7 +6,11 @@ refinement then runs until sparse triangles make spurious loops. So the toleranc
 item is never below ``noise_factor ×`` its estimated noise, a triangle needs
 ``min_points_split`` points before its error alone can split it, and a triangle whose
 line-fit error is far above the noise (two strokes of a thin feature in one triangle) is
-split even with few points.
+split even with few points. A cluster of points far from every curve (a small component the
+mesh has not resolved) splits its triangles whatever their counts (:func:`far_clusters`),
+while a lone outlier does not. A piece of curve that leaves the data *across* them (a bridge
+between two curves a few sample spacings apart) is split below the data's reach and below
+``min_split_size`` (``coverage_transverse``).
 """
 from __future__ import annotations
 
@@ -24,7 +28,7 @@ if TYPE_CHECKING:
     from torch_isc.pipeline.evidence import Evidence
     from torch_isc.pipeline.workset import WorkingSet
 
-__all__ = ["TestConfig", "Verdict", "test_fit", "effective_tolerance", "triangle_errors", "mark_triangles",
+__all__ = ["TestConfig", "Verdict", "test_fit", "effective_tolerance", "triangle_errors", "mark_triangles", "far_clusters",
            "curve_coverage_excess", "point_curve_distance2", "triangle_segments"]
 
 
@@ -47,6 +51,18 @@ class TestConfig:
     min_split_size: float = knob(4.0, ge=0)
     #: also test curve-to-data (walls across rings, bridges between close curves)
     coverage_test: bool = knob(True)
+    #: a coverage failure whose piece of curve runs across the data (largest |cos| to the tangents
+    #: of the points that see it below this) splits below the data's reach too; 0 disables
+    coverage_transverse: float = knob(0.0, ge=0, le=1)
+    #: ...down to this many effective tolerances (instead of min_split_size)
+    transverse_split_size: float = knob(1.0, ge=0)
+    #: points a far cluster needs (a point and its nearest far neighbours) to split its triangles
+    #: whatever their counts (small components); 0 disables the rule
+    far_cluster_points: int = knob(6, ge=0)
+    #: a point is far when its distance to the curve exceeds this many effective tolerances
+    far_cluster_factor: float = knob(1.5, ge=0)
+    #: ...and it is in a cluster when its cluster's radius is below this fraction of that distance
+    far_cluster_ratio: float = knob(0.75, gt=0)
 
     def __post_init__(self):
         check_section(self)
@@ -72,7 +88,8 @@ def effective_tolerance(tol: torch.Tensor, noise: torch.Tensor, noise_factor: fl
 
 def mark_triangles(mesh: MeshBatch, residual: torch.Tensor, face: torch.Tensor, count: torch.Tensor,
                    line_eps: torch.Tensor, tol: torch.Tensor, noise: torch.Tensor, cfg: TestConfig,
-                   min_points_fit: int, coverage: Optional[Tuple[torch.Tensor, torch.Tensor]] = None
+                   min_points_fit: int, coverage: Optional[Tuple[torch.Tensor, torch.Tensor]] = None,
+                   clusters: Optional[Tuple[torch.Tensor, torch.Tensor]] = None
                    ) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Mark the triangles that fail the test.
 
@@ -81,9 +98,14 @@ def mark_triangles(mesh: MeshBatch, residual: torch.Tensor, face: torch.Tensor, 
         line_eps: ``(T,)`` line-fit errors. tol, noise: ``(B,)`` distances (``cfg.tolerance``
             is not read: ``tol`` is it per item, in the working units).
         min_points_fit: the points a line fit needs to count (``EvidenceConfig``).
-        coverage: optional :func:`curve_coverage_excess` ``(excess, reach)``: a triangle whose
-            piece of curve is farther from the data than the effective tolerance is marked too,
-            while it is larger than the reach of the points near it (the data's resolution).
+        coverage: optional :func:`curve_coverage_excess` ``(excess, reach[, alignment])``: a
+            triangle whose piece of curve is farther from the data than the effective tolerance
+            is marked too, while it is larger than the reach of the points near it (the data's
+            resolution), or, when its alignment is below ``cfg.coverage_transverse``, down to
+            ``cfg.transverse_split_size`` effective tolerances (past ``min_split_size``).
+        clusters: optional :func:`far_clusters` ``(member, radius)`` per point: a triangle
+            holding a member is marked whatever its count, while its longest edge exceeds the
+            member's cluster radius (finer, its triangles hold a point or two each).
     Returns:
         marked ``(T,)`` bool, the effective tolerance ``(B,)`` and the largest error ``(B,)``
         (a distance, the chosen statistic).
@@ -107,17 +129,93 @@ def mark_triangles(mesh: MeshBatch, residual: torch.Tensor, face: torch.Tensor, 
     thin = torch.maximum(tol, thin_factor * noise)
     marked |= (count >= min_points_fit) & (line_eps > thin[fi] ** 2)
     longest = mesh.kernel.longest_edge(mesh.verts.detach()[mesh.faces])
+    across = None
     if coverage is not None:
         # the data-to-curve test cannot see curve where there are no data (a wall across a
         # ring, a bridge between two close curves): the curve-to-data side, down to the
         # resolution of the sampling (finer, the data cannot tell where the curve goes)
-        excess, reach = coverage
-        marked |= torch.isfinite(excess) & (excess > eff[fi]) & (longest > 2.0 * reach)
+        excess, reach = coverage[0], coverage[1]
+        off = torch.isfinite(excess) & (excess > eff[fi])
+        marked |= off & (longest > 2.0 * reach)
+        if len(coverage) > 2 and cfg.coverage_transverse > 0:
+            # a piece across the data (a bridge between two close curves a few spacings apart)
+            # is topology, not a detail the sampling cannot place: split below the reach and
+            # below the size guard, down to its own floor
+            across = off & (coverage[2] < cfg.coverage_transverse) & (longest > cfg.transverse_split_size * eff[fi])
+    if clusters is not None:
+        member, radius = clusters
+        f = face.clamp_min(0)
+        split = member & (face >= 0) & (longest[f] > radius)
+        marked |= segment_sum(split.to(residual.dtype), f, mesh.faces.shape[0]) > 0
     # below the resolution the tolerance allows, splitting only fits the noise
     if min_split_size > 0:
         marked &= longest > min_split_size * eff[fi]
+    if across is not None:
+        marked |= across
     worst = segment_max(stat, fi, mesh.num_items, fill=0)
     return marked, eff, worst.sqrt()
+
+
+#: candidates on each side of a far point along each Morton order (its neighbours are found among them)
+CLUSTER_WINDOW = 8
+
+
+def _morton_knn(points: torch.Tensor, item: torch.Tensor, k: int, window: int = CLUSTER_WINDOW) -> torch.Tensor:
+    """``(n,)`` the distance of each of ``points (n, 2)`` (normalized, within about 1 of the origin)
+    to its ``k``-th nearest other point of the same ``item``, among its neighbours along two shifted
+    Morton orders (approximate: a sort, not a search; inf where fewer than ``k`` candidates)."""
+    from torch_isc.pipeline.noise import _morton
+    n = points.shape[0]
+    dev, dt = points.device, points.dtype
+    offs = torch.cat([torch.arange(-window, 0, device=dev), torch.arange(1, window + 1, device=dev)])
+    cands = []
+    for shift in (0.0, 0.3719):
+        q = ((points + 0.75 + shift * 0.5) / 2.0 * 65535).long().clamp(0, 65535)
+        order = torch.argsort(item * (1 << 32) + _morton(q), stable=True)
+        pos = torch.empty_like(order)
+        pos[order] = torch.arange(n, device=dev)
+        cands.append(order[(pos[:, None] + offs[None, :]).clamp(0, n - 1)])
+    c, _ = torch.sort(torch.cat(cands, 1), 1)
+    dup = torch.zeros_like(c, dtype=torch.bool)
+    dup[:, 1:] = c[:, 1:] == c[:, :-1]
+    own = torch.arange(n, device=dev)[:, None]
+    skip = (c == own) | (item[c] != item[:, None]) | dup
+    d2 = ((points[c] - points[:, None, :]) ** 2).sum(-1)
+    d2 = torch.where(skip, torch.full_like(d2, float("inf")), d2)
+    kk = min(k, c.shape[1])
+    if kk < k:
+        return torch.full((n,), float("inf"), dtype=dt, device=dev)
+    return torch.topk(d2, kk, dim=1, largest=False).values[:, -1].sqrt()
+
+
+def far_clusters(points: torch.Tensor, point_item: torch.Tensor, residual: torch.Tensor, reach: torch.Tensor,
+                 eff: torch.Tensor, cluster_points: int, far_factor: float, ratio: float
+                 ) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Which points belong to a cluster far from every curve: structure the mesh has not
+    resolved (a small component), as opposed to isolated outliers.
+
+    A point is *far* when its distance ``d`` to the curve (``residual (P,)``, squared; inf when
+    no curve is near, then ``reach (P,)``, a lower bound of that distance, stands in) exceeds
+    ``far_factor × eff`` (``eff (B,)``, the item's effective tolerance). It is in a cluster when
+    its ``cluster_points − 1`` nearest *far* neighbours lie within ``ratio × d`` of it: enough
+    points for a curve, in a radius small against their distance to the curve. One outlier, or
+    a few, never have that many far neighbours so close; a sampled curve far from the fit has.
+
+    Returns ``(P,)`` bool and ``(P,)`` the cluster radius (the distance to the
+    ``(cluster_points − 1)``-th far neighbour; inf off clusters)."""
+    P = points.shape[0]
+    dev, dt = points.device, residual.dtype
+    inf = torch.full((P,), float("inf"), dtype=dt, device=dev)
+    if cluster_points < 2 or P == 0:
+        return torch.zeros(P, dtype=torch.bool, device=dev), inf
+    d = torch.where(torch.isfinite(residual), residual.clamp_min(0).sqrt(), reach.to(dt))
+    far = d > far_factor * eff[point_item]
+    idx = far.nonzero().squeeze(1)                  # one host read: how many far points
+    if idx.numel() == 0:
+        return torch.zeros(P, dtype=torch.bool, device=dev), inf
+    rk = _morton_knn(points[idx].to(dt), point_item[idx], cluster_points - 1)
+    radius = inf.index_copy(0, idx, rk)
+    return far & (radius <= ratio * d), torch.where(far, radius, inf)
 
 
 def triangle_segments(mesh: MeshBatch, values: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
@@ -151,7 +249,7 @@ def point_curve_distance2(mesh: MeshBatch, values: torch.Tensor, points: torch.T
 
 
 def curve_coverage_excess(mesh: MeshBatch, values: torch.Tensor, points: torch.Tensor, face: torch.Tensor,
-                          frames: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+                          frames: torch.Tensor, alignment: bool = False) -> Tuple[torch.Tensor, ...]:
     """``(T,)`` how far the midpoint ``m_t`` of each triangle's zero-set segment lies off the
     data, sideways: the smallest ``|(m_t − p)·n_p|`` over the points ``p`` of the triangle and
     its three neighbours that see it, i.e. with ``|(m_t − p)·τ_p| ≤ r_p``, where ``τ_p, n_p``
@@ -161,7 +259,9 @@ def curve_coverage_excess(mesh: MeshBatch, values: torch.Tensor, points: torch.T
     the data into a sampling gap is seen by no point and left alone (splitting cannot fill a
     gap). ``-inf`` where the triangle holds no segment, ``inf`` where no point sees it. Also
     ``(T,)`` the smallest reach of those points (inf: none): the size below which the data
-    cannot place the curve."""
+    cannot place the curve. With ``alignment``, also ``(T,)`` the largest ``|cos|`` between the
+    segment and the tangents ``τ_p`` of those points (0 where none sees it): a small one is a
+    piece running *across* the data (a bridge between two close curves), not along it."""
     seg, has = triangle_segments(mesh, values)
     mid = seg.mean(1)                                              # (T,2)
     T = mid.shape[0]
@@ -187,7 +287,15 @@ def curve_coverage_excess(mesh: MeshBatch, values: torch.Tensor, points: torch.T
     rmin = torch.full((T,), float("inf"), dtype=mid.dtype, device=mid.device)
     r_seen = torch.where(seen, reach[:, None].expand_as(d), inf)
     rmin = rmin.scatter_reduce(0, c.reshape(-1), r_seen.reshape(-1), "amin")
-    return torch.where(has, out, torch.full_like(out, -float("inf"))), rmin
+    excess = torch.where(has, out, torch.full_like(out, -float("inf")))
+    if not alignment:
+        return excess, rmin
+    u = seg[:, 1] - seg[:, 0]
+    u = u / u.norm(dim=1, keepdim=True).clamp_min(torch.finfo(u.dtype).tiny)
+    cos = torch.where(seen, (u[c] * tau[:, None, :]).sum(-1).abs(), torch.zeros_like(d))
+    align = torch.zeros((T,), dtype=mid.dtype, device=mid.device)
+    align = align.scatter_reduce(0, c.reshape(-1), cos.reshape(-1), "amax")
+    return excess, rmin, align
 
 
 @dataclass
@@ -203,13 +311,22 @@ class Verdict:
 
 def test_fit(ws: "WorkingSet", values: torch.Tensor, ev: "Evidence", cfg: TestConfig, min_points_fit: int) -> Verdict:
     """The test stage: data-to-curve distances (and, with ``cfg.coverage_test``, curve-to-data)
-    of the fitted ``values`` against each item's effective tolerance."""
+    of the fitted ``values`` against each item's effective tolerance; with ``cfg.far_cluster_points``,
+    far clusters (:func:`far_clusters`) split their triangles."""
     with torch.no_grad():
         mesh = ws.mesh
         residual = point_curve_distance2(mesh, values, ws.points, ws.face)
-        coverage = curve_coverage_excess(mesh, values, ws.points, ws.face, ws.frames) if cfg.coverage_test else None
+        coverage = (curve_coverage_excess(mesh, values, ws.points, ws.face, ws.frames,
+                                          alignment=cfg.coverage_transverse > 0) if cfg.coverage_test else None)
+        clusters = None
+        if cfg.far_cluster_points > 0:
+            eff = effective_tolerance(ws.tol, ws.noise, cfg.noise_factor)
+            # no curve in a point's two rings: it is at least about its triangle's size away
+            size = mesh.kernel.longest_edge(mesh.verts.detach()[mesh.faces])[ws.face.clamp_min(0)]
+            clusters = far_clusters(ws.points, ws.point_item, residual, size, eff, cfg.far_cluster_points,
+                                    cfg.far_cluster_factor, cfg.far_cluster_ratio)
         marked, eff, worst = mark_triangles(mesh, residual, ws.face, ev.moments.count, ev.fits.eps, ws.tol, ws.noise,
-                                            cfg, min_points_fit, coverage=coverage)
+                                            cfg, min_points_fit, coverage=coverage, clusters=clusters)
         return Verdict(marked, eff, worst, residual)
 
 

@@ -210,14 +210,18 @@ def orient_normals(points: torch.Tensor, item: torch.Tensor, num_items: int, noi
     # the length each point stands for: 1 / (points per unit length along the tangent), a
     # tangential kernel density within the reach of the neighbours (not across to another curve)
     reach = torch.where(torch.isfinite(d2), d2, torch.zeros_like(d2)).amax(1).sqrt()
-    rk = (0.5 * reach).clamp_min(torch.finfo(dt).tiny)
+    rk = (reach / 3.0).clamp_min(torch.finfo(dt).tiny)
     dd = points[nbr] - points[:, None, :]
     dn = (dd * n[:, None, :]).sum(-1)
     dtn2 = ((dd ** 2).sum(-1) - dn ** 2).clamp_min(0)
     kd = torch.exp(-0.5 * dtn2 / rk[:, None] ** 2) * (dn.abs() <= 3 * rn[:, None]) * torch.isfinite(d2)
     dens = (kd.sum(1) + 1.0) / (math.sqrt(2 * math.pi) * rk)
+    # a neighbour the Morton candidates missed halves a density: the median over the neighbours
+    ln = 1.0 / dens
+    ln = torch.where(torch.isfinite(d2), ln[nbr], ln[:, None])
+    ln = torch.cat([(1.0 / dens)[:, None], ln], 1).median(1).values
     size = segment_count(piece, P)
-    a = torch.where((size[piece] >= MIN_PIECE) & sure, 1.0 / dens, torch.zeros_like(dens))
+    a = torch.where((size[piece] >= MIN_PIECE) & sure, ln, torch.zeros_like(dens))
     # one sign per piece: the choice whose winding number is nearest {0, 1} (nesting parity,
     # open arcs between corners and tips alike)
     sg, over = _piece_signs(points, item, num_items, o * a[:, None], piece, a, h, max_pieces)

@@ -31,7 +31,8 @@ import torch
 from torch_isc.core.segments import (edge_components, expand_in_chunks, first_index, hash_uniform, segment_count,
                                      segment_median, sym2_eigvals, sym2_eigvec)
 
-__all__ = ["WindingPrior", "knn", "point_normals", "orient_normals", "winding_prior", "winding_at", "winding_field"]
+__all__ = ["WindingPrior", "knn", "point_normals", "orient_normals", "winding_prior", "winding_at", "winding_on_grid",
+           "winding_field"]
 
 #: a connected piece of fewer points is no curve (an outlier, a speck): it weighs nothing
 MIN_PIECE = 5
@@ -51,6 +52,11 @@ class WindingPrior:
     b: torch.Tensor
     eps: torch.Tensor
     trust: torch.Tensor
+    #: ``(B, G, G)`` the winding on the piece-sign grid (first axis x), its corner ``lo (B, 2)``
+    #: and extent ``ext (B, 2)``: what the field interpolates
+    grid: Optional[torch.Tensor] = None
+    lo: Optional[torch.Tensor] = None
+    ext: Optional[torch.Tensor] = None
 
 
 def _morton(q: torch.Tensor) -> torch.Tensor:
@@ -167,7 +173,8 @@ def _parity_labels(P: int, a, b, sgn, join) -> torch.Tensor:
 
 def orient_normals(points: torch.Tensor, item: torch.Tensor, num_items: int, noise: torch.Tensor,
                    k: int = 12, sync_iterations: int = 30, smooth_rounds: int = 2, join_kernel: float = 0.3,
-                   join_dot: float = 0.9, max_pieces: int = 32):
+                   join_dot: float = 0.9, max_pieces: int = 32, return_grid: bool = False,
+                   smooth_widths: float = 2.0):
     """Normals, their orientation and each point's weight.
 
     Returns ``o (P, 2)`` oriented unit normals (outward of the inside region, nesting
@@ -224,8 +231,9 @@ def orient_normals(points: torch.Tensor, item: torch.Tensor, num_items: int, noi
     a = torch.where((size[piece] >= MIN_PIECE) & sure, ln, torch.zeros_like(dens))
     # one sign per piece: the choice whose winding number is nearest {0, 1} (nesting parity,
     # open arcs between corners and tips alike)
-    sg, over = _piece_signs(points, item, num_items, o * a[:, None], piece, a, h, max_pieces)
-    return o * sg[:, None], a, piece, h, over
+    eps = float(smooth_widths) * torch.maximum(sig, h)
+    sg, over, grid = _piece_signs(points, item, num_items, o * a[:, None], piece, a, eps, max_pieces)
+    return (o * sg[:, None], a, piece, h, over, grid) if return_grid else (o * sg[:, None], a, piece, h, over)
 
 
 def segment_max_abs(x: torch.Tensor, seg: torch.Tensor, n: int) -> torch.Tensor:
@@ -249,7 +257,7 @@ _GRID = 32
 _RESTARTS = 8
 
 
-def _piece_signs(points, item, B, b, piece, a, h, max_pieces) -> torch.Tensor:
+def _piece_signs(points, item, B, b, piece, a, eps, max_pieces) -> torch.Tensor:
     """``(P,)`` ±1: a sign per piece such that the winding number of all pieces, on a grid over
     each item's bounding box (and a margin), is nearest to {0, 1}: the energy
     ``Σ_q min(w_q², (w_q − 1)²)``. The ``max_pieces`` longest pieces of an item are decided in
@@ -286,7 +294,7 @@ def _piece_signs(points, item, B, b, piece, a, h, max_pieces) -> torch.Tensor:
     uv = torch.stack(torch.meshgrid(t, t, indexing="ij"), -1).reshape(-1, 2)          # (Q, 2)
     Q = uv.shape[0]
     grid = lo[:, None, :] + uv[None] * ext[:, None, :]                               # (B, Q, 2)
-    eps2 = h ** 2
+    eps2 = eps ** 2
     M = torch.zeros(B * Q * (C + 1), dtype=dt, device=dev)
     pcnt = segment_count(item, B)
     pfirst = first_index(pcnt)
@@ -325,7 +333,7 @@ def _piece_signs(points, item, B, b, piece, a, h, max_pieces) -> torch.Tensor:
     sp = torch.cat([S, torch.ones(B, 1, dtype=dt, device=dev)], 1)
     # a consistent orientation has no winding below 0 or above 1 (beyond the smoothing's ripple)
     over = ((w < -OVERSHOOT) | (w > 1 + OVERSHOOT)).to(dt).mean(1)
-    return sp[item, prank], over
+    return sp[item, prank], over, (w.view(B, G, G), lo, ext)
 
 
 def winding_prior(points: torch.Tensor, item: torch.Tensor, num_items: int, noise: torch.Tensor,
@@ -333,10 +341,31 @@ def winding_prior(points: torch.Tensor, item: torch.Tensor, num_items: int, nois
     """The oriented, weighted points of every item and the smoothing length
     ``ε = smooth_widths · max(noise, spacing)``."""
     with torch.no_grad():
-        o, a, _, h, over = orient_normals(points.detach(), item, num_items, noise, k, sync_iterations)
+        o, a, _, h, over, (grid, lo, ext) = orient_normals(points.detach(), item, num_items, noise, k,
+                                                             sync_iterations, return_grid=True,
+                                                             smooth_widths=smooth_widths)
         eps = float(smooth_widths) * torch.maximum(noise.to(points.dtype), h)
         trust = (1.0 - over / OVERSHOOT_LIMIT).clamp(0, 1)
-        return WindingPrior(points.detach(), item, o * a[:, None], eps, trust)
+        return WindingPrior(points.detach(), item, o * a[:, None], eps, trust, grid, lo, ext)
+
+
+def winding_on_grid(prior: WindingPrior, q: torch.Tensor, q_item: torch.Tensor) -> torch.Tensor:
+    """``(M,)`` the winding at ``q`` interpolated (bilinear) from the prior's grid, held at the
+    grid's border value beyond it: O(1) per point, where :func:`winding_at` sums over all
+    points. The grid's cells are about 1/27 of the item's size: near the curve, where the
+    field is weak anyway, the values blur."""
+    G = prior.grid.shape[1]
+    u = (q.detach().to(prior.grid.dtype) - prior.lo[q_item]) / prior.ext[q_item] * G - 0.5
+    u = u.clamp(0, G - 1)
+    i0 = u.floor().long().clamp_max(G - 2)
+    f = u - i0
+    flat = prior.grid.reshape(-1)
+    base = q_item * (G * G) + i0[:, 0] * G + i0[:, 1]
+
+    def at(di, dj):
+        return flat[base + di * G + dj]
+    fx, fy = f[:, 0], f[:, 1]
+    return ((1 - fx) * (1 - fy) * at(0, 0) + fx * (1 - fy) * at(1, 0) + (1 - fx) * fy * at(0, 1) + fx * fy * at(1, 1))
 
 
 def winding_at(prior: WindingPrior, q: torch.Tensor, q_item: torch.Tensor) -> torch.Tensor:
@@ -362,7 +391,7 @@ def winding_field(prior: WindingPrior, verts: torch.Tensor, vert_item: torch.Ten
     """``(V,)`` the field term of the Ising energy, ``Σ_v g_v F_v`` with ``g_v = weight (2w−1)``
     for ``w`` clamped to [0, 1]: positive inside (favours F = −1), negative outside, about 0
     near the curve, on open curves' ends and wherever the prior is unsure."""
-    w = winding_at(prior, verts, vert_item)
+    w = winding_on_grid(prior, verts, vert_item) if prior.grid is not None else winding_at(prior, verts, vert_item)
     ok = (w > -OVERSHOOT) & (w < 1 + OVERSHOOT)
     g = (2.0 * w.clamp(0, 1) - 1.0) * prior.trust[vert_item]
     return float(weight) * torch.where(ok, g, torch.zeros_like(g))

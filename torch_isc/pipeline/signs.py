@@ -484,23 +484,30 @@ class IsingSigns:
                 H = H + cpl
             fixed = mesh.is_boundary_vert
             init = torch.where(fixed, torch.ones_like(ws.signs), ws.signs)
-            field = self._winding_field(ws) if self.cfg.winding_weight > 0 else None
+            field = self._winding_field(ws, level) if self.cfg.winding_weight > 0 else None
             s = anneal(mesh, H, init, fixed, self.cfg, self.seed, warm=level > 0, field=field)
             if self.cfg.cluster_rounds > 0:
                 from torch_isc.pipeline.simplify import descend_clusters
                 s = descend_clusters(mesh, H, s, fixed, far, self.cfg.cluster_rounds)
             return remove_small_islands(mesh, s, fixed, self.cfg.min_island_vertices)
 
-    def _winding_field(self, ws: "WorkingSet") -> torch.Tensor:
-        """``(V,)`` the winding prior's field (pipeline/winding.py); the prior depends on the
-        points only, so it is kept while the working set's points are the same tensor."""
+    def _winding_field(self, ws: "WorkingSet", level: int) -> torch.Tensor:
+        """``(V,)`` the winding prior's field (pipeline/winding.py). The prior depends on the
+        points only: it is made at level 0 (all items) and read by caller item after."""
         from torch_isc.pipeline.winding import winding_field, winding_prior
-        if getattr(self, "_prior_of", None) is not ws.points:
+        prior = getattr(self, "_prior", None)
+        if prior is None or level == 0:
             c = self.cfg
-            self._prior = winding_prior(ws.points, ws.point_item, ws.num_items, ws.noise, c.winding_neighbours,
-                                        c.winding_sync_iterations, c.winding_smoothing)
-            self._prior_of = ws.points
-        return winding_field(self._prior, ws.mesh.verts, ws.mesh.vert_item, self.cfg.winding_weight)
+            prior = winding_prior(ws.points, ws.point_item, ws.num_items, ws.noise, c.winding_neighbours,
+                                  c.winding_sync_iterations, c.winding_smoothing)
+            self._prior, self._prior_items = prior, ws.items
+        return winding_field(prior, ws.mesh.verts, self._prior_row(ws)[ws.mesh.vert_item], self.cfg.winding_weight)
+
+    def _prior_row(self, ws: "WorkingSet") -> torch.Tensor:
+        """``(B,)`` each working item's row of the cached prior."""
+        rows = torch.full((int(self._prior_items.max()) + 1,), -1, dtype=torch.long, device=ws.device)
+        rows[self._prior_items] = torch.arange(self._prior_items.shape[0], device=ws.device)
+        return rows[ws.items]
 
     def marks(self, ws: "WorkingSet", values: torch.Tensor, min_len: torch.Tensor) -> Optional[torch.Tensor]:
         return None

@@ -254,14 +254,14 @@ OVERSHOOT_LIMIT = 0.05
 #: grid of the piece-sign choice, per side of each item's bounding box
 _GRID = 32
 #: starts of the piece-sign descent
-_RESTARTS = 8
+_RESTARTS = 4
 
 
 def _piece_signs(points, item, B, b, piece, a, eps, max_pieces) -> torch.Tensor:
     """``(P,)`` ±1: a sign per piece such that the winding number of all pieces, on a grid over
     each item's bounding box (and a margin), is nearest to {0, 1}: the energy
     ``Σ_q min(w_q², (w_q − 1)²)``. The ``max_pieces`` longest pieces of an item are decided in
-    order of length (each against the longer ones), then twice more each against all the others;
+    order of length (each against the longer ones), then once more each against all the others;
     the other pieces keep their sign."""
     dev, dt = points.device, points.dtype
     P = points.shape[0]
@@ -320,7 +320,7 @@ def _piece_signs(points, item, B, b, piece, a, eps, max_pieces) -> torch.Tensor:
     def energy(w):
         return torch.minimum(w ** 2, (w - 1) ** 2).sum(-1)
 
-    for r in range(3):
+    for r in range(2):
         for j in range(C):
             base = w - S[:, :, j:j + 1] * Mr[..., j]
             ep, en = energy(base + Mr[..., j]), energy(base - Mr[..., j])

@@ -11,9 +11,11 @@ and gaps move it little, unlike the local line evidence of the Ising energy.
 - orientation: Z2 synchronisation of the normals on the neighbour graph (a start by label
   propagation with parity, then power iterations of the signed coupling ``κ_ij n_i·n_j``), the
   coupling anisotropic (neighbours along the tangent, not across a gap to a parallel curve);
-- per connected piece a global orientation: outward (positive signed area), times ``(−1)^d`` for
-  a piece nested inside ``d`` others (inside-ness from the other piece's own winding at one of
-  its points), so ``w`` stays in {0, 1} across nested curves;
+- per connected piece (chains cut at corners and tips) one sign, chosen so that the winding of
+  all pieces on a grid over the item is nearest {0, 1} (a descent from a few starts): nesting
+  parity, and open arcs between corners, come out of that one rule;
+- a self-check: where the chosen winding still overshoots [0, 1] on more than a few percent of
+  the grid, the orientation is inconsistent and the item's prior is trusted less (0 at 5%);
 - pieces of fewer than ``MIN_PIECE`` points (outliers, specks) and points whose orientation the
   synchronisation leaves unsure weigh nothing.
 

@@ -60,6 +60,15 @@ class TopologyConfig:
     open_whole_regions: bool = knob(True)
     #: ...and whether such a region first joins a neighbour of its sign across one vertex
     open_merge: bool = knob(True)
+    #: strength of the winding-number prior (pipeline/winding.py), a field term in the Ising
+    #: energy; 0 disables (signs bit-identical to without it)
+    winding_weight: float = knob(0.0, ge=0)
+    #: neighbours of each point in its normal fit and the orientation graph
+    winding_neighbours: int = knob(12, ge=3)
+    #: power iterations of the orientation's Z2 synchronisation
+    winding_sync_iterations: int = knob(30, ge=0)
+    #: the winding number's smoothing length, in noise widths (or sample spacings, the larger)
+    winding_smoothing: float = knob(2.0, gt=0)
 
     def __post_init__(self):
         check_section(self)
@@ -227,10 +236,13 @@ class _ColorClass:
             torch.sum(slots, 1, out=out)
         return self.f
 
-    def sweep(self, half) -> None:
+    def sweep(self, half, field: Optional[torch.Tensor] = None) -> None:
         """Metropolis flips of the class: where ``F_i h_i > half`` (thresholds ``(R, width)``,
-        or a scalar 0 for zero temperature)."""
-        torch.mul(self.sg, self.fields(), out=self.x)
+        or a scalar 0 for zero temperature); ``field (width,)`` is added to the local fields."""
+        f = self.fields()
+        if field is not None:
+            f.add_(field)
+        torch.mul(self.sg, f, out=self.x)
         torch.gt(self.x, half, out=self.acc)
         torch.neg(self.sg, out=self.neg)
         torch.where(self.acc, self.neg, self.sg, out=self.sg)
@@ -327,17 +339,21 @@ def _temperatures(sweeps: int, t_start: float, t_end: float, warm_t_start: Optio
     return torch.stack([t0 * ratio ** k for k in range(int(sweeps))])
 
 
-def ising_energy(mesh: MeshBatch, H: torch.Tensor, signs: torch.Tensor) -> torch.Tensor:
-    """``Σ_e H_e F_i F_j`` per item; ``signs (V,)`` or ``(V, R)`` -> ``(B,)`` or ``(B, R)``."""
+def ising_energy(mesh: MeshBatch, H: torch.Tensor, signs: torch.Tensor, field: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """``Σ_e H_e F_i F_j`` (``+ Σ_v g_v F_v`` with ``field``) per item; ``signs (V,)`` or
+    ``(V, R)`` -> ``(B,)`` or ``(B, R)``."""
     e = mesh.edges
     s = signs if signs.dim() == 2 else signs[:, None]
     t = H[:, None] * s[e[:, 0]] * s[e[:, 1]]
     out = torch.zeros(mesh.num_items, s.shape[1], dtype=H.dtype, device=H.device).index_add_(0, mesh.edge_item, t)
+    if field is not None:
+        out.index_add_(0, mesh.vert_item, field.to(H.dtype)[:, None] * s)
     return out if signs.dim() == 2 else out[:, 0]
 
 
 def anneal(mesh: MeshBatch, H: torch.Tensor, init: torch.Tensor, fixed: torch.Tensor,
-           cfg: Optional[TopologyConfig] = None, seed: int = 0, warm: bool = False) -> torch.Tensor:
+           cfg: Optional[TopologyConfig] = None, seed: int = 0, warm: bool = False,
+           field: Optional[torch.Tensor] = None) -> torch.Tensor:
     """Minimize the Ising energy ``Σ_e H_e F_i F_j`` over ``F ∈ {−1, 1}`` by simulated annealing.
 
     Vertices of one colour are never adjacent, so each colour class is updated in parallel
@@ -357,6 +373,7 @@ def anneal(mesh: MeshBatch, H: torch.Tensor, init: torch.Tensor, fixed: torch.Te
 
     Args:
         init: ``(V,)`` ±1 start. fixed: ``(V,)`` bool, vertices held at their ``init`` value.
+        field: ``(V,)`` optional field term: the energy is ``Σ_e H_e F_i F_j + Σ_v g_v F_v``.
     Returns:
         ``(V,)`` ±1 signs (dtype of ``H``).
     """
@@ -373,6 +390,10 @@ def anneal(mesh: MeshBatch, H: torch.Tensor, init: torch.Tensor, fixed: torch.Te
         s, pos, classes, color, free = _color_layout(mesh, H, fixed, R)
         s[:, pos] = s0.T
         F = classes[-1].a + classes[-1].width if classes else 0      # the free vertices' columns
+        gcol = None
+        if field is not None:                                        # the field in state columns
+            gcol = torch.zeros(s.shape[1], dtype=dt, device=dev)
+            gcol[pos] = field.to(dt)
         # Metropolis: accept when u < exp(-dE / T), i.e. dE < -T log u; with dE = -2 F_i h_i,
         # when F_i h_i > (T log u) / 2 (a threshold <= 0; the halving is exact). The random
         # numbers are keyed by (seed, local vertex, replica, 64 sweep + colour), as before.
@@ -396,9 +417,10 @@ def anneal(mesh: MeshBatch, H: torch.Tensor, init: torch.Tensor, fixed: torch.Te
                 half = (-temps[k:k + ks.shape[0]][:, :, None] * torch.log(u)) * -0.5
             hk = half[k % block] if k < sweeps else None
             for cl in classes:
-                cl.sweep(hk[:, cl.a:cl.a + cl.width] if k < sweeps else 0.0)
+                cl.sweep(hk[:, cl.a:cl.a + cl.width] if k < sweeps else 0.0,
+                         None if gcol is None else gcol[cl.a:cl.a + cl.width])
         s = s[:, pos].T
-        E = ising_energy(mesh, H, s)                              # (B, R)
+        E = ising_energy(mesh, H, s, field)                       # (B, R)
         best = torch.argmin(E, 1)                                 # first minimum
         return s.gather(1, best[mesh.vert_item][:, None]).squeeze(1)
 
@@ -471,7 +493,8 @@ class IsingSigns:
                 H = H + cpl
             fixed = mesh.is_boundary_vert
             init = torch.where(fixed, torch.ones_like(ws.signs), ws.signs)
-            s = anneal(mesh, H, init, fixed, self.cfg, self.seed, warm=level > 0)
+            field = self._winding_field(ws, level) if self.cfg.winding_weight > 0 else None
+            s = anneal(mesh, H, init, fixed, self.cfg, self.seed, warm=level > 0, field=field)
             if self.cfg.cluster_rounds > 0:
                 from torch_isc.pipeline.simplify import descend_clusters
                 s = descend_clusters(mesh, H, s, fixed, far, self.cfg.cluster_rounds)
@@ -479,6 +502,24 @@ class IsingSigns:
                 from torch_isc.pipeline.simplify import open_stage
                 s = open_stage(ws, s, fixed, self.cfg)
             return remove_small_islands(mesh, s, fixed, self.cfg.min_island_vertices)
+
+    def _winding_field(self, ws: "WorkingSet", level: int) -> torch.Tensor:
+        """``(V,)`` the winding prior's field (pipeline/winding.py). The prior depends on the
+        points only: it is made at level 0 (all items) and read by caller item after."""
+        from torch_isc.pipeline.winding import winding_field, winding_prior
+        prior = getattr(self, "_prior", None)
+        if prior is None or level == 0:
+            c = self.cfg
+            prior = winding_prior(ws.points, ws.point_item, ws.num_items, ws.noise, c.winding_neighbours,
+                                  c.winding_sync_iterations, c.winding_smoothing)
+            self._prior, self._prior_items = prior, ws.items
+        return winding_field(prior, ws.mesh.verts, self._prior_row(ws)[ws.mesh.vert_item], self.cfg.winding_weight)
+
+    def _prior_row(self, ws: "WorkingSet") -> torch.Tensor:
+        """``(B,)`` each working item's row of the cached prior."""
+        rows = torch.full((int(self._prior_items.max()) + 1,), -1, dtype=torch.long, device=ws.device)
+        rows[self._prior_items] = torch.arange(self._prior_items.shape[0], device=ws.device)
+        return rows[ws.items]
 
     def marks(self, ws: "WorkingSet", values: torch.Tensor, min_len: torch.Tensor) -> Optional[torch.Tensor]:
         return None

@@ -261,3 +261,57 @@ def test_open_signs_merge_joins_a_cut_off_tip_and_removes_a_lone_speck():
     assert torch.equal(out < 0, body)
     out = open_signs(mesh, s, pinned, rad, 32, whole_regions=True, merge=True)
     assert torch.equal(out < 0, body | tip | gap)
+
+
+def _faces_by_brute_force(mesh, pts):
+    """``(P,)`` the triangle holding each point (barycentric coordinates all >= 0), −1 if none."""
+    p = mesh.verts[mesh.faces]                                    # (T,3,2)
+    out = []
+    for q in pts.tolist():
+        hit = -1
+        for t in range(p.shape[0]):
+            a, b, c = p[t].tolist()
+            den = (b[1] - c[1]) * (a[0] - c[0]) + (c[0] - b[0]) * (a[1] - c[1])
+            l1 = ((b[1] - c[1]) * (q[0] - c[0]) + (c[0] - b[0]) * (q[1] - c[1])) / den
+            l2 = ((c[1] - a[1]) * (q[0] - c[0]) + (a[0] - c[0]) * (q[1] - c[1])) / den
+            if min(l1, l2, 1 - l1 - l2) >= -1e-12:
+                hit = t
+                break
+        out.append(hit)
+    return torch.tensor(out)
+
+
+def test_a_speck_its_own_data_surround_is_kept():
+    from torch_isc.pipeline.simplify import surrounded_regions
+    mesh = mesh_of(24)
+    h = 1.0 / 24
+    v = mesh.verts
+    speck = ((v[:, 0] - 0.0) ** 2 + (v[:, 1] - 0.6) ** 2) < (1.2 * h) ** 2
+    s = torch.where(speck, -1.0, 1.0).double()
+    pinned = mesh.is_boundary_vert
+    rad = torch.full((s.shape[0],), 2.5 * h, dtype=torch.float64)
+    # a small closed curve: 12 points on a circle of radius 0.9 h about the speck's centre
+    t = torch.arange(12, dtype=torch.float64) * (2 * math.pi / 12) + 0.1
+    ring = torch.stack([0.9 * h * torch.cos(t), 0.6 + 0.9 * h * torch.sin(t)], 1)
+    # data on one side only: 12 points on a line 1 h below it
+    line = torch.stack([torch.linspace(-3 * h, 3 * h, 12, dtype=torch.float64),
+                        torch.full((12,), 0.6 - 1.0 * h, dtype=torch.float64)], 1)
+    for pts, kept in ((ring, True), (line, False)):
+        face = _faces_by_brute_force(mesh, pts)
+        assert (face >= 0).all()
+        sur = surrounded_regions(mesh, speck, pts, face)
+        assert bool(sur[speck].all()) == kept and not sur[~speck].any()
+        out = open_signs(mesh, s, pinned, rad, 32, whole_regions=True, merge=True, data=(pts, face))
+        assert bool((out[speck] < 0).all()) == kept
+        # without the data the speck goes whatever surrounds it
+        assert not (open_signs(mesh, s, pinned, rad, 32, whole_regions=True, merge=True)[speck] < 0).any()
+    # the sector count by hand: points at 4 distinct sectors about the centre are not enough, 5 are
+    ang = torch.tensor([0.2, 1.0, 2.0, 3.0, 4.0], dtype=torch.float64)   # sectors of pi/4: 0, 1, 2, 3, 5
+    pts = torch.stack([0.9 * h * torch.cos(ang), 0.6 + 0.9 * h * torch.sin(ang)], 1)
+    cen = v[speck].mean(0)
+    assert torch.allclose(cen, torch.tensor([0.0, 0.6], dtype=torch.float64), atol=0.2 * h)
+    face = _faces_by_brute_force(mesh, pts)
+    assert surrounded_regions(mesh, speck, pts, face)[speck].all()
+    assert not surrounded_regions(mesh, speck, pts[:4], face[:4])[speck].any()
+    # a point in no triangle (face −1) counts for nothing
+    assert not surrounded_regions(mesh, speck, pts, torch.where(torch.arange(5) == 4, -1, face))[speck].any()

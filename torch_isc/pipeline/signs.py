@@ -60,6 +60,8 @@ class TopologyConfig:
     open_whole_regions: bool = knob(True)
     #: ...and whether such a region first joins a neighbour of its sign across one vertex
     open_merge: bool = knob(True)
+    #: ...but a region its own data surround (a small closed curve) is kept
+    open_keep_surrounded: bool = knob(True)
     #: strength of the winding-number prior (pipeline/winding.py), a field term in the Ising
     #: energy; 0 disables (signs bit-identical to without it)
     winding_weight: float = knob(0.0, ge=0)

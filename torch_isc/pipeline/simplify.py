@@ -42,7 +42,7 @@ if TYPE_CHECKING:
     from torch_isc.pipeline.signs import TopologyConfig
     from torch_isc.pipeline.workset import WorkingSet
 
-__all__ = ["cluster_flip_change", "descend_clusters", "zero_set_distance", "ball_cover", "open_signs", "open_stage"]
+__all__ = ["cluster_flip_change", "descend_clusters", "zero_set_distance", "ball_cover", "open_signs", "open_stage", "surrounded_regions"]
 
 
 def cluster_flip_change(edges: torch.Tensor, H: torch.Tensor, signs: torch.Tensor, lab: torch.Tensor) -> torch.Tensor:
@@ -147,8 +147,38 @@ def _bridges(e: torch.Tensor, V: int, mine: torch.Tensor, speck: torch.Tensor, p
     return ~mine & ~pinned & near & (hi > lo) & (lo < V)
 
 
+def surrounded_regions(mesh: MeshBatch, region: torch.Tensor, points: torch.Tensor, face: torch.Tensor,
+                       sectors: int = 8, need: int = 5) -> torch.Tensor:
+    """``(V,)`` bool: the vertices of ``region (V,)`` whose connected region (along edges whose
+    ends are both in ``region``) has data all around it: the points in triangles incident to
+    its vertices (``points (P, 2)``, ``face (P,)`` their triangles, −1 for none) occupy at least
+    ``need`` of ``sectors`` equal angular sectors about the region's vertex centroid. A small
+    closed curve sampled by its own points is surrounded; a sliver hole at an inner corner or
+    a speck beside a stroke sees data on one or two sides only."""
+    with torch.no_grad():
+        V = region.shape[0]
+        e = mesh.edges
+        lab = edge_components(V, e, region[e[:, 0]] & region[e[:, 1]])
+        v = mesh.verts.detach()
+        w = region.to(v.dtype)
+        cnt = torch.zeros(V, dtype=v.dtype, device=v.device).index_add_(0, lab, w)
+        cen = torch.zeros(V, 2, dtype=v.dtype, device=v.device).index_add_(0, lab, v * w[:, None])
+        cen = cen / cnt.clamp_min(1.0)[:, None]
+        ok = face >= 0
+        tri = mesh.faces[face.clamp_min(0)]                              # (P,3)
+        pl = lab[tri]                                                    # (P,3) region of each corner
+        use = region[tri] & ok[:, None]
+        d = points.detach().to(v.dtype)[:, None, :] - cen[pl]
+        ang = torch.atan2(d[..., 1], d[..., 0])
+        sec = ((ang + torch.pi) * (sectors / (2 * torch.pi))).long().clamp(0, sectors - 1)
+        occ = torch.zeros(V * sectors, dtype=torch.long, device=v.device).scatter_reduce(
+            0, (pl * sectors + sec).reshape(-1), use.long().reshape(-1), "amax")
+        return region & (occ.view(V, sectors).sum(1) >= need)[lab]
+
+
 def open_signs(mesh: MeshBatch, signs: torch.Tensor, pinned: torch.Tensor, radius: torch.Tensor,
-               rounds: int, whole_regions: bool = False, merge: bool = False) -> torch.Tensor:
+               rounds: int, whole_regions: bool = False, merge: bool = False,
+               data: "tuple | None" = None) -> torch.Tensor:
     """``signs (V,)`` after a morphological opening of radius ``radius (V,)`` (per vertex, its
     item's), first of the negative and then of the positive vertices: a vertex that no ball of
     that radius inside its sign region covers (a speck, a bridge, a channel, a tip thinner
@@ -158,7 +188,10 @@ def open_signs(mesh: MeshBatch, signs: torch.Tensor, pinned: torch.Tensor, radiu
 
     The depth of a region (its deepest vertex's distance to the zero set) is the barrier of
     removing it: the change of a distance-like ``f`` that would make it vanish, the persistence
-    of its extremum. A region, bridge or channel whose barrier is below the noise is noise."""
+    of its extremum. A region, bridge or channel whose barrier is below the noise is noise.
+    With ``data = (points (P, 2), face (P,))`` a speck that its data surround
+    (:func:`surrounded_regions`: a small closed curve drawn by its own points) is kept: shallow
+    is not noise when the data go all around it."""
     with torch.no_grad():
         s = signs.clone()
         e = mesh.edges
@@ -178,6 +211,8 @@ def open_signs(mesh: MeshBatch, signs: torch.Tensor, pinned: torch.Tensor, radiu
                     s = torch.where(bridge, -s, s)
                     mine = s == sgn
                     speck = _specks(e, V, mine, cov & ~bridge, pinned)
+                if data is not None:
+                    speck = speck & ~surrounded_regions(mesh, speck, data[0], data[1])
                 flip = speck
             else:
                 flip = mine & ~cov & ~pinned
@@ -191,5 +226,6 @@ def open_stage(ws: "WorkingSet", signs: torch.Tensor, pinned: torch.Tensor, cfg:
     tolerances, whichever is more."""
     mesh = ws.mesh
     r = torch.maximum(cfg.open_noise_widths * ws.noise, cfg.open_tolerances * ws.tol)
+    data = (ws.points, ws.face) if cfg.open_keep_surrounded else None
     return open_signs(mesh, signs, pinned, r.to(signs.dtype)[mesh.vert_item], cfg.open_rounds,
-                      cfg.open_whole_regions, cfg.open_merge)
+                      cfg.open_whole_regions, cfg.open_merge, data)

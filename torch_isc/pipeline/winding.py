@@ -30,6 +30,8 @@ from typing import Optional, Tuple
 
 import torch
 
+from torch_isc.pipeline.noise import _morton
+
 from torch_isc.core.segments import (edge_components, expand_in_chunks, first_index, hash_uniform, segment_count,
                                      segment_median, sym2_eigvals, sym2_eigvec)
 
@@ -59,16 +61,6 @@ class WindingPrior:
     grid: Optional[torch.Tensor] = None
     lo: Optional[torch.Tensor] = None
     ext: Optional[torch.Tensor] = None
-
-
-def _morton(q: torch.Tensor) -> torch.Tensor:
-    def spread(x):
-        x = x & 0xFFFF
-        x = (x | (x << 8)) & 0x00FF00FF
-        x = (x | (x << 4)) & 0x0F0F0F0F
-        x = (x | (x << 2)) & 0x33333333
-        return (x | (x << 1)) & 0x55555555
-    return spread(q[:, 0]) | (spread(q[:, 1]) << 1)
 
 
 def knn(points: torch.Tensor, item: torch.Tensor, k: int, window: int = _WINDOW) -> Tuple[torch.Tensor, torch.Tensor]:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Optional, Tuple
+from typing import List, Optional, Tuple
 
 import torch
 
@@ -113,6 +113,54 @@ def _quadratic_residual(qd: torch.Tensor, w: torch.Tensor, t: torch.Tensor, lmax
     return torch.where(m > 3, out, torch.zeros_like(out))
 
 
+def morton_orders(points: torch.Tensor, item: torch.Tensor) -> List[Tuple[torch.Tensor, torch.Tensor]]:
+    """Two Morton (Z-order) sorts of ``points (P, 2)`` (normalized to about [-1, 1]) within
+    their ``item (P,)``, the second on a grid shifted by a non-dyadic fraction so that points a
+    cell boundary splits in one order are near in the other. Each is ``(order, pos)``: the
+    sorted indices and each point's rank. Neighbour candidates are the points a few ranks away."""
+    P = points.shape[0]
+    out = []
+    for shift in (0.0, 0.3719):
+        q = ((points.detach() + 0.75 + shift * 0.5) / 2.0 * 65535).long().clamp(0, 65535)
+        order = torch.argsort(item * (1 << 32) + _morton(q), stable=True)
+        pos = torch.empty_like(order)
+        pos[order] = torch.arange(P, device=points.device)
+        out.append((order, pos))
+    return out
+
+
+#: pairs per block of an approximate neighbour search (bounded memory for millions of points)
+KNN_BUDGET = 1 << 22
+
+
+def approximate_knn(points: torch.Tensor, item: torch.Tensor, k: int, window: int) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Approximate ``k`` nearest neighbours of every point within its item, among its
+    ``window`` neighbours on each side along the two :func:`morton_orders` (points normalized
+    to about [-1, 1]; a sort, not a search). Returns ``nbr (P, kk)`` long and ``d2 (P, kk)``
+    squared distances, ``kk = min(k, 4 window)``, nearest first (``inf`` where a point has fewer
+    candidates; ``nbr`` is then the point itself)."""
+    P = points.shape[0]
+    dev = points.device
+    offs = torch.cat([torch.arange(-window, 0, device=dev), torch.arange(1, window + 1, device=dev)])
+    orders = morton_orders(points, item)
+    kk = min(k, 4 * window)
+    nbr = torch.empty(P, kk, dtype=torch.long, device=dev)
+    d2 = torch.empty(P, kk, dtype=points.dtype, device=dev)
+    block = max(1, KNN_BUDGET // (4 * window))
+    for b0 in range(0, P, block):                       # bounded memory for many points
+        idx = torch.arange(b0, min(P, b0 + block), device=dev)
+        c = torch.cat([o[(p[idx][:, None] + offs[None, :]).clamp(0, P - 1)] for o, p in orders], 1)
+        c, _ = torch.sort(c, 1)
+        bad = (c == idx[:, None]) | (item[c] != item[idx][:, None])
+        bad[:, 1:] |= c[:, 1:] == c[:, :-1]
+        dd = ((points[c] - points[idx][:, None, :]) ** 2).sum(-1)
+        dd = torch.where(bad, torch.full_like(dd, float("inf")), dd)
+        nd, ni = torch.topk(dd, kk, dim=1, largest=False)
+        nbr[idx] = torch.where(torch.isfinite(nd), c.gather(1, ni), idx[:, None])
+        d2[idx] = nd
+    return nbr, d2
+
+
 def _noise_at_scale(points: torch.Tensor, point_item: torch.Tensor, num_items: int, k: int,
                     window: int) -> Tuple[torch.Tensor, ...]:
     """Per item: the median residual variance of the local parabola fits, the median aspect
@@ -121,14 +169,7 @@ def _noise_at_scale(points: torch.Tensor, point_item: torch.Tensor, num_items: i
     P = points.shape[0]
     dev, dt = points.device, points.dtype
     offs = torch.cat([torch.arange(-window, 0, device=dev), torch.arange(1, window + 1, device=dev)])
-    orders = []
-    for shift in (0.0, 0.3719):
-        q = ((points + 0.75 + shift * 0.5) / 2.0 * 65535).long().clamp(0, 65535)
-        key = point_item * (1 << 32) + _morton(q)
-        order = torch.argsort(key, stable=True)
-        pos = torch.empty_like(order)
-        pos[order] = torch.arange(P, device=dev)
-        orders.append((order, pos))
+    orders = morton_orders(points, point_item)
     lam = torch.empty(P, dtype=dt, device=dev)
     lmax = torch.empty(P, dtype=dt, device=dev)
     m = torch.empty(P, dtype=dt, device=dev)

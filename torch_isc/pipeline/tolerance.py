@@ -162,30 +162,12 @@ CLUSTER_WINDOW = 8
 
 def _morton_knn(points: torch.Tensor, item: torch.Tensor, k: int, window: int = CLUSTER_WINDOW) -> torch.Tensor:
     """``(n,)`` the distance of each of ``points (n, 2)`` (normalized, within about 1 of the origin)
-    to its ``k``-th nearest other point of the same ``item``, among its neighbours along two shifted
-    Morton orders (approximate: a sort, not a search; inf where fewer than ``k`` candidates)."""
-    from torch_isc.pipeline.noise import _morton
-    n = points.shape[0]
-    dev, dt = points.device, points.dtype
-    offs = torch.cat([torch.arange(-window, 0, device=dev), torch.arange(1, window + 1, device=dev)])
-    cands = []
-    for shift in (0.0, 0.3719):
-        q = ((points + 0.75 + shift * 0.5) / 2.0 * 65535).long().clamp(0, 65535)
-        order = torch.argsort(item * (1 << 32) + _morton(q), stable=True)
-        pos = torch.empty_like(order)
-        pos[order] = torch.arange(n, device=dev)
-        cands.append(order[(pos[:, None] + offs[None, :]).clamp(0, n - 1)])
-    c, _ = torch.sort(torch.cat(cands, 1), 1)
-    dup = torch.zeros_like(c, dtype=torch.bool)
-    dup[:, 1:] = c[:, 1:] == c[:, :-1]
-    own = torch.arange(n, device=dev)[:, None]
-    skip = (c == own) | (item[c] != item[:, None]) | dup
-    d2 = ((points[c] - points[:, None, :]) ** 2).sum(-1)
-    d2 = torch.where(skip, torch.full_like(d2, float("inf")), d2)
-    kk = min(k, c.shape[1])
-    if kk < k:
-        return torch.full((n,), float("inf"), dtype=dt, device=dev)
-    return torch.topk(d2, kk, dim=1, largest=False).values[:, -1].sqrt()
+    to its ``k``-th nearest other point of the same ``item``, by
+    :func:`~torch_isc.pipeline.noise.approximate_knn` (inf where fewer than ``k`` candidates)."""
+    from torch_isc.pipeline.noise import approximate_knn
+    if k > 4 * window:
+        return torch.full((points.shape[0],), float("inf"), dtype=points.dtype, device=points.device)
+    return approximate_knn(points, item, k, window)[1][:, k - 1].sqrt()
 
 
 def far_clusters(points: torch.Tensor, point_item: torch.Tensor, residual: torch.Tensor, reach: torch.Tensor,

@@ -30,7 +30,7 @@ from typing import Optional, Tuple
 
 import torch
 
-from torch_isc.pipeline.noise import _morton
+from torch_isc.pipeline.noise import approximate_knn
 
 from torch_isc.core.segments import (edge_components, expand_in_chunks, first_index, hash_uniform, segment_count,
                                      segment_median, sym2_eigvals, sym2_eigvec)
@@ -64,36 +64,8 @@ class WindingPrior:
 
 
 def knn(points: torch.Tensor, item: torch.Tensor, k: int, window: int = _WINDOW) -> Tuple[torch.Tensor, torch.Tensor]:
-    """Approximate ``k`` nearest neighbours of every point within its item, among its
-    ``window`` neighbours on each side along two shifted Morton orders (points normalized to
-    about [-1, 1]). Returns ``nbr (P, k)`` long and ``d2 (P, k)`` squared distances (``inf``
-    where a point has fewer candidates; ``nbr`` is then the point itself)."""
-    P = points.shape[0]
-    dev = points.device
-    offs = torch.cat([torch.arange(-window, 0, device=dev), torch.arange(1, window + 1, device=dev)])
-    orders = []
-    for shift in (0.0, 0.3719):
-        q = ((points.detach() + 0.75 + shift * 0.5) / 2.0 * 65535).long().clamp(0, 65535)
-        order = torch.argsort(item * (1 << 32) + _morton(q), stable=True)
-        pos = torch.empty_like(order)
-        pos[order] = torch.arange(P, device=dev)
-        orders.append((order, pos))
-    kk = min(k, 4 * window)
-    nbr = torch.empty(P, kk, dtype=torch.long, device=dev)
-    d2 = torch.empty(P, kk, dtype=points.dtype, device=dev)
-    block = max(1, _BUDGET // (4 * window))
-    for b0 in range(0, P, block):                       # bounded memory for many points
-        idx = torch.arange(b0, min(P, b0 + block), device=dev)
-        c = torch.cat([o[(p[idx][:, None] + offs[None, :]).clamp(0, P - 1)] for o, p in orders], 1)
-        c, _ = torch.sort(c, 1)
-        bad = (c == idx[:, None]) | (item[c] != item[idx][:, None])
-        bad[:, 1:] |= c[:, 1:] == c[:, :-1]
-        dd = ((points[c] - points[idx][:, None, :]) ** 2).sum(-1)
-        dd = torch.where(bad, torch.full_like(dd, float("inf")), dd)
-        nd, ni = torch.topk(dd, kk, dim=1, largest=False)
-        nbr[idx] = torch.where(torch.isfinite(nd), c.gather(1, ni), idx[:, None])
-        d2[idx] = nd
-    return nbr, d2
+    """:func:`~torch_isc.pipeline.noise.approximate_knn` with this module's window."""
+    return approximate_knn(points, item, k, window)
 
 
 def point_normals(points: torch.Tensor, nbr: torch.Tensor, d2: torch.Tensor, smooth_rounds: int = 2,

@@ -17,7 +17,7 @@ smoothness weight, so residuals of points on both sides of the curve cancel rath
 which stop short of the minimum) or ``newton`` (:meth:`RefitProblem.geometry
 <torch_isc.pipeline.refit.RefitProblem.geometry>`: the same objective plus tiny ``reg``/scale
 terms, solved to convergence by projected damped Newton). Newton's dense per-item Hessians are
-bounded: items in groups of at most ``_DENSE_BUDGET`` entries, items with more than
+bounded: items in groups of about ``_DENSE_BUDGET`` entries, items with more than
 ``band_dense_max`` vertices near the curve by L-BFGS.
 """
 from __future__ import annotations
@@ -59,7 +59,7 @@ class BandConfig:
     #: iteration cap of the final refit (Newton iterations; L-BFGS iterations with band_solver=lbfgs)
     band_iterations: int = knob(40, ge=0)
     #: Newton: an item with more vertices near its curve than this is refitted by L-BFGS (its
-    #: dense Hessian would be too large); a batch is solved in groups of at most 2**24 entries
+    #: dense Hessian would be too large); a batch is solved in groups of about 2**24 entries
     band_dense_max: int = knob(1500, ge=0)
     #: Newton: weight of the mean squared log-magnitude change from the start (each vertex's
     #: distance to the data); it also makes the minimizer unique
@@ -132,7 +132,7 @@ def _flip_spikes(ws: "WorkingSet", values: torch.Tensor, cfg: BandConfig) -> tor
         return c.values
 
 
-#: the most entries of the dense Hessians one Newton group holds (items x Amax x Amax)
+#: about the most entries of the dense Hessians one Newton group holds (the sum of its items' squared sizes)
 _DENSE_BUDGET = 2 ** 24
 
 
@@ -158,40 +158,30 @@ def band_stage(ws: "WorkingSet", cfg: BandConfig, geometry: GeometryConfig, slac
 
 
 def _refit_grouped(ws: "WorkingSet", cfg: BandConfig, gcfg: GeometryConfig, slack: torch.Tensor) -> torch.Tensor:
-    """:func:`_refit` by Newton with the dense Hessians bounded: items in groups of at most
-    ``_DENSE_BUDGET`` entries (by an upper bound of their active vertices: those of the
-    triangles within 3 rings of the crossed ones), items above ``band_dense_max`` by L-BFGS.
-    One group (no selection) in the common case; one host read of the bounds."""
+    """:func:`_refit` by Newton with the dense Hessians bounded: consecutive items in groups of
+    about ``_DENSE_BUDGET`` entries (by an upper bound of each item's active vertices: those of
+    the triangles within 3 rings of the crossed ones; the blocks are ragged, so a group holds
+    about the sum of its items' squares), items above ``band_dense_max`` by L-BFGS. One group
+    (no selection) in the common case; one host read of the group labels."""
     m = ws.mesh
     with torch.no_grad():
         near = crossed_triangles(m, ws.values, 3)
         vmask = torch.zeros(m.verts.shape[0], dtype=torch.bool, device=m.device)
         vmask[m.faces[near].reshape(-1)] = True
         bound = torch.zeros(ws.num_items, dtype=torch.long, device=m.device).index_add_(0, m.vert_item, vmask.long())
-        ub = bound.tolist()
-    big = [b > cfg.band_dense_max for b in ub]
-    groups, cur, cmax = [], [], 0
-    for b, u in enumerate(ub):
-        if big[b]:
-            continue
-        if cur and (len(cur) + 1) * max(cmax, u) ** 2 > _DENSE_BUDGET:
-            groups.append(("newton", cur))
-            cur, cmax = [], 0
-        cur.append(b)
-        cmax = max(cmax, u)
-    if cur:
-        groups.append(("newton", cur))
-    if any(big):
-        groups.append(("lbfgs", [b for b in range(len(ub)) if big[b]]))
-    if len(groups) == 1 and len(groups[0][1]) == ws.num_items:
-        return _refit(ws, cfg, gcfg, slack, groups[0][0])
+        big = bound > cfg.band_dense_max
+        cost = torch.where(big, torch.zeros_like(bound), bound * bound)
+        # a group starts where the running sum of the items before crosses a multiple of the budget;
+        # -1 labels the L-BFGS items
+        group = torch.where(big, torch.full_like(bound, -1), (torch.cumsum(cost, 0) - cost) // _DENSE_BUDGET)
+        labels = torch.unique(group).tolist()
+    if len(labels) == 1:
+        return _refit(ws, cfg, gcfg, slack, "lbfgs" if labels[0] < 0 else "newton")
     values = ws.values.clone()
-    for solver, items in groups:
-        keep = torch.tensor(items, dtype=torch.long, device=m.device)
-        sub = ws.select(keep)
-        kmask = torch.zeros(ws.num_items, dtype=torch.bool, device=m.device)
-        kmask[keep] = True
-        values[kmask[m.vert_item]] = _refit(sub, cfg, gcfg, slack[keep], solver)
+    for g in labels:
+        keep = (group == g).nonzero().squeeze(1)
+        sel = (group == g)[m.vert_item]
+        values[sel] = _refit(ws.select(keep), cfg, gcfg, slack[keep], "lbfgs" if g < 0 else "newton")
     return values
 
 

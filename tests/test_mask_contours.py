@@ -223,3 +223,113 @@ def test_acute_tip_unrecoverable():
     assert (m_full == m_cut).all()
     dd = _dist([cut], [poly])
     assert dd["b_to_a_max"] >= r - 0.05                    # the two truths are 1.2 px apart at the tip
+
+
+def _random_masks(seed=0):
+    """Noise masks (single pixels, diagonal touches, components on the border), a checkerboard,
+    thin lines along the border, and blobs of several sizes and densities."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(30):
+        H, W = int(rng.integers(1, 30)), int(rng.integers(1, 30))
+        out.append((rng.random((H, W)) < rng.uniform(0.05, 0.95)).astype(np.uint8))
+    chk = (np.add.outer(np.arange(12), np.arange(15)) % 2 == 0).astype(np.uint8)
+    out += [chk, chk & (rng.random(chk.shape) < 0.8)]
+    m = np.zeros((9, 11), np.uint8); m[0, :] = 1; m[:, -1] = 1; m[4, 3:7] = 1; out.append(m)
+    for s in range(8):
+        out.append(binary_blobs(int((16, 40, 64, 100)[s % 4]), blob_size_fraction=float(rng.uniform(0.03, 0.3)),
+                                volume_fraction=float(rng.uniform(0.1, 0.9)), rng=s).astype(np.uint8))
+    return out
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_int32_chains_are_cv2s(mode):
+    """dtype=np.int32 gives OpenCV's chains point for point (its start pixel: the crack left of
+    the first pixel of an outer border, right of it for a hole; a pixel visited twice on a 1-px
+    bridge taken at the right visit), with cv2's order and hierarchy."""
+    masks = _hard_cases() + _random_masks()
+    for m, (oc, oh) in zip(masks, images.find_contours_batch(masks, mode, dtype=np.int32)):
+        c, h = cv2.findContours(m, mode, cv2.CHAIN_APPROX_NONE)
+        assert len(oc) == len(c)
+        assert (oh is None and h is None) or np.array_equal(oh, h)
+        for a, b in zip(oc, c):
+            assert a.dtype == np.int32 and np.array_equal(a, b)
+
+
+def test_otsu_images_like_cv2():
+    """Real images thresholded by Otsu (skimage's coins and text, and their inverses): the same
+    contours, chains and hierarchy as cv2 in RETR_TREE."""
+    from skimage import data, filters
+    masks = []
+    for im in (data.coins(), data.text()):
+        m = (im > filters.threshold_otsu(im)).astype(np.uint8)
+        masks += [m, 1 - m]
+    for m, (oc, oh) in zip(masks, images.find_contours_batch(masks, cv2.RETR_TREE, dtype=np.int32)):
+        c, h = cv2.findContours(m, cv2.RETR_TREE, cv2.CHAIN_APPROX_NONE)
+        assert len(oc) == len(c) > 10 and np.array_equal(oh, h)
+        assert all(np.array_equal(a, b) for a, b in zip(oc, c))
+
+
+def test_connectivity_4_is_cv2_on_the_inverse():
+    """connectivity=4 (4-connected foreground, 8-connected holes) against cv2 on the inverted
+    mask inside a 1-px foreground frame, whose 8-connected foreground is our background: one
+    cv2 border per border of ours (an outer border starting at pixel p is cv2's hole starting at
+    p - 1, a hole starting at p is cv2's outer border starting at p + 1), one level deeper, with
+    the same parents (the frame standing for none)."""
+    for m in _hard_cases() + _random_masks(1):
+        oc, oh = images.find_contours(m, cv2.RETR_TREE, dtype=np.int32, connectivity=4)
+        c, h = cv2.findContours(np.pad(1 - m, 1, constant_values=1), cv2.RETR_TREE, cv2.CHAIN_APPROX_NONE)
+        assert len(oc) == len(c) - 1
+        if not oc:
+            continue
+
+        def depth(hh, q):
+            d = 0
+            while hh[q, 3] >= 0:
+                d, q = d + 1, hh[q, 3]
+            return d
+
+        by_start = {tuple(x.reshape(-1, 2)[0] - 1): q for q, x in enumerate(c)}
+        ours_d = [depth(oh[0], q) for q in range(len(oc))]
+        cv_of = []
+        for q, x in enumerate(oc):
+            s = x.reshape(-1, 2)[0] + np.array([-1 if ours_d[q] % 2 == 0 else 1, 0])
+            k = by_start[tuple(s)]
+            assert depth(h[0], k) == ours_d[q] + 1
+            cv_of.append(k)
+        for q in range(len(oc)):
+            assert h[0, cv_of[q], 3] == (0 if oh[0, q, 3] < 0 else cv_of[oh[0, q, 3]])
+
+
+def test_dropin_input_forms_and_errors():
+    """Any 2D bool/integer/float mask, of any strides or memory order, numpy or torch, gives
+    cv2's contours (integers: nonzero is foreground, negative values too, as OpenCV); 1xN,
+    Nx1, empty and full masks included; bad input raises one-line ValueErrors."""
+    rng = np.random.default_rng(3)
+    m = (rng.random((30, 40)) < 0.5).astype(np.uint8)
+    ref = cv2.findContours(m, cv2.RETR_TREE, cv2.CHAIN_APPROX_NONE)
+
+    def same(x, r=ref):
+        oc, oh = images.find_contours(x, cv2.RETR_TREE, dtype=np.int32)
+        assert len(oc) == len(r[0]) and all(np.array_equal(a, b) for a, b in zip(oc, r[0]))
+        assert (oh is None and r[1] is None) or np.array_equal(oh, r[1])
+
+    for x in (m.astype(bool), m.astype(np.float32), m * 255.0, m.astype(np.int16) * -7, m.astype(np.uint16) * 300,
+              m.astype(np.uint32), m.astype(np.int64), np.asfortranarray(m), torch.from_numpy(m),
+              torch.from_numpy(m).bool(), torch.from_numpy(m.astype(np.float64))):
+        same(x)
+    for x in (m[::-1], m[:, ::-1], m[::2, ::3], m.T, torch.from_numpy(m).T):
+        same(x, cv2.findContours(np.ascontiguousarray(np.asarray(x)), cv2.RETR_TREE, cv2.CHAIN_APPROX_NONE))
+    for x in (np.zeros((5, 5), np.uint8), np.ones((5, 5), np.uint8), np.ones((1, 1), np.uint8),
+              np.array([[1, 0, 1, 1, 0, 1]], np.uint8), np.array([[1, 0, 1, 1, 0, 1]], np.uint8).T.copy()):
+        same(x, cv2.findContours(x, cv2.RETR_TREE, cv2.CHAIN_APPROX_NONE))
+    bad = [(dict(mask=m.astype(np.complex64)), "unsupported dtype complex64"),
+           (dict(mask=np.array([["a"]])), "unsupported dtype"), (dict(mask=None), "unsupported dtype object"),
+           (dict(mask=np.zeros((3, 4, 5))), "expected a 2D"), (dict(mask=np.zeros((0, 5))), "empty image"),
+           (dict(mask=m, dtype=np.float16), "dtype must be"), (dict(mask=m, dtype=np.int64), "dtype must be"),
+           (dict(mask=m, offset=(1,)), "offset must be"), (dict(mask=m, min_area=-1), "min_area must be"),
+           (dict(mask=m, threshold="x"), "threshold must be"), (dict(mask=m, connectivity=6), "connectivity must be")]
+    for kw, msg in bad:
+        with pytest.raises(ValueError, match=msg) as e:
+            images.find_contours(kw.pop("mask"), cv2.RETR_TREE, **kw)
+        assert "\n" not in str(e.value)

@@ -21,7 +21,7 @@ def image_list(images: Union[ImageLike, Sequence[ImageLike]], what: str = "image
     """A batch of 2D images as a list of ``(H_b, W_b)`` tensors: accepts a list of 2D
     arrays/tensors (sizes may differ) or one ``(B, H, W)`` / ``(B, 1, H, W)`` array."""
     if isinstance(images, (np.ndarray, torch.Tensor)):
-        t = torch.as_tensor(images) if isinstance(images, np.ndarray) else images
+        t = _tensor(images, what, "batch")
         if t.dim() == 4 and t.shape[1] == 1:
             t = t[:, 0]
         if t.dim() == 2:
@@ -31,7 +31,7 @@ def image_list(images: Union[ImageLike, Sequence[ImageLike]], what: str = "image
         return list(t.unbind(0))
     out = []
     for b, im in enumerate(images):
-        t = torch.as_tensor(np.asarray(im)) if not isinstance(im, torch.Tensor) else im
+        t = _tensor(im, what, b)
         if t.dim() == 3 and t.shape[0] == 1:
             t = t[0]
         if t.dim() != 2:
@@ -42,13 +42,37 @@ def image_list(images: Union[ImageLike, Sequence[ImageLike]], what: str = "image
     return out
 
 
+def _tensor(im, what: str, b) -> torch.Tensor:
+    """``im`` as a tensor of a bool, integer or float dtype (numpy views of any strides
+    copied); an ImageError naming the item otherwise."""
+    if isinstance(im, torch.Tensor):
+        t = im
+    else:
+        a = np.asarray(im)
+        if a.dtype.kind not in "biuf":
+            raise ImageError(f"{what} {b}: unsupported dtype {a.dtype} (expected bool, integer or float)")
+        if a.dtype.kind == "u" and a.dtype.itemsize > 1:
+            # torch has no comparisons for uint16/32/64: int64 holds uint16/32 exactly, float64
+            # keeps uint64 in order (and nonzero nonzero)
+            a = a.astype(np.int64 if a.dtype.itemsize < 8 else np.float64)
+        t = torch.from_numpy(np.ascontiguousarray(a))
+    if t.is_complex():
+        raise ImageError(f"{what} {b}: unsupported dtype {t.dtype} (expected bool, integer or float)")
+    if t.dtype in (torch.uint16, torch.uint32, torch.uint64):
+        t = t.to(torch.float64)
+    return t
+
+
 def binarize(t: torch.Tensor, threshold: Optional[float]) -> torch.Tensor:
     """Foreground ``(H, W)`` bool: ``t > threshold``. Default (None): a bool mask as it is,
-    an integer mask nonzero (OpenCV's rule for ``findContours``), a float mask above 0.5."""
+    an integer mask nonzero (OpenCV's rule for ``findContours``, negative values included), a
+    float mask above 0.5."""
     if t.dtype == torch.bool:
         return t
     if threshold is None:
-        threshold = 0.5 if t.dtype.is_floating_point else 0
+        return t > 0.5 if t.dtype.is_floating_point else t != 0
+    if isinstance(threshold, bool) or not isinstance(threshold, (int, float, np.integer, np.floating)):
+        raise ImageError(f"threshold must be a number, got {threshold!r}")
     return t > threshold
 
 

@@ -169,11 +169,13 @@ def _shoelace(p: np.ndarray) -> float:
     return 0.5 * float((x * np.roll(y, -1) - np.roll(x, -1) * y).sum())
 
 
-def _as_cv(poly: np.ndarray, method: str, epsilon: float, integer: bool, offset) -> np.ndarray:
+def _as_cv(poly: np.ndarray, method: str, epsilon: float, integer: bool, offset, s0: Optional[int] = None) -> np.ndarray:
     """One loop of :func:`trace_masks` (foreground on the left) as an OpenCV contour: reversed
-    (OpenCV's orientation), starting at its top-left point, in OpenCV's coordinates."""
+    (OpenCV's orientation), starting at node ``s0`` of ``poly`` (OpenCV's start: the crack left
+    of the start pixel of an outer border, right of it for a hole; default: the top-left
+    point), in OpenCV's coordinates."""
     q = poly[::-1] - 0.5
-    s = int(np.lexsort((q[:, 0], q[:, 1]))[0])
+    s = int(np.lexsort((q[:, 0], q[:, 1]))[0]) if s0 is None else len(q) - 1 - int(s0)
     q = np.roll(q, -s, 0)
     if offset is not None:
         q = q + np.asarray(offset, np.float64).reshape(1, 2)
@@ -210,7 +212,20 @@ def find_contours_batch(masks, mode=3, method=1, offset=None, *, connectivity: i
 
     mode = retr_mode(mode)
     method = _chain_method(method)
-    integer = np.issubdtype(np.dtype(dtype), np.integer)
+    try:
+        dt = np.dtype(dtype)
+    except TypeError:
+        dt = None
+    if dt not in (np.dtype(np.float32), np.dtype(np.int32)):
+        raise ValueError(f"dtype must be np.float32 (sub-pixel) or np.int32 (pixel chain), got {dtype!r}")
+    integer = dt == np.dtype(np.int32)
+    if offset is not None:
+        try:
+            offset = np.asarray(offset, np.float64).reshape(2)
+        except (TypeError, ValueError):
+            raise ValueError(f"offset must be (dx, dy), got {offset!r}") from None
+    if not (isinstance(min_area, (int, float, np.integer, np.floating)) and min_area >= 0):
+        raise ValueError(f"min_area must be a number >= 0, got {min_area!r}")
     ts = [binarize(t, threshold) for t in image_list(masks, "mask")]
     out = []
     b0 = 0
@@ -238,6 +253,7 @@ def grid_contours(gc, mode: str = "tree", method: str = "none", epsilon: float =
     parent = gc.parent.cpu().numpy()
     start = gc.start.cpu().numpy()
     ranges = gc.loop_ranges().cpu().numpy()
+    s_node = gc.start_node.cpu().numpy() - first if gc.start_node is not None else None
     sub = pl.points.detach().cpu().double().numpy()
     pl_area = [_shoelace(sub[first[k]:first[k] + counts[k]]) for k in range(len(first))] if min_area > 0 else None
     res = []
@@ -256,7 +272,8 @@ def grid_contours(gc, mode: str = "tree", method: str = "none", epsilon: float =
         else:
             small = np.zeros(len(polys), bool)
         order, h = cv_layout(outer[k0:k1], par, start[k0:k1], mode, keep=~small)
-        cs = tuple(_as_cv(polys[k], method, epsilon, integer, offset) for k in order.tolist())
+        cs = tuple(_as_cv(polys[k], method, epsilon, integer, offset, None if s_node is None else s_node[k0 + k])
+                   for k in order.tolist())
         res.append((cs, h[None] if len(cs) else None))
     return res
 

@@ -186,6 +186,7 @@ class GridCurves:
     inner: Optional[torch.Tensor] = None
     tips: Optional[torch.Tensor] = None
     tip_item: Optional[torch.Tensor] = None
+    start_node: Optional[torch.Tensor] = None
 
     def loop_ranges(self) -> torch.Tensor:
         """``(B + 1,)`` the loops of item ``b`` are ``ranges[b]:ranges[b+1]``."""
@@ -740,6 +741,14 @@ def trace_masks(masks: Sequence[torch.Tensor], connectivity: int = 8, smooth: in
     key_fg = torch.full((K,), big, dtype=torch.long, device=dev).scatter_reduce_(0, loop, pix[fg_v], "amin")
     key_bg = torch.full((K,), big, dtype=torch.long, device=dev).scatter_reduce_(0, loop, pix[bg_v], "amin")
     start = torch.where(outer, key_fg, key_bg - 1)
+    # the crossing of that pixel's crack with its left (outer) or right (hole) neighbour: OpenCV's
+    # chain starts there (the start pixel may appear several times in a chain)
+    pf, pb = pix[fg_v], pix[bg_v]
+    at = (pf == start[loop]) & (pb == torch.where(outer[loop], pf - 1, pf + 1))
+    node_ids = torch.arange(pf.shape[0], device=dev)
+    start_node = torch.full((K,), big, dtype=torch.long, device=dev).scatter_reduce_(
+        0, loop, torch.where(at, node_ids, torch.full_like(node_ids, big)), "amin")
+    start_node = torch.where(start_node == big, first, start_node)
     # ---- the enclosing border: look left along the start row for the nearest horizontal crack
     horiz = (pix[fg_v] // W2) == (pix[bg_v] // W2)
     left = torch.minimum(pix[fg_v], pix[bg_v])[horiz]         # crack between pixel `left` and `left + 1`
@@ -767,7 +776,7 @@ def trace_masks(masks: Sequence[torch.Tensor], connectivity: int = 8, smooth: in
     # a loop whose chain ends without a different-kind loop on its left has no parent
     parent = torch.where((term_near >= 0) & (outer[term_near.clamp(min=0)] != outer), parent,
                          torch.full_like(parent, -1))
-    return GridCurves(out_mesh, values, pl, outer, parent, start, sizes, a, tip_pts, tip_item)
+    return GridCurves(out_mesh, values, pl, outer, parent, start, sizes, a, tip_pts, tip_item, start_node)
 
 
 def cv_layout(outer: np.ndarray, parent: np.ndarray, start: np.ndarray, mode: str = "tree",

@@ -54,6 +54,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import re
 import sys
 import time
@@ -176,9 +177,13 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=None, help="write <shape>.mask.png and <shape>.overlay.png (x4) here")
     ap.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     ap.add_argument("--shapes", action="store_true", help="analytic shapes instead of the cases (see above)")
+    ap.add_argument("--tips", action="store_true",
+                    help="with --shapes: per shape above 0.55 px, whether its worst corner can be recovered from the mask")
     ap.add_argument("--seeds", default="0", help="with --shapes: seeds of corner_shapes (comma-separated; '' for none)")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
+    if args.shapes and args.tips:
+        return tips_table([int(x) for x in args.seeds.split(",") if x.strip()])
     if args.shapes:
         return shapes_table([int(x) for x in args.seeds.split(",") if x.strip()])
 
@@ -284,6 +289,107 @@ def shapes_table(seeds: List[int], bound: float = 0.55) -> int:
         print(f"| {name} | {means} | {maxs} | {'yes' if ok_mean else 'NO'} | {'yes' if ok_max else 'NO'} |", flush=True)
     print(f"\nbar: torch_isc mean lowest on {n_mean}/{len(specs)}, max <= {bound} px on {n_max}/{len(specs)} "
           f"(torch_isc {t_ours:.2f} s in all, one mask at a time)")
+    return 0
+
+
+def _local_masks(polys, H: int, W: int, pixels: np.ndarray, supersample: int = 16) -> np.ndarray:
+    """Coverage >= 1/2 (as ``shapes.shape_mask_of``) of the even-odd fill of ``polys`` at the
+    pixels ``(P, 2)`` (row, col) only."""
+    from torch_isc.images.shapes import _poly_inside
+    s = supersample
+    off = (np.arange(s) + 0.5) / s
+    ys = (pixels[:, 0, None, None] + off[None, :, None]) + 0 * off[None, None, :]
+    xs = (pixels[:, 1, None, None] + off[None, None, :]) + 0 * off[None, :, None]
+    inside = np.zeros(xs.shape, bool)
+    for p in polys:
+        inside ^= _poly_inside(np.asarray(p, float), xs, ys)
+    return inside.reshape(len(pixels), -1).mean(1) >= 0.5
+
+
+def tip_slack(poly: np.ndarray, k: int, H: int, W: int, step: float = 0.05, most: float = 8.0,
+              supersample: int = 16) -> Dict[str, float]:
+    """How far the corner ``k`` of polygon ``poly`` can be cut (chamfered perpendicular to its
+    bisector) and extended (the vertex moved out along its bisector, its two sides pivoting on
+    their other ends) with the ``H x W`` mask unchanged. Two such shapes have the same mask, so
+    any curve drawn from it is at least half their distance at the tip from one of them: when
+    ``cut + ext`` exceeds twice a bound, no method meets the bound on both. Only the pixels near
+    the corner's two sides are re-rendered (nothing else can change)."""
+    n = len(poly)
+    v, a, b = poly[k], poly[k - 1], poly[(k + 1) % n]
+    u, w = (a - v) / np.linalg.norm(a - v), (b - v) / np.linalg.norm(b - v)
+    half = 0.5 * math.acos(float(np.clip(u @ w, -1, 1)))
+    bis = (u + w) / max(np.linalg.norm(u + w), 1e-12)             # into the corner's wedge
+    # the pixels whose centres lie within `most` + 2 px of the corner's sides
+    jj, ii = np.meshgrid(np.arange(W), np.arange(H))
+    c = np.c_[ii.ravel(), jj.ravel()]
+    q = c[:, ::-1] + 0.5
+
+    def seg_d(p0, p1):
+        d = p1 - p0
+        t = np.clip(((q - p0) @ d) / (d @ d), 0, 1)
+        return np.linalg.norm(q - (p0 + t[:, None] * d), axis=1)
+
+    near = np.minimum(seg_d(v, a), seg_d(v, b)) < most + 2
+    pix = c[near]
+    base = _local_masks([poly], H, W, pix, supersample)
+
+    def largest(make):
+        r = 0.0
+        while r + step <= most and (_local_masks([make(r + step)], H, W, pix, supersample) == base).all():
+            r += step
+        return r
+
+    def cut(r):
+        s = r / max(math.cos(half), 1e-9)
+        return np.concatenate([poly[:k], [v + s * u, v + s * w], poly[k + 1:]])
+
+    def ext(e):
+        p = poly.copy()
+        p[k] = v - e * bis
+        return p
+
+    rc, re = largest(cut), largest(ext)
+    pair = metrics.hausdorff([(cut(rc), True)], [(ext(re), True)], 0.02)
+    return dict(angle=math.degrees(2 * half), cut=rc, ext=re, pair=pair)
+
+
+def tips_table(seeds: List[int], bound: float = 0.55) -> int:
+    """The ``--tips`` table: for each shape whose maximum distance exceeds ``bound``, the corner
+    where torch_isc's curve is farthest from the truth, its error there, and :func:`tip_slack`."""
+    from torch_isc.images.shapes import SHAPES, corner_shapes, shape_mask_of
+    specs = {k: v for k, v in SHAPES.items() if len(v[3]) == 1}
+    for sd in seeds:
+        specs.update({f"{k} (seed {sd})": v for k, v in corner_shapes(sd).items()})
+    print(f"| shape | max px | worst corner (deg) | error there | cut | extend | pair distance | bound {bound} |")
+    print("|---|---:|---:|---:|---:|---:|---:|:---|")
+    n_miss = n_imp = 0
+    for name, spec in specs.items():
+        H, W, _, truth = spec
+        m = shape_mask_of(spec)[0]
+        ours = [p.numpy() for p in images.trace_masks([torch.from_numpy(m)]).polylines.polyline_list()]
+        d = metrics.distance_summary([(p, True) for p in ours], [(t, True) for t in truth], 0.05)
+        if d["hausdorff"] <= bound:
+            continue
+        n_miss += 1
+        poly = np.asarray(truth[0], float)
+        # the error near each corner: both directions, within 4 px of it
+        tq = metrics.resample_polyline(poly, True, 0.05)
+        oq = np.concatenate([metrics.resample_polyline(p, True, 0.05) for p in ours])
+        dt = metrics.point_distances(torch.from_numpy(tq), [(torch.from_numpy(p), True) for p in ours]).numpy()
+        do = metrics.point_distances(torch.from_numpy(oq), [(torch.from_numpy(poly), True)]).numpy()
+        err = []
+        for k in range(len(poly)):
+            e1 = dt[np.linalg.norm(tq - poly[k], axis=1) < 4]
+            e2 = do[np.linalg.norm(oq - poly[k], axis=1) < 4]
+            err.append(max(e1.max(initial=0), e2.max(initial=0)))
+        k = int(np.argmax(err))
+        s = tip_slack(poly, k, H, W)
+        imp = s["pair"] > 2 * bound
+        n_imp += imp
+        print(f"| {name} | {d['hausdorff']:.2f} | {s['angle']:.0f} | {err[k]:.2f} | {s['cut']:.2f} | {s['ext']:.2f} | "
+              f"{s['pair']:.2f} | {'out of reach from the mask' if imp else 'reachable in principle'} |", flush=True)
+    print(f"\n{n_miss} shapes above {bound} px; on {n_imp} of them two shapes with the same mask differ by more "
+          f"than {2 * bound:.2f} px at the worst corner")
     return 0
 
 

@@ -181,7 +181,11 @@ def test_tip_vertices_keep_the_curve_a_zero_set():
 
 
 WEDGES = [("wedge 30 deg rot 353 (seed 1)", 1), ("wedge 45 deg rot 359 (seed 0)", 0),
-          ("wedge 90 deg rot 49 (seed 0)", 0), ("star 5 r=30/15 rot 289 (seed 1)", 1)]
+          ("wedge 90 deg rot 49 (seed 0)", 0), ("star 5 r=30/15 rot 289 (seed 1)", 1),
+          # the tip lies in a triangle of the moved vertex outside its grid cell (0.67 px before
+          # _insert_tips looked there too)
+          ("star 6 r=100/60 rot 308 (seed 1)", 1), ("wedge 30 deg rot 233 (seed 0)", 0),
+          ("wedge 60 deg rot 349 (seed 1)", 1)]
 
 
 @pytest.mark.parametrize("name, seed", WEDGES)

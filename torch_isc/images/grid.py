@@ -262,8 +262,9 @@ def _corner_tips(a: torch.Tensor, d: torch.Tensor, t: torch.Tensor, prev: torch.
     the apex) and returns the crossings' edges ``(a, d)`` on the moved mesh, on which the zone
     is then projected.
 
-    Returns ``(t, corners)``: ``corners`` is ``(node (C,), tip (C, 2), convex (C,))`` of the
-    corners found (for :func:`_insert_tips`), None when there is none."""
+    Returns ``(t, corners)``: ``corners`` is ``(node (C,), tip (C, 2), convex (C,), moved (C,))``
+    of the corners found (for :func:`_insert_tips`; ``moved``: the band vertex ``stretch`` moved
+    out to the corner's tip, -1 for none), None when there is none."""
     if t.numel() == 0:
         return t, None
     p = a + t[:, None] * d
@@ -346,12 +347,13 @@ def _corner_tips(a: torch.Tensor, d: torch.Tensor, t: torch.Tensor, prev: torch.
     # the zone's nodes, (C, 2 zone + 1)
     nodes = torch.stack([back[j] for j in range(zone, 0, -1)] + [c] + [fwd[j] for j in range(1, zone + 1)], 1)
     C, Z = nodes.shape
+    moved = torch.full((C,), -1, dtype=torch.long, device=c.device)
     if stretch is not None:
         out_dir = v1 - v2
         out_dir = out_dir / out_dir.norm(dim=1, keepdim=True).clamp_min(1e-12)
         wide = torch.stack([back[j] for j in range(2 * zone, 0, -1)] + [c] + [fwd[j] for j in range(1, 2 * zone + 1)], 1)
         if bool(sure.any()):
-            a, d = stretch(wide[sure], tip[sure], den[sure] > 0, out_dir[sure])
+            a, d, moved[sure] = stretch(wide[sure], tip[sure], den[sure] > 0, out_dir[sure])
     T = tip[:, None].expand(C, Z, 2)
     convex = (den > 0)[:, None].expand(C, Z)
     n1 = torch.stack([v1[:, 1], -v1[:, 0]], 1)[:, None].expand(C, Z, 2)          # outward (background) normals
@@ -374,7 +376,7 @@ def _corner_tips(a: torch.Tensor, d: torch.Tensor, t: torch.Tensor, prev: torch.
     use = ok[:, None] & inside & (s <= 1) & near
     out = t.clone()
     out[nodes[use]] = tn[use].clamp(0.02, 0.98)
-    return out, (c[ok], tip[ok], den[ok] > 0)
+    return out, (c[ok], tip[ok], den[ok] > 0, moved[ok])
 
 
 def _stretch_band(verts: torch.Tensor, faces: torch.Tensor, pix: torch.Tensor, W2: int, fg: torch.Tensor, fg_v: torch.Tensor,
@@ -390,11 +392,13 @@ def _stretch_band(verts: torch.Tensor, faces: torch.Tensor, pix: torch.Tensor, W
     crossing belongs to the corner's zone moves (no other curve is touched), one corner per vertex,
     and only as far (``fractions`` of the way) as keeps each of its triangles at least
     ``min_area`` px^2 (positively oriented). Vertex ``(x, y)`` of padded pixel ``(i, j)`` is
-    ``(j - 0.5, i - 0.5)`` before the move; ``pix`` keeps naming the pixel after it."""
+    ``(j - 0.5, i - 0.5)`` before the move; ``pix`` keeps naming the pixel after it.
+
+    Returns ``(verts, moved (C,))``: the vertices, and the vertex each corner moved (-1: none)."""
     dev, dt = verts.device, verts.dtype
     C, Z = nodes.shape
     if C == 0:
-        return verts
+        return verts, torch.full((0,), -1, dtype=torch.long, device=dev)
     zero = torch.zeros((), dtype=dt, device=dev)
 
     def clip(x):
@@ -464,7 +468,7 @@ def _stretch_band(verts: torch.Tensor, faces: torch.Tensor, pix: torch.Tensor, W
     go &= firstc[inv] == r
     out = verts.clone()
     out[Q[go]] = moved[r, zi, si][go]
-    return out
+    return out, torch.where(go, Q, torch.full_like(Q, -1))
 
 
 def _cross2(u: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
@@ -494,7 +498,7 @@ def _insert_tips(mesh: MeshBatch, values: torch.Tensor, fg: torch.Tensor, pix: t
     tip vertices (items re-packed), its values, and the spliced loops (``fg_v``, ``bg_v`` and
     ``edge`` index the band mesh before the insertion).
     """
-    node, tip, convex = corners
+    node, tip, convex, moved = corners
     dev, dt = values.device, values.dtype
     B, H2, W2 = grid_shape
     V, N = values.shape[0], pts.shape[0]
@@ -520,6 +524,16 @@ def _insert_tips(mesh: MeshBatch, values: torch.Tensor, fg: torch.Tensor, pix: t
             hit = inside & (cell_key[ci] == key)
             fs += [2 * ci, 2 * ci + 1]
             oks += [hit, hit]
+    # a band vertex moved out to the tip (_stretch_band) takes its triangles beyond their cells:
+    # the (up to) 8 around it are candidates too
+    S = q.shape[1]
+    mp = pix[moved.clamp(min=0)]
+    for off in (-W2 - 1, -W2, -1, 0):
+        key = mp + off
+        ci = torch.searchsorted(cell_key, key).clamp(max=max(cell_key.shape[0] - 1, 0))
+        hit = ((moved >= 0) & (cell_key[ci] == key))[:, None].expand(-1, S)
+        fs += [(2 * ci)[:, None].expand(-1, S), (2 * ci + 1)[:, None].expand(-1, S)]
+        oks += [hit, hit]
     f = torch.stack(fs, -1)
     P = verts[faces[f]]                                              # (C, S, 8, 3, 2)
     qq = q[..., None, :]
@@ -703,12 +717,14 @@ def trace_masks(masks: Sequence[torch.Tensor], connectivity: int = 8, smooth: in
             vi = mesh.vert_item
             pad = (pi == 0) | (pj == 0) | (pi == sizes[vi, 0].to(dev) + 1) | (pj == sizes[vi, 1].to(dev) + 1)
             inner_c = ~(pad[fg_v[nodes]] | pad[bg_v[nodes]]).any(1)
+            moved = torch.full((nodes.shape[0],), -1, dtype=torch.long, device=dev)
             if not bool(inner_c.any()):
-                return mesh.verts[fg_v], mesh.verts[bg_v] - mesh.verts[fg_v]
+                return mesh.verts[fg_v], mesh.verts[bg_v] - mesh.verts[fg_v], moved
             nodes, tip, convex, out_dir, item = nodes[inner_c], tip[inner_c], convex[inner_c], out_dir[inner_c], item[inner_c]
-            v2 = _stretch_band(mesh.verts, mesh.faces, pix, W2, fg, fg_v, bg_v, frame[item], nodes, tip, convex, out_dir)
+            v2, moved[inner_c] = _stretch_band(mesh.verts, mesh.faces, pix, W2, fg, fg_v, bg_v, frame[item], nodes, tip,
+                                               convex, out_dir)
             mesh = mesh.with_verts(v2)
-            return v2[fg_v], v2[bg_v] - v2[fg_v]
+            return v2[fg_v], v2[bg_v] - v2[fg_v], moved
 
         t, tips = _corner_tips(a, d, t, prev, nxt, pl.counts[loop], stretch=stretch if stretch_tips else None)
     s = _realize(t, fg_v, bg_v, loop, k, pl.first, pl.counts, nxt, V)

@@ -242,7 +242,8 @@ def _corner_tips(a: torch.Tensor, d: torch.Tensor, t: torch.Tensor, prev: torch.
                  straight: float = 0.16, min_turn: float = 0.35, max_cos: float = 0.5,
                  min_loop: int = 64, min_side: float = 2.0, max_cos_smooth: float = 0.8,
                  max_radius: float = 5.0, straight_long: float = 0.25, stretch_side: int = 16, long_sides: Sequence[int] = (11, 16, 24),
-                 stretch: Optional[Callable] = None
+                 stretch: Optional[Callable] = None, long_span: int = 8, max_cos_long: float = 0.6,
+                 max_cos_long_smooth: float = 0.7
                  ) -> Tuple[torch.Tensor, Optional[Tuple[torch.Tensor, torch.Tensor, torch.Tensor]]]:
     """Crossing parameters ``t`` with the sharp corners restored: at each corner of the loops
     (a turn of the chords 3 nodes either side with cosine below ``max_cos`` on the crack
@@ -260,7 +261,11 @@ def _corner_tips(a: torch.Tensor, d: torch.Tensor, t: torch.Tensor, prev: torch.
     (at most ``max_radius``). ``stretch(nodes (C, Z), tip (C, 2), convex (C,), out (C, 2))``,
     when given, may move band vertices out toward the tips (``out``: the unit bisector beyond
     the apex) and returns the crossings' edges ``(a, d)`` on the moved mesh, on which the zone
-    is then projected.
+    is then projected, and the vertex moved per corner. Obtuse corners (a turn of 50-75
+    degrees, which 3-step chords of a staircase misjudge by up to 30) are candidates too where
+    the chords ``long_span`` nodes long turn with cosine below ``max_cos_long`` (below
+    ``max_cos_long_smooth`` on the smoothed crossings), on loops of ``16 long_span`` crossings or
+    more, with both sides straight over ``2 long_span`` nodes or more.
 
     Returns ``(t, corners)``: ``corners`` is ``(node (C,), tip (C, 2), convex (C,), moved (C,))``
     of the corners found (for :func:`_insert_tips`; ``moved``: the band vertex ``stretch`` moved
@@ -277,8 +282,6 @@ def _corner_tips(a: torch.Tensor, d: torch.Tensor, t: torch.Tensor, prev: torch.
     u, w = m - m[p3], m[n3] - m
     cosang = (u * w).sum(1) / (u.norm(dim=1) * w.norm(dim=1)).clamp_min(1e-12)
     c = ((cosang < max_cos) & (n_loop >= min_loop)).nonzero().squeeze(1)      # candidates (few)
-    if c.numel() == 0:
-        return t, None
     # ... where the smoothed curve turns too (a staircase step on a smooth curve does not), at
     # the sharpest node within `span` steps
     us, ws = p[c] - p[p3[c]], p[n3[c]] - p[c]
@@ -289,6 +292,36 @@ def _corner_tips(a: torch.Tensor, d: torch.Tensor, t: torch.Tensor, prev: torch.
         cb, cf = prev[cb], nxt[cf]
         keep &= (cc < cosang[cb]) & (cc <= cosang[cf])
     c = c[keep]
+    if long_span > 0:
+        # obtuse corners: the 3-step chords of a staircase misjudge a turn of 50-75 degrees by
+        # up to 30; chords `long_span` steps long measure it (a disc of a loop of 64 crossings or
+        # more turns less than 40 degrees over them)
+        pl_, nl_ = prev, nxt
+        for _ in range(long_span - 1):
+            pl_, nl_ = prev[pl_], nxt[nl_]
+        ul, wl = m - m[pl_], m[nl_] - m
+        cos_l = (ul * wl).sum(1) / (ul.norm(dim=1) * wl.norm(dim=1)).clamp_min(1e-12)
+        cl = ((cos_l < max_cos_long) & (n_loop >= min_loop)).nonzero().squeeze(1)
+        usl, wsl = p[cl] - p[pl_[cl]], p[nl_[cl]] - p[cl]
+        keep = (usl * wsl).sum(1) / (usl.norm(dim=1) * wsl.norm(dim=1)).clamp_min(1e-12) < max_cos_long_smooth
+        cb, cf, cc = cl, cl, cos_l[cl]
+        for _ in range(long_span // 2):
+            cb, cf = prev[cb], nxt[cf]
+            keep &= (cc < cos_l[cb]) & (cc <= cos_l[cf])
+        cl = cl[keep]
+        # not within long_span steps of a corner found on the short chords
+        near = torch.zeros(a.shape[0], dtype=torch.bool, device=a.device)
+        cb, cf = c, c
+        near[c] = True
+        for _ in range(long_span):
+            cb, cf = prev[cb], nxt[cf]
+            near[cb] = True
+            near[cf] = True
+        cl = cl[~near[cl]]
+        c, srt = torch.cat([c, cl]).sort()
+        from_long = (torch.arange(c.shape[0], device=c.device) >= c.shape[0] - cl.shape[0])[srt]
+    else:
+        from_long = torch.zeros(c.shape[0], dtype=torch.bool, device=c.device)
     if c.numel() == 0:
         return t, None
     steps = max([side[1], zone] + list(long_sides))
@@ -336,6 +369,10 @@ def _corner_tips(a: torch.Tensor, d: torch.Tensor, t: torch.Tensor, prev: torch.
     # a turn of at least asin(min_turn) (any acute apex too), lines not near parallel
     turn_ok = (cos_turn < math.sqrt(1.0 - min_turn ** 2)) & (den.abs() > 0.1)
     ok = turn_ok & (r1 < straight_long) & (r2 < straight_long) & ((tip - p[c]).norm(dim=1) < reach_tip + 0.5)
+    # a corner seen only on the long chords needs sides straight beyond them, on a loop of 16
+    # chords or more (on a small polygon the long chords reach past a side's ends, and a
+    # near-axis side of a few steps tilts its fit)
+    ok &= ~from_long | ((torch.minimum(L1, L2) >= 2 * long_span) & (n_loop[c] >= 16 * long_span))
     if not bool(ok.any()):
         return t, None
     back, fwd = [x[ok] for x in back], [x[ok] for x in fwd]

@@ -7,6 +7,7 @@ Run from the repository root:
     OMP_NUM_THREADS=1 .venv/bin/python scripts/evaluate_masks.py --no-oracle          # topology estimated
     OMP_NUM_THREADS=1 .venv/bin/python scripts/evaluate_masks.py --grid               # the grid path
     OMP_NUM_THREADS=1 .venv/bin/python scripts/evaluate_masks.py --shapes --seeds 0,1  # analytic shapes
+    OMP_NUM_THREADS=1 .venv/bin/python scripts/evaluate_masks.py --shapes --tips --seeds 0,1  # the misses' corners
 
 ``--shapes`` scores the grid path instead on antialiased analytic shapes
 (``torch_isc.images.shapes``: the fixed set ``SHAPES`` and, per seed, ``corner_shapes(seed)``:
@@ -16,6 +17,10 @@ from each method's curves to the truth (along the curves) and the maximum distan
 directions (curve to truth, truth to curve: a tip a method cuts off shows in the second), for
 torch_isc (``images.trace_masks``), ``skimage.measure.find_contours(0.5)`` and
 ``cv2.findContours``; whether torch_isc's mean is below both and its maximum at most 0.55 px.
+With ``--tips``, for each shape above 0.55 px instead: the corner where torch_isc is farthest
+from the truth, and how far that corner can be cut (chamfered across its bisector) and extended
+(moved out along it, its sides pivoting) with the mask unchanged (:func:`tip_slack`): where the
+two shapes are more than 1.1 px apart, no curve drawn from that mask is within 0.55 px of both.
 
 For each distinct truth of ``../shared/cases`` (the truth curves are the same at every noise
 level, so there are 6 shapes), the region bounded by the true curves (even-odd) is rendered as

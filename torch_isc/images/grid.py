@@ -296,12 +296,10 @@ def _corner_tips(a: torch.Tensor, d: torch.Tensor, t: torch.Tensor, prev: torch.
         # obtuse corners: the 3-step chords of a staircase misjudge a turn of 50-75 degrees by
         # up to 30; chords `long_span` steps long measure it (a disc of a loop of 64 crossings or
         # more turns less than 40 degrees over them)
-        pl_, nl_ = prev, nxt
-        for _ in range(long_span - 1):
-            pl_, nl_ = prev[pl_], nxt[nl_]
+        pl_, nl_ = _walk(prev, long_span), _walk(nxt, long_span)
         ul, wl = m - m[pl_], m[nl_] - m
         cos_l = (ul * wl).sum(1) / (ul.norm(dim=1) * wl.norm(dim=1)).clamp_min(1e-12)
-        cl = ((cos_l < max_cos_long) & (n_loop >= min_loop)).nonzero().squeeze(1)
+        cl = ((cos_l < max_cos_long) & (n_loop >= max(min_loop, 16 * long_span))).nonzero().squeeze(1)
         usl, wsl = p[cl] - p[pl_[cl]], p[nl_[cl]] - p[cl]
         keep = (usl * wsl).sum(1) / (usl.norm(dim=1) * wsl.norm(dim=1)).clamp_min(1e-12) < max_cos_long_smooth
         cb, cf, cc = cl, cl, cos_l[cl]
@@ -309,6 +307,13 @@ def _corner_tips(a: torch.Tensor, d: torch.Tensor, t: torch.Tensor, prev: torch.
             cb, cf = prev[cb], nxt[cf]
             keep &= (cc < cos_l[cb]) & (cc <= cos_l[cf])
         cl = cl[keep]
+        # each side straight over 2 long_span nodes (its two halves' chords within 26 degrees),
+        # as the fits below will need: cheap, and it drops the many bends of smooth curves
+        for step, far in ((prev, pl_), (nxt, nl_)):
+            q2, q1 = step[step[cl]], far[cl]
+            q0 = far[q1]
+            d1, d2 = m[q1] - m[q0], m[q2] - m[q1]
+            cl = cl[(d1 * d2).sum(1) > 0.9 * (d1.norm(dim=1) * d2.norm(dim=1))]
         # not within long_span steps of a corner found on the short chords
         near = torch.zeros(a.shape[0], dtype=torch.bool, device=a.device)
         cb, cf = c, c
@@ -372,7 +377,7 @@ def _corner_tips(a: torch.Tensor, d: torch.Tensor, t: torch.Tensor, prev: torch.
     # a corner seen only on the long chords needs sides straight beyond them, on a loop of 16
     # chords or more (on a small polygon the long chords reach past a side's ends, and a
     # near-axis side of a few steps tilts its fit)
-    ok &= ~from_long | ((torch.minimum(L1, L2) >= 2 * long_span) & (n_loop[c] >= 16 * long_span))
+    ok &= ~from_long | (torch.minimum(L1, L2) >= 2 * long_span)
     if not bool(ok.any()):
         return t, None
     back, fwd = [x[ok] for x in back], [x[ok] for x in fwd]
@@ -414,6 +419,18 @@ def _corner_tips(a: torch.Tensor, d: torch.Tensor, t: torch.Tensor, prev: torch.
     out = t.clone()
     out[nodes[use]] = tn[use].clamp(0.02, 0.98)
     return out, (c[ok], tip[ok], den[ok] > 0, moved[ok])
+
+
+def _walk(step: torch.Tensor, n: int) -> torch.Tensor:
+    """``step`` composed ``n >= 1`` times (by doubling: about 2 log2(n) gathers instead of n)."""
+    out, pw = None, step
+    while n:
+        if n & 1:
+            out = pw if out is None else pw[out]
+        n >>= 1
+        if n:
+            pw = pw[pw]
+    return out
 
 
 def _stretch_band(verts: torch.Tensor, faces: torch.Tensor, pix: torch.Tensor, W2: int, fg: torch.Tensor, fg_v: torch.Tensor,

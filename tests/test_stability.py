@@ -114,3 +114,33 @@ def test_round_trip_moves_the_curve_within_0_1_percent():
         cb = [(x["points"].double(), x["closed"]) for x in b.polylines]
         worst = max(worst, hausdorff(ca, cb) / bbox_diagonal(torch.as_tensor(p)))
     assert worst < 1e-3
+
+
+def test_first_divergence_names_an_amplifying_relaxation(monkeypatch):
+    """``evaluate_stability --diagnose``: the same input twice agrees everywhere ("none", no
+    vertex moved); a relaxation that moves the mesh by 1e4 times the input's change (a stand-in
+    for the real one's steep response) is named ``relax@1``, before any decision differs."""
+    import sys
+    from pathlib import Path
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+    import evaluate_stability as st
+    import torch_isc.pipeline.loop as loop
+
+    cfg = ReconstructConfig().replace(max_level=1)
+    p = noisy_circle(n=120, noise=0.0025, seed=0)
+    assert st.first_divergence(p, p.copy(), cfg).startswith("none noise+0.0e+00 move0x")
+    real, ref = loop.relax_stage, []
+
+    def steep(ws, rcfg):
+        ws = real(ws, rcfg)
+        if not ref:
+            ref.append(ws.points.clone())
+        d = float((ws.points - ref[0]).abs().max()) * 1e4       # 0 in the first run
+        inner = ~ws.mesh.is_boundary_vert[:, None]
+        return ws.replace(mesh=ws.mesh.with_verts(ws.mesh.verts + inner * torch.tensor([d, 0.0], dtype=ws.dtype)))
+    monkeypatch.setattr(loop, "relax_stage", steep)
+    q = p.copy()
+    q[5, 0] += 1e-6 * bbox_diagonal(torch.as_tensor(p))
+    out = st.first_divergence(p, q, cfg)
+    assert out.startswith("relax@1"), out
+    assert 5e3 < float(out.split("move")[1].rstrip("x")) < 2e4            # the move in units of the change

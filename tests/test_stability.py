@@ -116,6 +116,23 @@ def test_round_trip_moves_the_curve_within_0_1_percent():
     assert worst < 1e-3
 
 
+
+@pytest.mark.slow
+def test_round_trip_with_the_snap_moves_the_curve_within_0_1_percent():
+    """The issue's case with ``band_snap`` (crossings on the data's moving-least-squares curve)
+    on a band of ``band_levels`` 3: the curve follows the data, not the mesh, and the round trip
+    moves it by 1.9e-4, 6.7e-4 and 9.3e-4 of the diagonal (seeds 0-2; by default 4.1e-4, 5.2e-3
+    and 1.3e-3, the xfail above) although the refinement still differs for seeds 1 and 2."""
+    cfg = ReconstructConfig().replace(band_levels=3, band_snap=True)
+    worst = 0.0
+    for seed in range(3):
+        p = noisy_circle(noise=0.0025, seed=seed)
+        a, b = reconstruct(p, cfg), reconstruct(round_trip(p), cfg)
+        ca = [(x["points"].double(), x["closed"]) for x in a.polylines]
+        cb = [(x["points"].double(), x["closed"]) for x in b.polylines]
+        worst = max(worst, hausdorff(ca, cb) / bbox_diagonal(torch.as_tensor(p)))
+    assert worst < 1e-3
+
 def test_first_divergence_names_an_amplifying_relaxation(monkeypatch):
     """``evaluate_stability --diagnose``: the same input twice agrees everywhere ("none", no
     vertex moved); a relaxation that moves the mesh by 1e4 times the input's change (a stand-in

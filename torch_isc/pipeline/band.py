@@ -330,11 +330,18 @@ def snap_crossings(ws: "WorkingSet", values: torch.Tensor, cfg: BandConfig, bise
             wrong = torch.zeros(verts.shape[0], dtype=torch.bool, device=verts.device)
             wrong[i[gi >= 0]] = True
             wrong[j[gj <= 0]] = True
-            c = ImplicitCurve(m, vals, validate=False)
+            # which of two adjacent candidates flips first goes by their distance to the data's
+            # curve (the largest first: flip_simple takes the smallest key), not by the refit's
+            # magnitudes, which a tiny perturbation reorders
+            far = torch.zeros(verts.shape[0], dtype=torch.float64, device=verts.device)
+            far = far.scatter_reduce(0, torch.cat([i, j]), torch.cat([gi, gj]).abs(), "amax")
+            proxy = torch.where(vals < 0, -1.0, 1.0).to(torch.float64) / (1.0 + far)
+            c = ImplicitCurve(m, proxy, validate=False)
             c, f1 = c.flip_simple(candidates=wrong, grow=True, ratio=0.5)
             c, f2 = c.flip_simple(candidates=wrong, grow=False, ratio=0.5)
-            vals = c.values
-            if not bool((f1 | f2).any()):
+            flipped = f1 | f2
+            vals = torch.where(flipped, -0.5 * vals, vals)
+            if not bool(flipped.any()):
                 break
         i, j, cand, ref, w = edge_data(vals)
         gi = mls_distance(verts[i], cand, ws.points, w, ref)

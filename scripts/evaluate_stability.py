@@ -77,11 +77,14 @@ def jitter(p: np.ndarray, seed: int, rel: float = 1e-9) -> np.ndarray:
     return p + rel * diag * rng.uniform(-1, 1, p.shape)
 
 
-def first_divergence(p: np.ndarray, q: np.ndarray, cfg) -> str:
+def first_divergence(p: np.ndarray, q: np.ndarray, cfg, amplify: float = 10.0) -> str:
     """Run ``p`` and ``q`` one by one with the loop's test stage watched, and name the first
-    decision on which they part: ``signs@L`` (vertex signs of level L differ on the same mesh),
-    ``marks@L`` (same signs, different marked triangles), ``none`` (every decision agrees: the
-    curves differ by the fit alone). Also the relative change of the noise estimate."""
+    decision on which they part: ``relax@L`` (same decisions so far, but the mesh the test of
+    level L sees has vertices moved by more than ``amplify`` times the input's perturbation: the
+    relaxation before level L amplified it), ``signs@L`` (vertex signs of level L differ on the
+    same mesh), ``marks@L`` (same signs, different marked triangles), ``none`` (every decision
+    agrees: the curves differ by the fit alone). Also the relative change of the noise estimate
+    and the largest vertex move seen before the divergence, in units of the perturbation."""
     import torch_isc.pipeline.loop as loop
     real = loop.test_fit
     seen: List[List[Dict]] = []
@@ -89,7 +92,7 @@ def first_divergence(p: np.ndarray, q: np.ndarray, cfg) -> str:
     def watched(ws, values, ev, tcfg, mpf):
         v = real(ws, values, ev, tcfg, mpf)
         seen[-1].append({"signs": ws.signs.clone(), "marked": v.marked.clone(), "noise": float(ws.noise[0]),
-                         "nv": int(ws.mesh.verts.shape[0])})
+                         "nv": int(ws.mesh.verts.shape[0]), "verts": ws.mesh.verts.detach().double().clone()})
         return v
     loop.test_fit = watched
     try:
@@ -100,12 +103,22 @@ def first_divergence(p: np.ndarray, q: np.ndarray, cfg) -> str:
         loop.test_fit = real
     a, b = seen
     dn = (b[0]["noise"] - a[0]["noise"]) / max(a[0]["noise"], 1e-300)
+    # the perturbation in the loop's normalized units (diagonal 1)
+    pert = float(np.abs(p - q).max()) / max(float(np.hypot(*(p.max(0) - p.min(0)))), 1e-300)
+    worst = 0.0
     for lev, (u, v) in enumerate(zip(a, b)):
+        tail = f" noise{dn:+.1e} move{worst / max(pert, 1e-300):.0f}x"
+        if u["nv"] == v["nv"]:
+            move = float((u["verts"] - v["verts"]).norm(dim=1).max())
+            if move > amplify * pert:
+                return f"relax@{lev} noise{dn:+.1e} move{move / max(pert, 1e-300):.0f}x"
+            worst = max(worst, move)
+            tail = f" noise{dn:+.1e} move{worst / max(pert, 1e-300):.0f}x"
         if u["nv"] != v["nv"] or not torch.equal(u["signs"], v["signs"]):
-            return f"signs@{lev} noise{dn:+.1e}"
+            return f"signs@{lev}" + tail
         if not torch.equal(u["marked"], v["marked"]):
-            return f"marks@{lev} noise{dn:+.1e}"
-    return ("none" if len(a) == len(b) else "levels") + f" noise{dn:+.1e}"
+            return f"marks@{lev}" + tail
+    return ("none" if len(a) == len(b) else "levels") + f" noise{dn:+.1e} move{worst / max(pert, 1e-300):.0f}x"
 
 
 def curves(res) -> List:

@@ -3,8 +3,8 @@ by about as much. Perturbations: the 17-digit text round trip of ``x * 1e-6 + 1e
 (rounding of up to about 0.03% of the diagonal) and a repeat merged away (the same point set).
 
 The noise estimate (the tolerance's floor) is tested here: it has no cliff left. The curve itself
-is not yet within the issue's bound (``scripts/evaluate_stability.py`` measures it; the xfail
-below holds the case).
+is not yet within the issue's bound (``scripts/evaluate_stability.py --diagnose`` measures it and
+names the first decision that differs; the xfail below holds the case).
 """
 from __future__ import annotations
 
@@ -98,10 +98,12 @@ def test_noise_estimate_is_continuous_in_the_aspect_threshold():
     assert steps.max() < 0.15 * abs(sub - full)
 
 
-@pytest.mark.xfail(strict=True, reason="issue 18 point 4 is open: the test's refinement decisions (max "
-                   "statistic within a few % of the threshold), the annealed signs and the L-BFGS fit "
-                   "(stopped before converging) flip under the round trip; measured 0.2-3% of the "
-                   "diagonal (scripts/evaluate_stability.py)")
+@pytest.mark.xfail(strict=True, reason="issue 18 point 4 is open: the round trip moves points by 4.5% of the "
+                   "tolerance and a level-0 max statistic sits within that of its threshold (seed 1: "
+                   "1.025 -> 0.978 of the allowance), and the relaxation amplifies the perturbation 14-415x "
+                   "(its step-length ladder, quality-floor stop and energy test are discrete), which moves "
+                   "points across edges and flips later marks (seed 2); measured 0.04-0.5% of the diagonal "
+                   "(scripts/evaluate_stability.py --diagnose)")
 def test_round_trip_moves_the_curve_within_0_1_percent():
     """The issue's case: 400 noisy points on a circle, as they are and after the round trip."""
     worst = 0.0
@@ -112,3 +114,50 @@ def test_round_trip_moves_the_curve_within_0_1_percent():
         cb = [(x["points"].double(), x["closed"]) for x in b.polylines]
         worst = max(worst, hausdorff(ca, cb) / bbox_diagonal(torch.as_tensor(p)))
     assert worst < 1e-3
+
+
+
+@pytest.mark.slow
+def test_round_trip_with_the_snap_moves_the_curve_within_0_1_percent():
+    """The issue's case with ``band_snap`` (crossings on the data's moving-least-squares curve)
+    on a band of ``band_levels`` 3: the curve follows the data, not the mesh, and the round trip
+    moves it by 5.9e-4, 6.7e-4 and 8.7e-4 of the diagonal (seeds 0-2; by default 4.1e-4, 5.2e-3
+    and 1.3e-3, the xfail above) although the refinement still differs for seeds 1 and 2."""
+    cfg = ReconstructConfig().replace(band_levels=3, band_snap=True)
+    worst = 0.0
+    for seed in range(3):
+        p = noisy_circle(noise=0.0025, seed=seed)
+        a, b = reconstruct(p, cfg), reconstruct(round_trip(p), cfg)
+        ca = [(x["points"].double(), x["closed"]) for x in a.polylines]
+        cb = [(x["points"].double(), x["closed"]) for x in b.polylines]
+        worst = max(worst, hausdorff(ca, cb) / bbox_diagonal(torch.as_tensor(p)))
+    assert worst < 1e-3
+
+def test_first_divergence_names_an_amplifying_relaxation(monkeypatch):
+    """``evaluate_stability --diagnose``: the same input twice agrees everywhere ("none", no
+    vertex moved); a relaxation that moves the mesh by 1e4 times the input's change (a stand-in
+    for the real one's steep response) is named ``relax@1``, before any decision differs."""
+    import sys
+    from pathlib import Path
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+    import evaluate_stability as st
+    import torch_isc.pipeline.loop as loop
+
+    cfg = ReconstructConfig().replace(max_level=1)
+    p = noisy_circle(n=120, noise=0.0025, seed=0)
+    assert st.first_divergence(p, p.copy(), cfg).startswith("none noise+0.0e+00 move0x")
+    real, ref = loop.relax_stage, []
+
+    def steep(ws, rcfg):
+        ws = real(ws, rcfg)
+        if not ref:
+            ref.append(ws.points.clone())
+        d = float((ws.points - ref[0]).abs().max()) * 1e4       # 0 in the first run
+        inner = ~ws.mesh.is_boundary_vert[:, None]
+        return ws.replace(mesh=ws.mesh.with_verts(ws.mesh.verts + inner * torch.tensor([d, 0.0], dtype=ws.dtype)))
+    monkeypatch.setattr(loop, "relax_stage", steep)
+    q = p.copy()
+    q[5, 0] += 1e-6 * bbox_diagonal(torch.as_tensor(p))
+    out = st.first_divergence(p, q, cfg)
+    assert out.startswith("relax@1"), out
+    assert 5e3 < float(out.split("move")[1].rstrip("x")) < 2e4            # the move in units of the change

@@ -52,16 +52,17 @@ import torch
 
 import torch_isc
 from torch_isc import images
-from torch_isc._helpers import one_line
+from torch_isc._helpers import is_regular_file, one_line, printable
 from torch_isc.io import ExportContext, PointFileError, chosen_formats, export, formats_needing, loader_for
 from torch_isc.io.registry import LOADERS
 from torch_isc.io.files import atomic_write
 from torch_isc.images.read import DEFAULT_MAX_PIXELS, read_image
 from torch_isc.pipeline.config import ReconstructConfig, config_hash
 from torch_isc.pipeline.loop import PointSetError
+from torch_isc.core.points import item_label
 
 __all__ = ["RunError", "ImageOptions", "Record", "RunReport", "DEFAULT_FORMATS", "DEFAULT_IMAGE_FORMATS",
-           "expand_inputs", "unique_stems", "run_inputs", "shown", "file_sha256", "manifest_path", "manifest_matches",
+           "expand_inputs", "unique_stems", "overwritten_inputs", "run_inputs", "shown", "file_sha256", "manifest_path", "manifest_matches",
            "MANIFEST_FORMAT"]
 
 #: Version of the ``<stem>.manifest.json`` layout.
@@ -154,10 +155,7 @@ def shown(name: object) -> str:
     >>> shown("a\\nb.xy")
     'a\\\\nb.xy'
     """
-    t = str(name)
-    if t.isprintable():
-        return t
-    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in t)
+    return printable(name)
 
 
 def _message(source: str, e: BaseException) -> str:
@@ -248,6 +246,35 @@ def unique_stems(sources: Sequence[str], note: Optional[Callable[[str], None]] =
     return names
 
 
+def overwritten_inputs(sources: Sequence[str], stems: Sequence[str], out_dir: PathLike,
+                       formats_of: Callable[[str], Sequence[str]]) -> Dict[int, str]:
+    """``{i: one-line error}`` for each input whose output set would overwrite an input file of
+    the run (itself: ``m.png`` in the output folder with ``--formats png``; or another), by the
+    real paths (links followed). Such an input is not reconstructed: writing would destroy an
+    input, and a rerun would read the output as its input."""
+    keys = {}
+    for src in sources:
+        try:
+            keys.setdefault(os.path.realpath(src), src)
+        except (OSError, ValueError):
+            pass
+    if not keys:
+        return {}
+    out_real = os.path.realpath(out_dir)
+    if not any(os.path.dirname(k) == out_real for k in keys):      # no input in the output folder
+        return {}
+    bad: Dict[int, str] = {}
+    for i, (src, stem) in enumerate(zip(sources, stems)):
+        for name in [f"{stem}.{f}" for f in formats_of(src)] + [manifest_path("", stem).name]:
+            victim = keys.get(os.path.join(out_real, name))
+            if victim is not None:
+                whose = "the input itself" if victim == src else f"the input {shown(victim)}"
+                bad[i] = (f"{shown(src)}: its output {shown(Path(out_dir) / name)} would overwrite {whose}; "
+                          f"choose another output folder or format")
+                break
+    return bad
+
+
 def file_sha256(path: PathLike) -> str:
     """sha256 (hex) of a file's bytes, read in 1 MiB blocks."""
     h = hashlib.sha256()
@@ -267,14 +294,18 @@ def manifest_matches(out_dir: PathLike, stem: str, input_sha256: str, config_sha
     """Whether ``<stem>.manifest.json`` says the outputs of ``stem`` are complete and were made
     from this input and config in these formats, and every file it lists still has its hash."""
     try:
-        m = json.loads(manifest_path(out_dir, stem).read_text(encoding="utf-8"))
+        mp = manifest_path(out_dir, stem)
+        if not is_regular_file(mp):             # a FIFO under that name would block the run
+            return False
+        m = json.loads(mp.read_text(encoding="utf-8"))
         if (m.get("manifest_format") != MANIFEST_FORMAT or m["input"]["sha256"] != input_sha256
                 or m["config_sha256"] != config_sha256 or list(m["formats"]) != list(formats)):
             return False
         files = m["files"]
         if [f["name"] for f in files] != [f"{stem}.{fmt}" for fmt in formats]:
             return False
-        return all(file_sha256(Path(out_dir) / f["name"]) == f["sha256"] for f in files)
+        return all(is_regular_file(Path(out_dir) / f["name"]) and file_sha256(Path(out_dir) / f["name"]) == f["sha256"]
+                   for f in files)
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         return False
 
@@ -446,8 +477,9 @@ class _Run:
                 res = self.solve([job], kind)[0]
             except bad_input as e:
                 msg = str(e).strip()
-                if msg.startswith(f"{job.stem}: "):     # a PointSetError names the item by its stem
-                    msg = msg[len(job.stem) + 2:]
+                label = item_label(job.stem)
+                if msg.startswith(f"{label}: "):        # a PointSetError names the item by its stem
+                    msg = msg[len(label) + 2:]
                 self.finish(job, "failed", f"{shown(job.source)}: {one_line(shown(msg), type(e).__name__)}")
             except MemoryError:
                 self.finish(job, "failed", f"{shown(job.source)}: out of memory while reconstructing it")
@@ -490,6 +522,8 @@ class _Run:
     def complete(self, job: _Job) -> bool:
         """Whether the job's outputs are a complete set made from this input and config."""
         if not manifest_path(self.out_dir, job.stem).exists():
+            return False
+        if not is_regular_file(job.source):     # hashing a FIFO or a device would block or never end
             return False
         try:
             sha = file_sha256(job.source)
@@ -608,12 +642,15 @@ def run_inputs(inputs: Iterable[PathLike], config: ReconstructConfig, out_dir: P
     elif len(stems) != len(sources):
         raise RunError(f"{len(stems)} stem(s) given for {len(sources)} input(s)")
     jobs = [_Job(Record(src, stem), _is_image(src)) for src, stem in zip(sources, stems)]
+    clobber = overwritten_inputs(sources, stems, out, lambda src: run.image_formats if _is_image(src) else run.formats)
 
     # ---- folders that cannot be listed; finished inputs (a manifest that matches) are skipped
     todo: List[_Job] = []
-    for job in jobs:
+    for i, job in enumerate(jobs):
         if job.source in listing:
             run.finish(job, "failed", listing[job.source])
+        elif i in clobber:
+            run.finish(job, "failed", clobber[i])
         elif not overwrite and run.complete(job):
             run.finish(job, "skipped")
         else:

@@ -1,0 +1,252 @@
+"""Failures found by fuzzing the inputs (``/tmp`` harnesses: hostile files, configs, API
+arguments, reruns), one fast regression test each. Every case gives a correct answer or one
+line naming the input and the problem; the other inputs of the run are still written; exit
+status 0 ok, 1 some inputs failed, 2 usage or config.
+
+====  ==================================================  =========================================
+item  case (what happened before)                          tests
+====  ==================================================  =========================================
+1     a FIFO as input / config / manifest (hung forever)   test_fifo_*
+1     /dev/zero as input or manifest (filled the memory)   test_character_device_*
+2     an output would overwrite an input (m.png in --out   test_output_never_overwrites_an_input*
+      with --formats png: the mask destroyed, a rerun
+      then read the drawing as its input)
+3     binary / fake Parquet / int-column manifests         test_bad_manifests_are_one_line
+      (tracebacks)
+3     --table a folder or an input (traceback after all    test_bad_table_is_a_usage_error
+      the work / an input overwritten)
+4     point sets and names as generators (TypeError,       test_api_sequences
+      IndexError), names as a str (silently split)
+4     a newline in a name (two-line message)               test_api_name_with_newline
+4     an oracle not callable, raising, answering None      test_api_bad_oracles
+      (TypeError, ZeroDivisionError, RuntimeError)
+====  ==================================================  =========================================
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+import threading
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from torch_isc import PointSetError, cli, reconstruct, reconstruct_batch
+from torch_isc.dataset import read_manifest
+from torch_isc.io import PointFileError, read_points
+from torch_isc.pipeline.config import ConfigError, read_config_mapping
+from torch_isc.pipeline.signs import SignOracleError
+from torch_isc.runner import RunError
+
+FAST = ["--set", "max_level=3", "--formats", "json"]
+fifo_only = pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs os.mkfifo")
+
+
+def _circle(n=60, r=1.0):
+    t = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    return np.c_[r * np.cos(t), r * np.sin(t)]
+
+
+def _run(capsys, *argv):
+    code = cli.main(["reconstruct"] + [str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def _errors(err):
+    return [ln for ln in err.splitlines() if ln.startswith("torch-isc: error:")]
+
+
+def _sha(p):
+    return hashlib.sha256(Path(p).read_bytes()).hexdigest()
+
+
+def _bounded(fn, seconds=60):
+    """Run ``fn`` in a thread; fail (instead of hanging the suite) when it does not return."""
+    box = {}
+
+    def target():
+        try:
+            box["r"] = fn()
+        except BaseException as e:      # re-raised in the caller
+            box["e"] = e
+
+    th = threading.Thread(target=target, daemon=True)
+    th.start()
+    th.join(seconds)
+    assert not th.is_alive(), "blocked"
+    if "e" in box:
+        raise box["e"]
+    return box["r"]
+
+
+# ============================================================================ 1. special files
+@fifo_only
+def test_fifo_input_config_manifest(tmp_path, capsys):
+    np.savetxt(tmp_path / "ring.xy", _circle())
+    fifo = tmp_path / "pipe.xy"
+    os.mkfifo(fifo)
+    with pytest.raises(PointFileError, match=r"pipe.xy: not a regular file \(a FIFO\)"):
+        _bounded(lambda: read_points(fifo))
+    code, out, err = _bounded(lambda: _run(capsys, tmp_path / "ring.xy", fifo, "--out", tmp_path / "o", *FAST))
+    assert code == 1 and _errors(err) == [f"torch-isc: error: {fifo}: not a regular file (a FIFO), not a point file"]
+    assert (tmp_path / "o" / "ring.json").exists()
+    # a FIFO named like an input's manifest (the skip check hashes) does not block either
+    code, out, err = _bounded(lambda: _run(capsys, tmp_path / "ring.xy", "--out", tmp_path / "o", *FAST))
+    assert code == 0 and "skipped" in out
+    with pytest.raises(ConfigError, match="not a regular file"):
+        _bounded(lambda: read_config_mapping(fifo))
+    with pytest.raises(RunError, match="not a regular file"):
+        _bounded(lambda: read_manifest(fifo))
+    code, out, err = _bounded(lambda: _run(capsys, "--manifest", fifo, "--out", tmp_path / "o", *FAST))
+    assert code == 2 and len(_errors(err)) == 1 and "Traceback" not in err
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/zero"), reason="needs /dev/zero")
+def test_character_device_input_and_manifest(tmp_path, capsys):
+    np.savetxt(tmp_path / "ring.xy", _circle())
+    code, out, err = _bounded(lambda: _run(capsys, "/dev/zero", tmp_path / "ring.xy", "--out", tmp_path / "o", *FAST))
+    assert code == 1 and _errors(err) == ["torch-isc: error: /dev/zero: not a regular file (a character device), "
+                                          "not a point file"]
+    assert (tmp_path / "o" / "ring.json").exists()
+    code, out, err = _bounded(lambda: _run(capsys, "--manifest", "/dev/zero", "--out", tmp_path / "o", *FAST))
+    assert code == 2 and _errors(err) == ["torch-isc: error: /dev/zero: not a regular file (a character device), "
+                                          "not a manifest"]
+
+
+def test_file_size_limit(tmp_path):
+    from torch_isc._helpers import read_file_bytes
+    p = tmp_path / "a.xy"
+    p.write_bytes(b"1 2\n" * 10)
+    assert read_file_bytes(p, PointFileError, "a point file", limit=40) == b"1 2\n" * 10
+    with pytest.raises(PointFileError, match=r"a.xy: file larger than 39 bytes \(40 bytes\)"):
+        read_file_bytes(p, PointFileError, "a point file", limit=39)
+
+
+# ============================================================================ 2. outputs never overwrite inputs
+def _mask_png(path):
+    m = np.zeros((40, 40), np.uint8)
+    cv2.circle(m, (20, 20), 10, 255, -1)
+    cv2.imwrite(str(path), m)
+    return path
+
+
+@pytest.mark.parametrize("table", [False, True])
+def test_output_never_overwrites_an_input(tmp_path, capsys, table):
+    out = tmp_path / "o"
+    out.mkdir()
+    m = _mask_png(out / "m.png")
+    before = _sha(m)
+    np.savetxt(tmp_path / "ring.xy", _circle())
+    extra = ["--table", tmp_path / "t.parquet", "--batch-size", "1"] if table else []
+    code, stdout, err = _run(capsys, m, tmp_path / "ring.xy", "--out", out, "--formats", "json,png",
+                             "--set", "max_level=3", *extra)
+    assert code == 1 and _sha(m) == before            # the mask is intact
+    assert _errors(err) == [f"torch-isc: error: {m}: its output {out / 'm.png'} would overwrite the input itself; "
+                            f"choose another output folder or format"]
+    assert (out / "ring.png").exists() and not (out / "m.json").exists()
+    # a rerun gives the same answer (before, it read the drawing as its input)
+    code2, _, err2 = _run(capsys, m, tmp_path / "ring.xy", "--out", out, "--formats", "json,png", "--set",
+                          "max_level=3", *extra)
+    assert code2 == 1 and _errors(err2) == _errors(err) and _sha(m) == before
+
+
+def test_output_never_overwrites_another_input(tmp_path, capsys):
+    out = tmp_path / "o"
+    out.mkdir()
+    np.savetxt(out / "a.xy", _circle())
+    np.savetxt(out / "a.xy.json", _circle(r=2))       # stem "a.xy": its json output is this very file
+    before = _sha(out / "a.xy.json")
+    code, _, err = _run(capsys, out / "a.xy", out / "a.xy.json", "--out", out, *FAST)
+    assert code == 1 and _sha(out / "a.xy.json") == before
+    assert len(_errors(err)) == 1 and "would overwrite the input itself" in err
+    assert (out / "a.json").exists()
+
+
+# ============================================================================ 3. manifests and table
+def test_bad_manifests_are_one_line(tmp_path, capsys):
+    pa = pytest.importorskip("pyarrow")
+    import pyarrow.parquet as pq
+
+    np.savetxt(tmp_path / "ring.xy", _circle())
+    np.save(tmp_path / "bin.npy", _circle())
+    (tmp_path / "bin.txt").write_bytes((tmp_path / "bin.npy").read_bytes())
+    (tmp_path / "bin.csv").write_bytes((tmp_path / "bin.npy").read_bytes())
+    (tmp_path / "fake.parquet").write_bytes((tmp_path / "bin.npy").read_bytes())
+    pq.write_table(pa.table({"path": [1, 2]}), tmp_path / "ints.parquet")
+    cases = {"bin.txt": "not a text manifest (byte 0 is not UTF-8)", "bin.csv": "not a CSV manifest (byte 0 is not UTF-8)",
+             "fake.parquet": "not a readable Parquet manifest", "ints.parquet": "manifest column 'path' holds int64, not paths"}
+    for name, msg in cases.items():
+        with pytest.raises(RunError, match=msg.replace("(", r"\(").replace(")", r"\)")):
+            read_manifest(tmp_path / name)
+        code, out, err = _run(capsys, "--manifest", tmp_path / name, "--out", tmp_path / "o", *FAST)
+        assert code == 2 and _errors(err) == [f"torch-isc: error: {tmp_path / name}: " + read_err(tmp_path / name)]
+    # a .parquet given as an input is a manifest too
+    code, out, err = _run(capsys, tmp_path / "fake.parquet", "--out", tmp_path / "o", *FAST)
+    assert code == 2 and len(_errors(err)) == 1 and "Traceback" not in err
+    # good ones still work: a dictionary-encoded column, a null entry skipped
+    pq.write_table(pa.table({"path": pa.array(["ring.xy", None]).dictionary_encode()}), tmp_path / "ok.parquet")
+    assert read_manifest(tmp_path / "ok.parquet") == [str(tmp_path / "ring.xy")]
+
+
+def read_err(p):
+    try:
+        read_manifest(p)
+    except RunError as e:
+        return str(e).split(": ", 1)[1]
+    raise AssertionError("no error")
+
+
+def test_bad_table_is_a_usage_error(tmp_path, capsys):
+    pytest.importorskip("pyarrow")
+    np.savetxt(tmp_path / "ring.xy", _circle())
+    (tmp_path / "tdir").mkdir()
+    code, out, err = _run(capsys, tmp_path / "ring.xy", "--out", tmp_path / "o", "--table", tmp_path / "tdir", *FAST)
+    assert code == 2 and _errors(err) == [f"torch-isc: error: table {tmp_path / 'tdir'}: is a folder, not a file"]
+    before = _sha(tmp_path / "ring.xy")
+    code, out, err = _run(capsys, tmp_path / "ring.xy", "--out", tmp_path / "o", "--table", tmp_path / "ring.xy", *FAST)
+    assert code == 2 and "is an input of the run" in err and _sha(tmp_path / "ring.xy") == before
+    assert not (tmp_path / "o" / "ring.json").exists()          # checked before any work
+
+
+# ============================================================================ 4. API arguments
+def test_api_sequences():
+    a, b = torch.tensor(_circle(), dtype=torch.float32), torch.tensor(_circle(r=2), dtype=torch.float32)
+    cfg = {"max_level": 3}
+    ref = reconstruct_batch([a, b], cfg, names=["a", "b"])
+    got = reconstruct_batch((p for p in (a, b)), cfg, names=(n for n in "ab"))
+    assert [r.name for r in got] == ["a", "b"]
+    for r, g in zip(ref, got):
+        assert torch.equal(r.curve.values, g.curve.values)
+    with pytest.raises(PointSetError, match="names: expected a sequence, got str"):
+        reconstruct_batch([a, b], cfg, names="ab")
+    with pytest.raises(PointSetError, match="point_sets: expected a sequence, got int"):
+        reconstruct_batch(3, cfg)
+
+
+def test_api_name_with_newline():
+    with pytest.raises(PointSetError) as ei:
+        reconstruct_batch([torch.zeros(1, 2)], names=["b\nc"])
+    assert str(ei.value) == "b\\nc: needs at least 3 distinct points, got 1"
+    with pytest.raises(PointSetError) as ei:
+        reconstruct(torch.zeros(1, 2), name="x" * 1000)
+    assert len(str(ei.value)) < 300
+
+
+def test_api_bad_oracles():
+    pts = torch.tensor(_circle(), dtype=torch.float32)
+    with pytest.raises(PointSetError, match=r"sign_oracles\[0\]: expected a callable or None, got int"):
+        reconstruct_batch([pts], sign_oracles=[3])
+    with pytest.raises(SignOracleError, match="item 0: sign oracle raised ZeroDivisionError: division by zero") as ei:
+        reconstruct(pts, sign_oracle=lambda p: 1 / 0)
+    assert isinstance(ei.value.__cause__, ZeroDivisionError)           # the user's error is kept
+    with pytest.raises(SignOracleError, match="item 0: sign oracle returned NoneType, not an array of booleans"):
+        reconstruct(pts, sign_oracle=lambda p: None)
+    with pytest.raises(SignOracleError, match="sign oracle raised KeyError"):
+        reconstruct_batch([pts], sign_oracles=lambda p, item: {}[0])
+    # a numpy answer is fine: the inside of the unit circle
+    res = reconstruct(pts, {"max_level": 3}, sign_oracle=lambda p: (p.norm(dim=1) < 1).numpy())
+    assert res.num_closed == 1

@@ -250,3 +250,56 @@ def test_api_bad_oracles():
     # a numpy answer is fine: the inside of the unit circle
     res = reconstruct(pts, {"max_level": 3}, sign_oracle=lambda p: (p.norm(dim=1) < 1).numpy())
     assert res.num_closed == 1
+
+
+# ============================================================================ 5. options at the boundary
+def test_image_options_checked_at_the_boundary(tmp_path, capsys):
+    from torch_isc.runner import ImageOptions
+
+    for kw, key in (({"spacing": float("inf")}, "spacing"), ({"spacing": float("nan")}, "spacing"),
+                    ({"mode": "x"}, "mode"), ({"threshold": 1.5}, "threshold"), ({"canny": (0.2, 0.1)}, "canny"),
+                    ({"canny": (0.1, float("inf"))}, "canny"), ({"sigma": 0}, "sigma"), ({"zoom": 0}, "zoom"),
+                    ({"connectivity": 6}, "connectivity"), ({"max_pixels": -1}, "max_pixels"),
+                    ({"region": (0, 0, 1)}, "region"), ({"use_oracle": "no"}, "use_oracle")):
+        with pytest.raises(RunError, match=f"image options: {key} "):
+            ImageOptions(**kw)
+    ImageOptions(spacing=0, threshold=0.0, canny=(0.1, 0.9), max_pixels=None, connectivity=4, zoom=64)
+    m = _mask_png(tmp_path / "m.png")
+    for argv, msg in ((["--mode", "edges", "--spacing", "inf"], "--spacing must be in [0, 1e6] pixels, got inf"),
+                      (["--canny", "0.1,inf"], "--canny: expected 0 < LOW < HIGH, got '0.1,inf'"),
+                      (["--device", "meta"], "--device meta: a meta device holds no values"),
+                      (["--cpus-per-actor", "nan"], "--cpus-per-actor must be > 0, got nan")):
+        code, out, err = _run(capsys, m, "--out", tmp_path / "o", *argv)
+        assert code == 2 and _errors(err) == [f"torch-isc: error: {msg}"], err
+
+
+def test_internal_error_is_one_line(tmp_path, capsys, monkeypatch):
+    import torch_isc.runner
+
+    np.savetxt(tmp_path / "ring.xy", _circle())
+
+    def boom(*a, **k):
+        raise KeyError("surprise")
+
+    monkeypatch.setattr(cli, "run_inputs", boom)
+    code, out, err = _run(capsys, tmp_path / "ring.xy", "--out", tmp_path / "o")
+    assert code == 1 and err.splitlines() == ["torch-isc: error: internal error (KeyError: 'surprise'); "
+                                              "--debug shows the traceback"]
+    with pytest.raises(KeyError):
+        _run(capsys, tmp_path / "ring.xy", "--out", tmp_path / "o", "--debug")
+
+
+# ============================================================================ 6. far ends of float64
+@pytest.mark.parametrize("k", [1.0, 1e300, -1e300, 1e-300, 1e-320])
+def test_nesting_at_extreme_magnitudes(k):
+    import warnings
+    from torch_isc.core.nesting import polygons_with_holes, signed_area
+
+    t = np.linspace(0, 2 * np.pi, 40, endpoint=False)
+    c = np.c_[np.cos(t), np.sin(t)]
+    outer, hole = c * k, (0.5 * c)[::-1] * k
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")            # no overflow warning on stderr
+        assert signed_area(outer) > 0 and signed_area(hole) < 0       # the sign survives overflow/underflow
+        got = polygons_with_holes([outer, hole])
+    assert got == [(0, [1])]                       # one exterior (0) with its hole (1)

@@ -125,11 +125,11 @@ def read_manifest(path: PathLike, column: str = "path") -> List[str]:
             try:
                 pf = pa.parquet.ParquetFile(pa.BufferReader(raw))
                 names = pf.schema_arrow.names
-                if column not in names:
-                    raise RunError(f"{p}: manifest has no column '{column}' (columns: {_names(names)})")
-                col = pf.read(columns=[column]).column(column)
+                col = pf.read(columns=[column]).column(column) if column in names else None
             except (pa.ArrowException, OSError, ValueError) as e:
                 raise RunError(f"{p}: not a readable Parquet manifest ({one_line(e, type(e).__name__)})") from None
+            if col is None:
+                raise RunError(f"{p}: manifest has no column '{shown(column)}' (columns: {_names(names)})")
             t = col.type.value_type if pa.types.is_dictionary(col.type) else col.type
             if not (pa.types.is_string(t) or pa.types.is_large_string(t) or pa.types.is_null(t)):
                 raise RunError(f"{p}: manifest column '{column}' holds {col.type}, not paths (strings)")
@@ -137,7 +137,7 @@ def read_manifest(path: PathLike, column: str = "path") -> List[str]:
         elif suffix == ".csv":
             reader = csv.DictReader(io.StringIO(decode_text(raw, str(p), "CSV manifest", RunError), newline=""))
             if column not in (reader.fieldnames or []):
-                raise RunError(f"{p}: manifest has no column '{column}' (columns: {_names(reader.fieldnames or [])})")
+                raise RunError(f"{p}: manifest has no column '{shown(column)}' (columns: {_names(reader.fieldnames or [])})")
             items = [row[column].strip() for row in reader if isinstance(row.get(column), str) and row[column].strip()]
         else:
             items = [ln.strip() for ln in decode_text(raw, str(p), "text manifest", RunError).splitlines()]

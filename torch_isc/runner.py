@@ -109,6 +109,40 @@ class ImageOptions:
     zoom: int = 1
     region: Optional[Tuple[int, int, int, int]] = None
 
+    def __post_init__(self):
+        # checked at the boundary, with the option named (a spacing of inf crashed every image)
+        def real(v):
+            return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+        def integer(v):
+            return isinstance(v, int) and not isinstance(v, bool)
+
+        bad = None
+        if self.mode not in ("mask", "edges"):
+            bad = f"mode must be 'mask' or 'edges', got {self.mode!r}"
+        elif self.threshold is not None and not (real(self.threshold) and 0 <= self.threshold < 1):
+            bad = f"threshold must be None or in [0, 1), got {self.threshold!r}"
+        elif not (real(self.spacing) and 0 <= self.spacing <= 1e6):
+            bad = f"spacing must be a number of pixels in [0, 1e6], got {self.spacing!r}"
+        elif not isinstance(self.use_oracle, bool):
+            bad = f"use_oracle must be True or False, got {self.use_oracle!r}"
+        elif not (isinstance(self.canny, (tuple, list)) and len(self.canny) == 2 and all(map(real, self.canny))
+                  and 0 < self.canny[0] < self.canny[1]):
+            bad = f"canny must be (low, high) with 0 < low < high, got {self.canny!r}"
+        elif not (real(self.sigma) and 0 < self.sigma <= 1e3):
+            bad = f"sigma must be in (0, 1000], got {self.sigma!r}"
+        elif self.max_pixels is not None and not (integer(self.max_pixels) and self.max_pixels >= 0):
+            bad = f"max_pixels must be None or an integer >= 0, got {self.max_pixels!r}"
+        elif self.connectivity not in (4, 8) or isinstance(self.connectivity, bool):
+            bad = f"connectivity must be 4 or 8, got {self.connectivity!r}"
+        elif not (integer(self.zoom) and 1 <= self.zoom <= 64):
+            bad = f"zoom must be an integer in [1, 64], got {self.zoom!r}"
+        elif self.region is not None and not (isinstance(self.region, (tuple, list)) and len(self.region) == 4
+                                              and all(map(integer, self.region))):
+            bad = f"region must be None or (x0, y0, x1, y1) integers, got {self.region!r}"
+        if bad is not None:
+            raise RunError(f"image options: {bad[:300]}")
+
 
 @dataclass
 class Record:

@@ -303,3 +303,63 @@ def test_nesting_at_extreme_magnitudes(k):
         assert signed_area(outer) > 0 and signed_area(hole) < 0       # the sign survives overflow/underflow
         got = polygons_with_holes([outer, hole])
     assert got == [(0, [1])]                       # one exterior (0) with its hole (1)
+
+
+# ============================================================================ 7. curve and contour files
+def _zip(members):
+    import io
+    import zipfile
+
+    b = io.BytesIO()
+    with zipfile.ZipFile(b, "w", zipfile.ZIP_DEFLATED) as z:
+        for k, v in members.items():
+            z.writestr(k, v)
+    return b.getvalue()
+
+
+def _npy_bytes(a=None, header_shape=None):
+    import io
+
+    b = io.BytesIO()
+    if header_shape is not None:        # a header alone, declaring a huge array
+        np.lib.format.write_array_header_1_0(b, {"descr": "<f8", "fortran_order": False, "shape": header_shape})
+        return b.getvalue() + b"\0" * 64
+    np.save(b, a)
+    return b.getvalue()
+
+
+def test_contours_and_curve_files_fail_in_one_line(tmp_path):
+    from torch_isc.images import ImageError
+    from torch_isc.io import CurveFileError, load_contours, load_npz
+
+    good = {"points.npy": _npy_bytes(np.zeros((4, 2), np.float32)), "counts.npy": _npy_bytes(np.array([4])),
+            "hierarchy.npy": _npy_bytes(np.array([[-1, -1, -1, -1]], np.int32))}
+    (tmp_path / "ok.npz").write_bytes(_zip(good))
+    c, h = load_contours(tmp_path / "ok.npz")
+    assert len(c) == 1 and c[0].shape == (4, 1, 2) and h.shape == (1, 1, 4)
+    bad = {"empty": b"", "text": b"hello", "npy": _npy_bytes(np.zeros(3)),
+           "no_points": _zip({k: v for k, v in good.items() if k != "points.npy"}),
+           "counts_lie": _zip({**good, "counts.npy": _npy_bytes(np.array([7]))}),
+           "huge_header": _zip({**good, "points.npy": _npy_bytes(header_shape=(10 ** 12, 2))})}
+    for name, data in bad.items():
+        p = tmp_path / f"{name}.npz"
+        p.write_bytes(data)
+        with pytest.raises(ImageError) as ei:           # before: EOFError, pickle ValueError, KeyError, MemoryError
+            load_contours(p)
+        assert str(ei.value).startswith(f"{p}: ") and "\n" not in str(ei.value)
+        with pytest.raises(CurveFileError) as ei:
+            load_npz(p)
+        assert str(ei.value).startswith(f"{p}: ") and "\n" not in str(ei.value)
+    with pytest.raises(ImageError, match="truncated"):
+        load_contours(tmp_path / "huge_header.npz")
+
+
+def test_npz_decompressed_size_is_bounded(tmp_path):
+    from torch_isc._helpers import load_npz_arrays
+
+    p = tmp_path / "bomb.npz"
+    p.write_bytes(_zip({"a.npy": _npy_bytes(np.zeros(1_000_000))}))        # 8 MB of zeros in ~8 KB
+    assert p.stat().st_size < 100_000
+    assert load_npz_arrays(p, ValueError)["a"].shape == (1_000_000,)
+    with pytest.raises(ValueError, match="decompress to 8000128 bytes, more than 1000000"):
+        load_npz_arrays(p, ValueError, limit=1_000_000)

@@ -7,7 +7,7 @@ import stat
 from pathlib import Path
 from typing import Optional, Union
 
-__all__ = ["one_line", "import_cv2", "read_file_bytes", "decode_text", "MAX_FILE_BYTES", "is_regular_file", "printable"]
+__all__ = ["one_line", "import_cv2", "read_file_bytes", "decode_text", "MAX_FILE_BYTES", "is_regular_file", "printable", "load_npz_arrays", "npy_header"]
 
 
 def one_line(msg: object, default: str = "") -> str:
@@ -108,3 +108,61 @@ def is_regular_file(path: Union[str, os.PathLike]) -> bool:
         return stat.S_ISREG(os.stat(path).st_mode)
     except (OSError, ValueError):
         return False
+
+
+def npy_header(fp) -> tuple:
+    """``(shape, fortran_order, dtype)`` of the ``.npy`` header at ``fp`` (after its magic),
+    versions 1.0, 2.0 and 3.0 (utf-8 names), read without touching the data."""
+    import numpy as np
+
+    fmt = np.lib.format
+    version = fmt.read_magic(fp)
+    if version == (1, 0):
+        return fmt.read_array_header_1_0(fp)
+    if version == (2, 0):
+        return fmt.read_array_header_2_0(fp)
+    impl = getattr(fmt, "_read_array_header", None)
+    if impl is None:                    # numpy 2 keeps it in the private implementation module
+        from numpy.lib import _format_impl
+        impl = _format_impl._read_array_header
+    return impl(fp, version)
+
+
+def load_npz_arrays(path: Union[str, os.PathLike], error: type, what: str = "an .npz file",
+                    limit: int = MAX_FILE_BYTES) -> dict:
+    """The arrays of an ``.npz`` file, ``{name: array}``, read with bounds, or ``error`` with one
+    line naming the file: a regular file of at most ``limit`` bytes, members that decompress to
+    at most ``limit`` bytes in all (a 1 MB zip bomb may hold a GB of zeros), each ``.npy``
+    header's declared size checked against its bytes before numpy allocates it, no pickles."""
+    import io
+    import zipfile
+
+    import numpy as np
+
+    p = Path(path)
+    raw = read_file_bytes(p, error, what, limit=limit)
+    try:
+        zf = zipfile.ZipFile(io.BytesIO(raw))
+        infos = [i for i in zf.infolist() if not i.is_dir()]
+        total = sum(i.file_size for i in infos)
+        if total > limit:
+            raise error(f"{p}: its members decompress to {total} bytes, more than {limit}")
+        out = {}
+        for info in infos:
+            data = zf.read(info)
+            fp = io.BytesIO(data)
+            shape, _, dtype = npy_header(fp)
+            if dtype.hasobject:
+                raise error(f"{p}: member {printable(info.filename, 60)} is an object array (pickles are not read)")
+            need = int(np.prod(shape, dtype=object)) * dtype.itemsize
+            if need > len(data) - fp.tell():
+                raise error(f"{p}: member {printable(info.filename, 60)} is truncated (its header declares "
+                            f"{need} bytes)")
+            name = info.filename[:-4] if info.filename.endswith(".npy") else info.filename
+            out[name] = np.load(io.BytesIO(data), allow_pickle=False)
+        return out
+    except error:
+        raise
+    except Exception as e:      # zipfile.BadZipFile, NotImplementedError (zip version), ValueError of a header
+        raise error(f"{p}: not a readable {what.split(' ', 1)[1] if what.startswith(('a ', 'an ')) else what} "
+                    f"({type(e).__name__}: {printable(one_line(e), 120)})") from None

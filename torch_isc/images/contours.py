@@ -8,7 +8,8 @@ from typing import Dict, List, Optional, Tuple, Union
 
 import numpy as np
 
-from torch_isc.images.arrays import ImageLike
+from torch_isc._helpers import load_npz_arrays
+from torch_isc.images.arrays import ImageError, ImageLike
 from torch_isc.images.polylines import closed_polygons
 
 __all__ = ["contour_hierarchy", "to_cv_contours", "find_contours", "CONTOURS_FORMAT", "contour_arrays",
@@ -324,9 +325,21 @@ def contour_arrays(src, mode: str = "tree") -> Dict[str, np.ndarray]:
 
 def load_contours(path: Union[str, os.PathLike], dtype=np.float32) -> Tuple[List[np.ndarray], Optional[np.ndarray]]:
     """Read a contours ``.npz`` (:func:`contour_arrays`): ``(contours [(n, 1, 2)], hierarchy (1, N, 4) or None)``,
-    as ``cv2.findContours`` returns them."""
-    with np.load(path, allow_pickle=False) as z:
+    as ``cv2.findContours`` returns them.
+
+    Raises:
+        ImageError: missing, unreadable or inconsistent file (one line naming it; the reading
+            is bounded: :func:`torch_isc._helpers.load_npz_arrays`)."""
+    z = load_npz_arrays(path, ImageError, "a contours file")
+    try:
         pts, counts, h = z["points"], z["counts"], z["hierarchy"]
+    except KeyError as e:
+        raise ImageError(f"{path}: not a contours file (no {e} array)") from None
+    ok = (pts.ndim == 2 and pts.shape[1] == 2 and counts.ndim == 1 and np.issubdtype(counts.dtype, np.integer)
+          and (counts >= 0).all() and int(counts.sum()) == pts.shape[0] and h.shape == (counts.size, 4))
+    if not ok:
+        raise ImageError(f"{path}: inconsistent contours file (points {pts.shape}, counts {counts.shape}, "
+                         f"hierarchy {h.shape})")
     pieces = np.split(pts, np.cumsum(counts)[:-1]) if counts.size else []
     if np.issubdtype(np.dtype(dtype), np.integer):
         pieces = [np.rint(p).astype(np.int32) for p in pieces]

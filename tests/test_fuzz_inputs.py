@@ -363,3 +363,16 @@ def test_npz_decompressed_size_is_bounded(tmp_path):
     assert load_npz_arrays(p, ValueError)["a"].shape == (1_000_000,)
     with pytest.raises(ValueError, match="decompress to 8000128 bytes, more than 1000000"):
         load_npz_arrays(p, ValueError, limit=1_000_000)
+
+
+# ============================================================================ 8. text separators
+def test_semicolon_separated_rows(tmp_path):
+    p = tmp_path / "a.csv"
+    p.write_text("x;y\n1.5;2.5\n-3 ; 4e1\n")       # before: the first row taken for a header, then line 3 refused
+    assert read_points(p).tolist() == [[1.5, 2.5], [-3.0, 40.0]]
+    p.write_text("1,5;2,5\n")                     # decimal commas: four fields, refused with the line
+    with pytest.raises(PointFileError, match="line 1: expected 2 columns"):
+        read_points(p)
+    p.write_text("1;;2\n")
+    with pytest.raises(PointFileError, match="line 1: empty field"):
+        read_points(p)

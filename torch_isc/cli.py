@@ -84,11 +84,11 @@ def build_parser() -> argparse.ArgumentParser:
     sub.required = True
     rec = sub.add_parser(
         "reconstruct", help="reconstruct curves from point files or images",
-        description="Reconstruct one curve set per input: a point file (text rows 'x y' or 'x,y', '#' comments, "
+        description="Reconstruct one curve set per input: a point file (text rows 'x y', 'x,y' or 'x;y', '#' comments, "
                     "an optional header line; or a .npy array of shape (N, 2)), an image (png, jpg, tif, bmp: a "
                     "mask, or a grayscale image with --mode edges), or a folder of such files. Image coordinates "
                     "are pixels: x right, y down, pixel (0, 0) covering [0,1]x[0,1].",
-        epilog="exit status: 0 all done, 1 some inputs failed, 2 usage or configuration error")
+        epilog="exit status: 0 all done, 1 some inputs failed (or an internal error), 2 usage or configuration error")
     rec.add_argument("inputs", nargs="*", metavar="INPUT",
                      help="point files (.xy/.txt/.csv text, or .npy), images (.png/.jpg/.tif/.bmp), or folders of them")
     rec.add_argument("--config", metavar="FILE", help="YAML file of ReconstructConfig keys (see configs/default.yaml)")

@@ -376,3 +376,30 @@ def test_semicolon_separated_rows(tmp_path):
     p.write_text("1;;2\n")
     with pytest.raises(PointFileError, match="line 1: empty field"):
         read_points(p)
+
+
+# ============================================================================ 9. run arguments
+def test_run_arguments(tmp_path):
+    from torch_isc.dataset import reconstruct_dataset
+    from torch_isc.runner import ImageOptions, run_inputs
+
+    np.savetxt(tmp_path / "ring.xy", _circle())
+    # one path is one input (before: its characters were the inputs, each "no such file")
+    rep = run_inputs(str(tmp_path / "ring.xy"), {"max_level": 3}, tmp_path / "o", formats="json",
+                     batch_size=np.int64(2))
+    assert [(r.stem, r.status) for r in rep.records] == [("ring", "done")]
+    assert sorted(os.listdir(tmp_path / "o")) == ["ring.json", "ring.manifest.json"]
+    for kw, msg in (({"batch_size": 1.5}, r"batch size must be >= 1, got 1.5 \(an integer\)"),
+                    ({"batch_size": True}, "batch size must be >= 1, got True"),
+                    ({"device": "meta"}, "device meta: a meta device holds no values"),
+                    ({"image_options": {}}, "image_options: expected an ImageOptions, got dict"),
+                    ({"formats": [1]}, "formats: expected format names")):
+        with pytest.raises(RunError, match=msg):
+            run_inputs([tmp_path / "ring.xy"], None, tmp_path / "o", **kw)
+    with pytest.raises(ConfigError, match="got int"):
+        run_inputs([tmp_path / "ring.xy"], 5, tmp_path / "o")
+    if __import__("importlib").util.find_spec("pyarrow") is not None:
+        rep = reconstruct_dataset(tmp_path / "ring.xy", tmp_path / "o", {"max_level": 3}, formats="json")
+        assert rep.counts == {"done": 0, "skipped": 1, "failed": 0}
+        with pytest.raises(RunError, match="table_rows must be an integer >= 1, got 0"):
+            reconstruct_dataset([tmp_path / "ring.xy"], tmp_path / "o", table=tmp_path / "t.parquet", table_rows=0)

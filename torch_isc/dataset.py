@@ -59,7 +59,8 @@ from typing import Any, Callable, Dict, Iterable, Iterator, List, Optional, Sequ
 import torch_isc
 from torch_isc import images
 from torch_isc.runner import (DEFAULT_FORMATS, DEFAULT_IMAGE_FORMATS, ImageOptions, Record, RunError, expand_inputs,
-                              run_inputs, shown, unique_stems, overwritten_inputs)
+                              run_arguments, run_inputs, shown, unique_stems, overwritten_inputs)
+from torch_isc.pipeline.loop import _as_config
 from torch_isc._helpers import decode_text, one_line, read_file_bytes
 
 __all__ = ["ENGINES", "TABLE_SCHEMA", "DatasetReport", "BatchReconstructor", "resolve_inputs", "read_manifest",
@@ -490,8 +491,9 @@ def reconstruct_dataset(inputs: Iterable[PathLike], out_dir: PathLike, config=No
     t0 = time.perf_counter()
     if engine not in ENGINES:
         raise RunError(f"engine must be one of {', '.join(ENGINES)}, got {engine!r}")
-    if batch_size < 1:
-        raise RunError(f"batch size must be >= 1, got {batch_size}")
+    inputs, formats, image_formats = run_arguments(inputs, formats, image_formats, batch_size, image_options)
+    if not isinstance(table_rows, int) or table_rows < 1:
+        raise RunError(f"table_rows must be an integer >= 1, got {table_rows!r:.50}")
     if engine == "ray" and actors < 1:
         raise RunError(f"actors must be >= 1, got {actors}")
     from torch_isc.io import chosen_formats
@@ -503,7 +505,9 @@ def reconstruct_dataset(inputs: Iterable[PathLike], out_dir: PathLike, config=No
     if image_options.mode not in ("mask", "edges"):
         raise RunError(f"image mode must be 'mask' or 'edges', got {image_options.mode!r}")
     pa = _pa()
-    config = config if config is not None else torch_isc.load_config()
+    config = _as_config(config)
+    if image_config is not None:
+        image_config = _as_config(image_config)
     if image_config is None:
         image_config = images.image_config(config, mode=image_options.mode)
     sources = resolve_inputs(inputs, manifest, manifest_column, errors={})

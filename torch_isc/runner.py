@@ -40,6 +40,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import operator
 import os
 import time
 import traceback
@@ -58,11 +59,11 @@ from torch_isc.io.registry import LOADERS
 from torch_isc.io.files import atomic_write
 from torch_isc.images.read import DEFAULT_MAX_PIXELS, read_image
 from torch_isc.pipeline.config import ReconstructConfig, config_hash
-from torch_isc.pipeline.loop import PointSetError
+from torch_isc.pipeline.loop import PointSetError, _as_config
 from torch_isc.core.points import item_label
 
 __all__ = ["RunError", "ImageOptions", "Record", "RunReport", "DEFAULT_FORMATS", "DEFAULT_IMAGE_FORMATS",
-           "expand_inputs", "unique_stems", "overwritten_inputs", "run_inputs", "shown", "file_sha256", "manifest_path", "manifest_matches",
+           "expand_inputs", "unique_stems", "overwritten_inputs", "run_arguments", "run_inputs", "shown", "file_sha256", "manifest_path", "manifest_matches",
            "MANIFEST_FORMAT"]
 
 #: Version of the ``<stem>.manifest.json`` layout.
@@ -608,6 +609,39 @@ class _Run:
         self.on_batch("end", self.batches, len(batch), self.done, self.total)
 
 
+def run_arguments(inputs, formats, image_formats, batch_size, image_options=None):
+    """The arguments shared by :func:`run_inputs` and :func:`torch_isc.dataset.reconstruct_dataset`,
+    checked and normalized: one path (a str or path object) is one input, not a sequence of
+    characters; a str of formats is a comma-separated list; the batch size an integer >= 1.
+
+    Returns:
+        ``(inputs, formats, image_formats)`` as lists."""
+    if isinstance(inputs, (str, bytes, os.PathLike)):
+        inputs = [inputs]
+    elif not hasattr(inputs, "__iter__"):
+        raise RunError(f"inputs: expected paths, got {type(inputs).__name__}")
+    inputs = [os.fsdecode(s) if isinstance(s, bytes) else s for s in inputs]
+    for s in inputs:
+        if not isinstance(s, (str, os.PathLike)):
+            raise RunError(f"inputs: expected paths (str or path objects), got {type(s).__name__}")
+    lists = []
+    for name, f in (("formats", formats), ("image_formats", image_formats)):
+        if isinstance(f, str):
+            f = [x.strip() for x in f.split(",") if x.strip()]
+        if not hasattr(f, "__iter__") or not all(isinstance(x, str) for x in f):
+            raise RunError(f"{name}: expected format names, got {f!r:.100}")
+        lists.append(list(f))
+    try:
+        size = operator.index(batch_size)           # int, numpy integers
+    except TypeError:
+        size = None
+    if size is None or isinstance(batch_size, bool) or size < 1:
+        raise RunError(f"batch size must be >= 1, got {batch_size!r:.50} (an integer)")
+    if image_options is not None and not isinstance(image_options, ImageOptions):
+        raise RunError(f"image_options: expected an ImageOptions, got {type(image_options).__name__}")
+    return inputs, lists[0], lists[1]
+
+
 def run_inputs(inputs: Iterable[PathLike], config: ReconstructConfig, out_dir: PathLike,
                formats: Sequence[str] = DEFAULT_FORMATS, image_formats: Sequence[str] = DEFAULT_IMAGE_FORMATS,
                overwrite: bool = False, batch_size: int = 64, image_options: ImageOptions = ImageOptions(),
@@ -655,8 +689,16 @@ def run_inputs(inputs: Iterable[PathLike], config: ReconstructConfig, out_dir: P
         RunError: bad arguments (an empty folder, a batch size below 1, an unknown format):
             nothing was written.
     """
-    if batch_size < 1:
-        raise RunError(f"batch size must be >= 1, got {batch_size}")
+    inputs, formats, image_formats = run_arguments(inputs, formats, image_formats, batch_size, image_options)
+    config = _as_config(config)
+    if image_config is not None:
+        image_config = _as_config(image_config)
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError, ValueError) as e:
+        raise RunError(f"device {shown(device)}: {shown(one_line(e, type(e).__name__))[:200]}") from None
+    if dev.type == "meta":
+        raise RunError(f"device {shown(device)}: a meta device holds no values")
     known = chosen_formats() + formats_needing({"image"})
     for f in list(formats) + list(image_formats):
         if f not in known:

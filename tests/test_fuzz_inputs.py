@@ -403,3 +403,28 @@ def test_run_arguments(tmp_path):
         assert rep.counts == {"done": 0, "skipped": 1, "failed": 0}
         with pytest.raises(RunError, match="table_rows must be an integer >= 1, got 0"):
             reconstruct_dataset([tmp_path / "ring.xy"], tmp_path / "o", table=tmp_path / "t.parquet", table_rows=0)
+
+
+# ============================================================================ 10. find_contours arguments
+def test_find_contours_arguments():
+    from torch_isc.images import ImageError, find_contours
+
+    m = np.zeros((20, 20), np.uint8)
+    m[5:15, 5:15] = 1
+    ref, _ = find_contours(m)
+    # unsigned types torch cannot compare, big-endian: the same square (before: NotImplementedError)
+    for a in (m.astype(np.uint16) * 60000, m.astype(np.uint32) * 4_000_000_000, m.astype(np.uint64) * (2 ** 64 - 1),
+              m.astype(">u2"), torch.from_numpy(m.astype(np.int32)).to(torch.uint16)):
+        got, _ = find_contours(a)
+        assert len(got) == 1 and np.array_equal(got[0], ref[0])
+    bad = {"NaN values": lambda: find_contours(np.where(m, np.nan, 0.0)),          # before: silently no contour
+           "got dtype object": lambda: find_contours(np.array([[None, 1]])),       # before: TypeError
+           "got dtype complex64": lambda: find_contours(m.astype(np.complex64)),
+           "offset must be": lambda: find_contours(m, offset=(np.nan, 0)),          # before: NaN contours
+           "smooth must be an integer in": lambda: find_contours(m, smooth=10 ** 12),   # before: never ended
+           "min_area must be": lambda: find_contours(m, min_area=float("nan")),
+           "threshold must be a finite number": lambda: find_contours(m, threshold=float("nan")),
+           "dtype must be": lambda: find_contours(m, dtype=np.complex64)}
+    for msg, call in bad.items():
+        with pytest.raises(ImageError, match=msg):
+            call()

@@ -201,6 +201,33 @@ def cv2_approx(q: np.ndarray, epsilon: float) -> np.ndarray:
     return out if len(out) >= 1 else q
 
 
+def _check_contour_options(offset, min_area, epsilon, smooth, dtype) -> None:
+    """The numeric options of :func:`find_contours_batch`, checked with the option named (a
+    smoothing of 10**12 iterations never ended; a NaN offset gave NaN contours)."""
+    def real(v):
+        return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool) and np.isfinite(v)
+
+    if offset is not None:
+        try:
+            ok = len(offset) == 2 and all(real(v) for v in offset)
+        except TypeError:
+            ok = False
+        if not ok:
+            raise ImageError(f"offset must be (dx, dy), two finite numbers, got {offset!r:.60}")
+    if not (real(min_area) and min_area >= 0):
+        raise ImageError(f"min_area must be a finite number >= 0, got {min_area!r:.30}")
+    if not (real(epsilon) and epsilon >= 0):
+        raise ImageError(f"epsilon must be a finite number >= 0, got {epsilon!r:.30}")
+    if not (isinstance(smooth, (int, np.integer)) and not isinstance(smooth, bool) and 0 <= smooth <= 10_000):
+        raise ImageError(f"smooth must be an integer in [0, 10000] (iterations), got {smooth!r:.30}")
+    try:
+        kind = np.dtype(dtype).kind
+    except TypeError:
+        kind = None
+    if kind not in ("i", "u", "f"):
+        raise ImageError(f"dtype must be an integer or float dtype, got {dtype!r:.30}")
+
+
 def find_contours_batch(masks, mode=3, method=1, offset=None, *, connectivity: int = 8, dtype=np.float32,
                         min_area: float = 0.0, epsilon: float = 0.1, smooth: int = 12,
                         threshold: Optional[float] = None, batch_pixels: int = 1 << 22):
@@ -211,6 +238,7 @@ def find_contours_batch(masks, mode=3, method=1, offset=None, *, connectivity: i
 
     mode = retr_mode(mode)
     method = _chain_method(method)
+    _check_contour_options(offset, min_area, epsilon, smooth, dtype)
     integer = np.issubdtype(np.dtype(dtype), np.integer)
     ts = [binarize(t, threshold) for t in image_list(masks, "mask")]
     out = []

@@ -37,7 +37,8 @@ with ``--cpus-per-actor`` CPUs and ``--gpus-per-actor`` GPUs; the outputs are th
 progress bar (tqdm, on stderr) shows on a terminal; elsewhere each batch is one log line.
 
 Exit status: 0 every input done (or skipped because its complete outputs exist), 1 some inputs failed
-(each with one ``torch-isc: error: <file>: <problem>`` line on stderr), 2 usage or
+(each with one ``torch-isc: error: <file>: <problem>`` line on stderr) or an internal error stopped the
+run (one ``internal error`` line; ``--debug`` re-raises it), 2 usage or
 configuration error (nothing was reconstructed). A user mistake never prints a traceback;
 ``--debug`` shows the traceback of an unexpected internal error.
 """
@@ -83,11 +84,11 @@ def build_parser() -> argparse.ArgumentParser:
     sub.required = True
     rec = sub.add_parser(
         "reconstruct", help="reconstruct curves from point files or images",
-        description="Reconstruct one curve set per input: a point file (text rows 'x y' or 'x,y', '#' comments, "
+        description="Reconstruct one curve set per input: a point file (text rows 'x y', 'x,y' or 'x;y', '#' comments, "
                     "an optional header line; or a .npy array of shape (N, 2)), an image (png, jpg, tif, bmp: a "
                     "mask, or a grayscale image with --mode edges), or a folder of such files. Image coordinates "
                     "are pixels: x right, y down, pixel (0, 0) covering [0,1]x[0,1].",
-        epilog="exit status: 0 all done, 1 some inputs failed, 2 usage or configuration error")
+        epilog="exit status: 0 all done, 1 some inputs failed (or an internal error), 2 usage or configuration error")
     rec.add_argument("inputs", nargs="*", metavar="INPUT",
                      help="point files (.xy/.txt/.csv text, or .npy), images (.png/.jpg/.tif/.bmp), or folders of them")
     rec.add_argument("--config", metavar="FILE", help="YAML file of ReconstructConfig keys (see configs/default.yaml)")
@@ -248,13 +249,13 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
     config = load_config(args.config, overrides)
     if args.threshold is not None and not (0.0 <= args.threshold < 1.0):
         raise UsageError(f"--threshold must be in [0, 1), got {args.threshold}")
-    if not args.spacing >= 0 or args.spacing != args.spacing:
-        raise UsageError(f"--spacing must be >= 0, got {args.spacing}")
+    if not 0 <= args.spacing <= 1e6:
+        raise UsageError(f"--spacing must be in [0, 1e6] pixels, got {args.spacing}")
     try:
         low, high = (float(v) for v in args.canny.split(","))
     except ValueError:
         raise UsageError(f"--canny expects LOW,HIGH (two numbers), got {args.canny!r}") from None
-    if not 0 < low < high:
+    if not 0 < low < high < float("inf"):
         raise UsageError(f"--canny: expected 0 < LOW < HIGH, got {args.canny!r}")
     if not args.sigma > 0 or args.sigma > 1e3:
         raise UsageError(f"--sigma must be in (0, 1000], got {args.sigma}")
@@ -275,10 +276,16 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
     try:
         device = torch.device(args.device)
         torch.empty(0, device=device)
-    except (RuntimeError, AssertionError) as e:
-        raise UsageError(f"--device {args.device}: {one_line(e, type(e).__name__)}") from None
+    except (RuntimeError, AssertionError, ValueError) as e:
+        raise UsageError(f"--device {shown(args.device)}: {shown(one_line(e, type(e).__name__))[:200]}") from None
+    if device.type == "meta":       # accepted by torch, but it holds no values: every input would fail
+        raise UsageError(f"--device {shown(args.device)}: a meta device holds no values")
     if args.engine == "ray" and args.actors < 1:
         raise UsageError(f"--actors must be >= 1, got {args.actors}")
+    if not 0 < args.cpus_per_actor < 1e6:
+        raise UsageError(f"--cpus-per-actor must be > 0, got {args.cpus_per_actor}")
+    if not 0 <= args.gpus_per_actor < 1e6:
+        raise UsageError(f"--gpus-per-actor must be >= 0, got {args.gpus_per_actor}")
     from torch_isc.dataset import resolve_inputs
 
     try:
@@ -302,10 +309,13 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
 
     keep = set(_config_keys(args.config)) | {k for k in parse_overrides(args.overrides)}
     image_config = images.image_config(config, keep=sorted(keep), mode=args.mode)
-    image_options = ImageOptions(mode=args.mode, threshold=args.threshold, spacing=args.spacing,
-                                 use_oracle=not args.no_oracle, canny=(low, high), sigma=args.sigma,
-                                 max_pixels=int(args.max_pixels) or None, connectivity=args.connectivity,
-                                 zoom=args.zoom, region=region)
+    try:
+        image_options = ImageOptions(mode=args.mode, threshold=args.threshold, spacing=args.spacing,
+                                     use_oracle=not args.no_oracle, canny=(low, high), sigma=args.sigma,
+                                     max_pixels=int(args.max_pixels) or None, connectivity=args.connectivity,
+                                     zoom=args.zoom, region=region)
+    except RunError as e:
+        raise UsageError(str(e)) from None
 
     bar = _Progress(len(sources))
 
@@ -374,6 +384,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     except KeyboardInterrupt:
         _err("interrupted")
         return 130
+    except Exception as e:        # a bug or an environment failure outside any one input: one line, not a traceback
+        if getattr(args, "debug", False):
+            raise
+        _err(f"internal error ({type(e).__name__}: {shown(one_line(e, '(no message)'))[:300]}); "
+             f"--debug shows the traceback")
+        return 1
     return 2  # pragma: no cover
 
 

@@ -47,6 +47,7 @@ from __future__ import annotations
 import csv
 import functools
 import glob
+import io
 import json
 import os
 import sys
@@ -58,7 +59,9 @@ from typing import Any, Callable, Dict, Iterable, Iterator, List, Optional, Sequ
 import torch_isc
 from torch_isc import images
 from torch_isc.runner import (DEFAULT_FORMATS, DEFAULT_IMAGE_FORMATS, ImageOptions, Record, RunError, expand_inputs,
-                              run_inputs, unique_stems)
+                              run_arguments, run_inputs, shown, unique_stems, overwritten_inputs)
+from torch_isc.pipeline.loop import _as_config
+from torch_isc._helpers import decode_text, one_line, read_file_bytes
 
 __all__ = ["ENGINES", "TABLE_SCHEMA", "DatasetReport", "BatchReconstructor", "resolve_inputs", "read_manifest",
            "reconstruct_dataset", "records_from_table"]
@@ -114,27 +117,41 @@ def read_manifest(path: PathLike, column: str = "path") -> List[str]:
     """
     p = Path(path)
     base = p.parent
+    # a regular file of bounded size (a FIFO would block, /dev/zero fill the memory)
+    raw = read_file_bytes(p, RunError, "a manifest")
     try:
         suffix = p.suffix.lower()
         if suffix in _MANIFEST_SUFFIXES:
-            pq = _pa().parquet
-            names = pq.read_schema(p).names
-            if column not in names:
-                raise RunError(f"{p}: manifest has no column '{column}' (columns: {', '.join(names)})")
-            items = [v for v in pq.read_table(p, columns=[column]).column(column).to_pylist() if v]
+            pa = _pa()
+            try:
+                pf = pa.parquet.ParquetFile(pa.BufferReader(raw))
+                names = pf.schema_arrow.names
+                col = pf.read(columns=[column]).column(column) if column in names else None
+            except (pa.ArrowException, OSError, ValueError) as e:
+                raise RunError(f"{p}: not a readable Parquet manifest ({one_line(e, type(e).__name__)})") from None
+            if col is None:
+                raise RunError(f"{p}: manifest has no column '{shown(column)}' (columns: {_names(names)})")
+            t = col.type.value_type if pa.types.is_dictionary(col.type) else col.type
+            if not (pa.types.is_string(t) or pa.types.is_large_string(t) or pa.types.is_null(t)):
+                raise RunError(f"{p}: manifest column '{column}' holds {col.type}, not paths (strings)")
+            items = [v for v in col.to_pylist() if v]
         elif suffix == ".csv":
-            with open(p, newline="") as fh:
-                reader = csv.DictReader(fh)
-                if column not in (reader.fieldnames or []):
-                    raise RunError(f"{p}: manifest has no column '{column}' (columns: "
-                                   f"{', '.join(reader.fieldnames or [])})")
-                items = [row[column].strip() for row in reader if (row.get(column) or "").strip()]
+            reader = csv.DictReader(io.StringIO(decode_text(raw, str(p), "CSV manifest", RunError), newline=""))
+            if column not in (reader.fieldnames or []):
+                raise RunError(f"{p}: manifest has no column '{shown(column)}' (columns: {_names(reader.fieldnames or [])})")
+            items = [row[column].strip() for row in reader if isinstance(row.get(column), str) and row[column].strip()]
         else:
-            items = [ln.strip() for ln in p.read_text().splitlines()]
+            items = [ln.strip() for ln in decode_text(raw, str(p), "text manifest", RunError).splitlines()]
             items = [ln for ln in items if ln and not ln.startswith("#")]
-    except OSError as e:
-        raise RunError(f"{p}: cannot read the manifest ({e.strerror or e})") from None
+    except csv.Error as e:
+        raise RunError(f"{p}: not a readable CSV manifest ({one_line(e, type(e).__name__)})") from None
     return [str(v) if os.path.isabs(str(v)) else str(base / str(v)) for v in items]
+
+
+def _names(names: Sequence[str], limit: int = 10) -> str:
+    """Column names for a message: at most ``limit``, control characters escaped."""
+    shown_names = [shown(n) for n in list(names)[:limit]]
+    return ", ".join(shown_names) + (f", ... ({len(names)} columns)" if len(names) > limit else "")
 
 
 def resolve_inputs(inputs: Iterable[PathLike], manifest: Union[None, PathLike, Sequence[PathLike]] = None,
@@ -230,7 +247,14 @@ class BatchReconstructor:
         paths = [str(s) for s in cols["read"]] if "read" in cols else sources
         given = dict(zip(paths, sources))
         rows = {i: _null_row(i, s, t) for i, s, t in zip(index, sources, stems)}
-        by_stem = dict(zip(stems, index))
+        # inputs the driver already failed (their outputs would overwrite an input of the run)
+        for i, err in zip(index, cols.get("error") or []):
+            if err is not None:
+                rows[i].update(status="failed", error=err)
+        keep = [k for k, i in enumerate(index) if rows[i]["status"] is None]
+        if len(keep) < len(index):
+            paths, stems = [paths[k] for k in keep], [stems[k] for k in keep]
+        by_stem = dict(zip(stems, [index[k] for k in keep]))
         results: Dict[int, Any] = {}
 
         def on_result(record: Record, result) -> None:
@@ -344,9 +368,15 @@ class _TableSink:
         self.n = 0
         self.writer = None
         if path is not None:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            self.tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-            self.writer = _pa().parquet.ParquetWriter(self.tmp, TABLE_SCHEMA(), compression="zstd")
+            # checked before any input is solved: a table that cannot be written would lose the run's rows
+            if path.is_dir():
+                raise RunError(f"table {shown(path)}: is a folder, not a file")
+            try:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                self.tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+                self.writer = _pa().parquet.ParquetWriter(self.tmp, TABLE_SCHEMA(), compression="zstd")
+            except (OSError, _pa().ArrowException) as e:
+                raise RunError(f"table {shown(path)}: cannot be written ({getattr(e, 'strerror', None) or one_line(e)})") from None
 
     def add(self, t) -> None:
         if self.writer is None:
@@ -461,8 +491,9 @@ def reconstruct_dataset(inputs: Iterable[PathLike], out_dir: PathLike, config=No
     t0 = time.perf_counter()
     if engine not in ENGINES:
         raise RunError(f"engine must be one of {', '.join(ENGINES)}, got {engine!r}")
-    if batch_size < 1:
-        raise RunError(f"batch size must be >= 1, got {batch_size}")
+    inputs, formats, image_formats = run_arguments(inputs, formats, image_formats, batch_size, image_options)
+    if not isinstance(table_rows, int) or table_rows < 1:
+        raise RunError(f"table_rows must be an integer >= 1, got {table_rows!r:.50}")
     if engine == "ray" and actors < 1:
         raise RunError(f"actors must be >= 1, got {actors}")
     from torch_isc.io import chosen_formats
@@ -474,7 +505,9 @@ def reconstruct_dataset(inputs: Iterable[PathLike], out_dir: PathLike, config=No
     if image_options.mode not in ("mask", "edges"):
         raise RunError(f"image mode must be 'mask' or 'edges', got {image_options.mode!r}")
     pa = _pa()
-    config = config if config is not None else torch_isc.load_config()
+    config = _as_config(config)
+    if image_config is not None:
+        image_config = _as_config(image_config)
     if image_config is None:
         image_config = images.image_config(config, mode=image_options.mode)
     sources = resolve_inputs(inputs, manifest, manifest_column, errors={})
@@ -483,7 +516,18 @@ def reconstruct_dataset(inputs: Iterable[PathLike], out_dir: PathLike, config=No
     stems = unique_stems(sources, on_note)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    if table is not None:           # before any work: a table that cannot be written would lose the rows
+        if os.path.realpath(table) in {os.path.realpath(src) for src in sources}:
+            raise RunError(f"table {shown(table)}: is an input of the run; writing it would overwrite that input")
+        if Path(table).is_dir():
+            raise RunError(f"table {shown(table)}: is a folder, not a file")
     todo = pa.table({"index": pa.array(range(len(sources)), pa.int64()), "source": sources, "stem": stems})
+    from torch_isc.io import loader_for
+
+    clobber = overwritten_inputs(sources, stems, out, lambda src: image_formats
+                                 if loader_for(src).kind == "image" else formats)
+    if clobber:
+        todo = todo.append_column("error", pa.array([clobber.get(i) for i in range(len(sources))], pa.string()))
     if engine == "ray":
         todo = todo.append_column("read", pa.array([os.path.abspath(s) for s in sources], pa.string()))
     settings = dict(config=config, image_config=image_config, out_dir=str(out.resolve()), formats=list(formats),

@@ -40,6 +40,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import operator
 import os
 import time
 import traceback
@@ -52,16 +53,17 @@ import torch
 
 import torch_isc
 from torch_isc import images
-from torch_isc._helpers import one_line
+from torch_isc._helpers import is_regular_file, one_line, printable
 from torch_isc.io import ExportContext, PointFileError, chosen_formats, export, formats_needing, loader_for
 from torch_isc.io.registry import LOADERS
 from torch_isc.io.files import atomic_write
 from torch_isc.images.read import DEFAULT_MAX_PIXELS, read_image
 from torch_isc.pipeline.config import ReconstructConfig, config_hash
-from torch_isc.pipeline.loop import PointSetError
+from torch_isc.pipeline.loop import PointSetError, _as_config
+from torch_isc.core.points import item_label
 
 __all__ = ["RunError", "ImageOptions", "Record", "RunReport", "DEFAULT_FORMATS", "DEFAULT_IMAGE_FORMATS",
-           "expand_inputs", "unique_stems", "run_inputs", "shown", "file_sha256", "manifest_path", "manifest_matches",
+           "expand_inputs", "unique_stems", "overwritten_inputs", "run_arguments", "run_inputs", "shown", "file_sha256", "manifest_path", "manifest_matches",
            "MANIFEST_FORMAT"]
 
 #: Version of the ``<stem>.manifest.json`` layout.
@@ -107,6 +109,40 @@ class ImageOptions:
     connectivity: int = 8
     zoom: int = 1
     region: Optional[Tuple[int, int, int, int]] = None
+
+    def __post_init__(self):
+        # checked at the boundary, with the option named (a spacing of inf crashed every image)
+        def real(v):
+            return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+        def integer(v):
+            return isinstance(v, int) and not isinstance(v, bool)
+
+        bad = None
+        if self.mode not in ("mask", "edges"):
+            bad = f"mode must be 'mask' or 'edges', got {self.mode!r}"
+        elif self.threshold is not None and not (real(self.threshold) and 0 <= self.threshold < 1):
+            bad = f"threshold must be None or in [0, 1), got {self.threshold!r}"
+        elif not (real(self.spacing) and 0 <= self.spacing <= 1e6):
+            bad = f"spacing must be a number of pixels in [0, 1e6], got {self.spacing!r}"
+        elif not isinstance(self.use_oracle, bool):
+            bad = f"use_oracle must be True or False, got {self.use_oracle!r}"
+        elif not (isinstance(self.canny, (tuple, list)) and len(self.canny) == 2 and all(map(real, self.canny))
+                  and 0 < self.canny[0] < self.canny[1]):
+            bad = f"canny must be (low, high) with 0 < low < high, got {self.canny!r}"
+        elif not (real(self.sigma) and 0 < self.sigma <= 1e3):
+            bad = f"sigma must be in (0, 1000], got {self.sigma!r}"
+        elif self.max_pixels is not None and not (integer(self.max_pixels) and self.max_pixels >= 0):
+            bad = f"max_pixels must be None or an integer >= 0, got {self.max_pixels!r}"
+        elif self.connectivity not in (4, 8) or isinstance(self.connectivity, bool):
+            bad = f"connectivity must be 4 or 8, got {self.connectivity!r}"
+        elif not (integer(self.zoom) and 1 <= self.zoom <= 64):
+            bad = f"zoom must be an integer in [1, 64], got {self.zoom!r}"
+        elif self.region is not None and not (isinstance(self.region, (tuple, list)) and len(self.region) == 4
+                                              and all(map(integer, self.region))):
+            bad = f"region must be None or (x0, y0, x1, y1) integers, got {self.region!r}"
+        if bad is not None:
+            raise RunError(f"image options: {bad[:300]}")
 
 
 @dataclass
@@ -154,10 +190,7 @@ def shown(name: object) -> str:
     >>> shown("a\\nb.xy")
     'a\\\\nb.xy'
     """
-    t = str(name)
-    if t.isprintable():
-        return t
-    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in t)
+    return printable(name)
 
 
 def _message(source: str, e: BaseException) -> str:
@@ -248,6 +281,35 @@ def unique_stems(sources: Sequence[str], note: Optional[Callable[[str], None]] =
     return names
 
 
+def overwritten_inputs(sources: Sequence[str], stems: Sequence[str], out_dir: PathLike,
+                       formats_of: Callable[[str], Sequence[str]]) -> Dict[int, str]:
+    """``{i: one-line error}`` for each input whose output set would overwrite an input file of
+    the run (itself: ``m.png`` in the output folder with ``--formats png``; or another), by the
+    real paths (links followed). Such an input is not reconstructed: writing would destroy an
+    input, and a rerun would read the output as its input."""
+    keys = {}
+    for src in sources:
+        try:
+            keys.setdefault(os.path.realpath(src), src)
+        except (OSError, ValueError):
+            pass
+    if not keys:
+        return {}
+    out_real = os.path.realpath(out_dir)
+    if not any(os.path.dirname(k) == out_real for k in keys):      # no input in the output folder
+        return {}
+    bad: Dict[int, str] = {}
+    for i, (src, stem) in enumerate(zip(sources, stems)):
+        for name in [f"{stem}.{f}" for f in formats_of(src)] + [manifest_path("", stem).name]:
+            victim = keys.get(os.path.join(out_real, name))
+            if victim is not None:
+                whose = "the input itself" if victim == src else f"the input {shown(victim)}"
+                bad[i] = (f"{shown(src)}: its output {shown(Path(out_dir) / name)} would overwrite {whose}; "
+                          f"choose another output folder or format")
+                break
+    return bad
+
+
 def file_sha256(path: PathLike) -> str:
     """sha256 (hex) of a file's bytes, read in 1 MiB blocks."""
     h = hashlib.sha256()
@@ -267,14 +329,18 @@ def manifest_matches(out_dir: PathLike, stem: str, input_sha256: str, config_sha
     """Whether ``<stem>.manifest.json`` says the outputs of ``stem`` are complete and were made
     from this input and config in these formats, and every file it lists still has its hash."""
     try:
-        m = json.loads(manifest_path(out_dir, stem).read_text(encoding="utf-8"))
+        mp = manifest_path(out_dir, stem)
+        if not is_regular_file(mp):             # a FIFO under that name would block the run
+            return False
+        m = json.loads(mp.read_text(encoding="utf-8"))
         if (m.get("manifest_format") != MANIFEST_FORMAT or m["input"]["sha256"] != input_sha256
                 or m["config_sha256"] != config_sha256 or list(m["formats"]) != list(formats)):
             return False
         files = m["files"]
         if [f["name"] for f in files] != [f"{stem}.{fmt}" for fmt in formats]:
             return False
-        return all(file_sha256(Path(out_dir) / f["name"]) == f["sha256"] for f in files)
+        return all(is_regular_file(Path(out_dir) / f["name"]) and file_sha256(Path(out_dir) / f["name"]) == f["sha256"]
+                   for f in files)
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         return False
 
@@ -446,8 +512,9 @@ class _Run:
                 res = self.solve([job], kind)[0]
             except bad_input as e:
                 msg = str(e).strip()
-                if msg.startswith(f"{job.stem}: "):     # a PointSetError names the item by its stem
-                    msg = msg[len(job.stem) + 2:]
+                label = item_label(job.stem)
+                if msg.startswith(f"{label}: "):        # a PointSetError names the item by its stem
+                    msg = msg[len(label) + 2:]
                 self.finish(job, "failed", f"{shown(job.source)}: {one_line(shown(msg), type(e).__name__)}")
             except MemoryError:
                 self.finish(job, "failed", f"{shown(job.source)}: out of memory while reconstructing it")
@@ -490,6 +557,8 @@ class _Run:
     def complete(self, job: _Job) -> bool:
         """Whether the job's outputs are a complete set made from this input and config."""
         if not manifest_path(self.out_dir, job.stem).exists():
+            return False
+        if not is_regular_file(job.source):     # hashing a FIFO or a device would block or never end
             return False
         try:
             sha = file_sha256(job.source)
@@ -540,6 +609,39 @@ class _Run:
         self.on_batch("end", self.batches, len(batch), self.done, self.total)
 
 
+def run_arguments(inputs, formats, image_formats, batch_size, image_options=None):
+    """The arguments shared by :func:`run_inputs` and :func:`torch_isc.dataset.reconstruct_dataset`,
+    checked and normalized: one path (a str or path object) is one input, not a sequence of
+    characters; a str of formats is a comma-separated list; the batch size an integer >= 1.
+
+    Returns:
+        ``(inputs, formats, image_formats)`` as lists."""
+    if isinstance(inputs, (str, bytes, os.PathLike)):
+        inputs = [inputs]
+    elif not hasattr(inputs, "__iter__"):
+        raise RunError(f"inputs: expected paths, got {type(inputs).__name__}")
+    inputs = [os.fsdecode(s) if isinstance(s, bytes) else s for s in inputs]
+    for s in inputs:
+        if not isinstance(s, (str, os.PathLike)):
+            raise RunError(f"inputs: expected paths (str or path objects), got {type(s).__name__}")
+    lists = []
+    for name, f in (("formats", formats), ("image_formats", image_formats)):
+        if isinstance(f, str):
+            f = [x.strip() for x in f.split(",") if x.strip()]
+        if not hasattr(f, "__iter__") or not all(isinstance(x, str) for x in f):
+            raise RunError(f"{name}: expected format names, got {f!r:.100}")
+        lists.append(list(f))
+    try:
+        size = operator.index(batch_size)           # int, numpy integers
+    except TypeError:
+        size = None
+    if size is None or isinstance(batch_size, bool) or size < 1:
+        raise RunError(f"batch size must be >= 1, got {batch_size!r:.50} (an integer)")
+    if image_options is not None and not isinstance(image_options, ImageOptions):
+        raise RunError(f"image_options: expected an ImageOptions, got {type(image_options).__name__}")
+    return inputs, lists[0], lists[1]
+
+
 def run_inputs(inputs: Iterable[PathLike], config: ReconstructConfig, out_dir: PathLike,
                formats: Sequence[str] = DEFAULT_FORMATS, image_formats: Sequence[str] = DEFAULT_IMAGE_FORMATS,
                overwrite: bool = False, batch_size: int = 64, image_options: ImageOptions = ImageOptions(),
@@ -587,8 +689,16 @@ def run_inputs(inputs: Iterable[PathLike], config: ReconstructConfig, out_dir: P
         RunError: bad arguments (an empty folder, a batch size below 1, an unknown format):
             nothing was written.
     """
-    if batch_size < 1:
-        raise RunError(f"batch size must be >= 1, got {batch_size}")
+    inputs, formats, image_formats = run_arguments(inputs, formats, image_formats, batch_size, image_options)
+    config = _as_config(config)
+    if image_config is not None:
+        image_config = _as_config(image_config)
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError, ValueError) as e:
+        raise RunError(f"device {shown(device)}: {shown(one_line(e, type(e).__name__))[:200]}") from None
+    if dev.type == "meta":
+        raise RunError(f"device {shown(device)}: a meta device holds no values")
     known = chosen_formats() + formats_needing({"image"})
     for f in list(formats) + list(image_formats):
         if f not in known:
@@ -608,12 +718,15 @@ def run_inputs(inputs: Iterable[PathLike], config: ReconstructConfig, out_dir: P
     elif len(stems) != len(sources):
         raise RunError(f"{len(stems)} stem(s) given for {len(sources)} input(s)")
     jobs = [_Job(Record(src, stem), _is_image(src)) for src, stem in zip(sources, stems)]
+    clobber = overwritten_inputs(sources, stems, out, lambda src: run.image_formats if _is_image(src) else run.formats)
 
     # ---- folders that cannot be listed; finished inputs (a manifest that matches) are skipped
     todo: List[_Job] = []
-    for job in jobs:
+    for i, job in enumerate(jobs):
         if job.source in listing:
             run.finish(job, "failed", listing[job.source])
+        elif i in clobber:
+            run.finish(job, "failed", clobber[i])
         elif not overwrite and run.complete(job):
             run.finish(job, "skipped")
         else:

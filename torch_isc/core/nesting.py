@@ -17,6 +17,8 @@ from __future__ import annotations
 
 from typing import List, Sequence, Tuple
 
+import math
+
 import numpy as np
 
 __all__ = ["points_in_polygon", "polygon_nesting", "polygons_with_holes", "signed_area"]
@@ -25,8 +27,18 @@ __all__ = ["points_in_polygon", "polygon_nesting", "polygons_with_holes", "signe
 def signed_area(poly: np.ndarray) -> float:
     """Shoelace area of a closed polygon ``(n, 2)`` (last vertex not repeated): positive when
     counter-clockwise in a y-up frame."""
-    x, y = poly[:, 0], poly[:, 1]
-    return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y))
+    # in units of the polygon's extent about its first vertex: coordinates near 1e300 would
+    # overflow the products (NaN, and a wrong orientation); the area itself may still be inf
+    d = np.asarray(poly, dtype=np.float64)
+    d = d - d[:1]
+    s = float(np.abs(d).max()) if d.size else 0.0
+    if not s > 0 or not np.isfinite(s):
+        return 0.0 if not s > 0 else float("nan")
+    x, y = d[:, 0] / s, d[:, 1] / s
+    a = 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y))
+    with np.errstate(over="ignore", under="ignore"):
+        out = float(np.float64(a) * s * s)
+    return out if out != 0 or a == 0 else math.copysign(5e-324, a)     # keep the sign of an underflow
 
 
 def points_in_polygon(q: np.ndarray, poly: np.ndarray) -> np.ndarray:
@@ -37,8 +49,9 @@ def points_in_polygon(q: np.ndarray, poly: np.ndarray) -> np.ndarray:
     x, y = q[:, None, 0], q[:, None, 1]                      # (m, 1) against (n,) edges
     ay, by = a[None, :, 1], b[None, :, 1]
     straddle = (ay > y) != (by > y)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        xc = a[None, :, 0] + (y - ay) * (b[None, :, 0] - a[None, :, 0]) / (by - ay)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        # the fraction first: it is in [0, 1] where the edge straddles, so no product overflows near 1e300
+        xc = a[None, :, 0] + (y - ay) / (by - ay) * (b[None, :, 0] - a[None, :, 0])
     return ((straddle & (x < xc)).sum(1) % 2) == 1
 
 

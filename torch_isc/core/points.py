@@ -14,9 +14,10 @@ from typing import List, Optional, Sequence, Union
 import numpy as np
 import torch
 
+from torch_isc._helpers import printable
 from torch_isc.core.segments import first_index, segment_count, segment_max, segment_min, segment_sum
 
-__all__ = ["PointsLike", "PointSetError", "PointBatch", "check_points", "distinct_points", "collinear_items",
+__all__ = ["PointsLike", "PointSetError", "item_label", "PointBatch", "check_points", "distinct_points", "collinear_items",
            "prepare_points", "check_extent", "output_dtypes"]
 
 
@@ -25,6 +26,12 @@ PointsLike = Union[torch.Tensor, np.ndarray, Sequence[Sequence[float]]]
 
 class PointSetError(ValueError):
     """A point set that cannot be reconstructed (too few points, NaN, wrong shape...)."""
+
+
+def item_label(name: object) -> str:
+    """How a named item is shown in messages: one line (control characters escaped), at most
+    200 characters."""
+    return printable(name, limit=200)
 
 
 def check_points(x: PointsLike, label: str, finite: bool = True) -> torch.Tensor:
@@ -191,7 +198,7 @@ def prepare_points(point_sets: Sequence[PointsLike], names: Optional[Sequence[Op
     names = list(names) if names is not None else [None] * len(point_sets)
     if len(names) != len(point_sets):
         raise PointSetError(f"names: {len(names)} name(s) for {len(point_sets)} point set(s)")
-    labels = [n if n is not None else f"point set {i}" for i, n in enumerate(names)]
+    labels = [item_label(n) if n is not None else f"point set {i}" for i, n in enumerate(names)]
     raw = [check_points(p, lab, finite=False) for p, lab in zip(point_sets, labels)]
     device = raw[0].device
     for p, lab in zip(raw, labels):

@@ -21,46 +21,65 @@ def image_list(images: Union[ImageLike, Sequence[ImageLike]], what: str = "image
     """A batch of 2D images as a list of ``(H_b, W_b)`` tensors: accepts a list of 2D
     arrays/tensors (sizes may differ) or one ``(B, H, W)`` / ``(B, 1, H, W)`` array."""
     if isinstance(images, (np.ndarray, torch.Tensor)):
-        t = _tensor(images, what, "batch")
+        t = _as_real_tensor(images, f"{what}s")
         if t.dim() == 4 and t.shape[1] == 1:
             t = t[:, 0]
         if t.dim() == 2:
             raise ImageError(f"expected a batch of {what}s (B, H, W) or a list; wrap a single {what} in a list")
         if t.dim() != 3:
             raise ImageError(f"expected {what}s of shape (B, H, W) or (B, 1, H, W), got {tuple(t.shape)}")
-        return list(t.unbind(0))
-    out = []
-    for b, im in enumerate(images):
-        t = _tensor(im, what, b)
-        if t.dim() == 3 and t.shape[0] == 1:
-            t = t[0]
-        if t.dim() != 2:
-            raise ImageError(f"{what} {b}: expected a 2D (H, W) array, got shape {tuple(t.shape)}")
-        if t.shape[0] == 0 or t.shape[1] == 0:
-            raise ImageError(f"{what} {b}: empty image of shape {tuple(t.shape)}")
-        out.append(t)
+        out = list(t.unbind(0))
+    else:
+        if isinstance(images, (str, bytes)) or not hasattr(images, "__iter__"):
+            raise ImageError(f"expected a list of {what}s or a (B, H, W) array, got {type(images).__name__}")
+        out = []
+        for b, im in enumerate(images):
+            t = _as_real_tensor(im, f"{what} {b}")
+            if t.dim() == 3 and t.shape[0] == 1:
+                t = t[0]
+            if t.dim() != 2:
+                raise ImageError(f"{what} {b}: expected a 2D (H, W) array, got shape {tuple(t.shape)}")
+            if t.shape[0] == 0 or t.shape[1] == 0:
+                raise ImageError(f"{what} {b}: empty image of shape {tuple(t.shape)}")
+            out.append(t)
+    # NaN compares false with every threshold: it would silently read as background (one host read)
+    floats = [b for b, t in enumerate(out) if t.dtype.is_floating_point]
+    if floats and bool(torch.stack([out[b].isnan().any() for b in floats]).any()):
+        first = next(b for b in floats if bool(out[b].isnan().any()))
+        raise ImageError(f"{what} {first}: has NaN values")
     return out
 
 
-def _tensor(im, what: str, b) -> torch.Tensor:
-    """``im`` as a tensor of a bool, integer or float dtype (numpy views of any strides
-    copied); an ImageError naming the item otherwise."""
-    if isinstance(im, torch.Tensor):
-        t = im
-    else:
-        a = np.asarray(im)
+_UNSIGNED = {torch.uint16: torch.int32, torch.uint32: torch.int64}
+
+
+def _as_real_tensor(im, label: str) -> torch.Tensor:
+    """``im`` as a tensor of real numbers (bool, integer or float), on its device; unsigned
+    types that torch cannot compare widened; anything else an :class:`ImageError`."""
+    if not isinstance(im, torch.Tensor):
+        try:
+            a = np.asarray(im)
+        except (TypeError, ValueError) as e:
+            raise ImageError(f"{label}: not an array of numbers ({type(e).__name__})") from None
         if a.dtype.kind not in "biuf":
-            raise ImageError(f"{what} {b}: unsupported dtype {a.dtype} (expected bool, integer or float)")
-        if a.dtype.kind == "u" and a.dtype.itemsize > 1:
-            # torch has no comparisons for uint16/32/64: int64 holds uint16/32 exactly, float64
-            # keeps uint64 in order (and nonzero nonzero)
-            a = a.astype(np.int64 if a.dtype.itemsize < 8 else np.float64)
-        t = torch.from_numpy(np.ascontiguousarray(a))
-    if t.is_complex():
-        raise ImageError(f"{what} {b}: unsupported dtype {t.dtype} (expected bool, integer or float)")
-    if t.dtype in (torch.uint16, torch.uint32, torch.uint64):
-        t = t.to(torch.float64)
-    return t
+            raise ImageError(f"{label}: expected a bool, integer or float array, got dtype {a.dtype}")
+        if a.dtype == np.uint64:
+            a = a.astype(np.float64)                 # beyond int64; torch compares no uint64
+        elif a.dtype.kind == "f" and a.dtype.itemsize > 8:
+            a = a.astype(np.float64)                 # long double: no torch dtype
+        if not a.dtype.isnative:
+            a = a.astype(a.dtype.newbyteorder("="))
+        im = torch.from_numpy(np.ascontiguousarray(a))
+    if im.layout != torch.strided or im.device.type == "meta":
+        raise ImageError(f"{label}: expected a dense tensor with values (got layout {im.layout}, device {im.device})")
+    if im.is_complex() or not (im.dtype.is_floating_point or im.dtype == torch.bool or not im.dtype.is_signed
+                               or im.dtype in (torch.int8, torch.int16, torch.int32, torch.int64)):
+        raise ImageError(f"{label}: expected a bool, integer or float array, got dtype {im.dtype}")
+    if im.dtype in _UNSIGNED:
+        im = im.to(_UNSIGNED[im.dtype])
+    elif im.dtype == torch.uint64:
+        im = im.double()
+    return im.detach()
 
 
 def binarize(t: torch.Tensor, threshold: Optional[float]) -> torch.Tensor:
@@ -69,6 +88,9 @@ def binarize(t: torch.Tensor, threshold: Optional[float]) -> torch.Tensor:
     float mask above 0.5."""
     if t.dtype == torch.bool:
         return t
+    if threshold is not None and not (isinstance(threshold, (int, float, np.integer, np.floating))
+                                      and not isinstance(threshold, bool) and np.isfinite(threshold)):
+        raise ImageError(f"threshold must be a finite number or None, got {threshold!r:.50}")
     if threshold is None:
         return t > 0.5 if t.dtype.is_floating_point else t != 0
     if isinstance(threshold, bool) or not isinstance(threshold, (int, float, np.integer, np.floating)):

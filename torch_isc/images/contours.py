@@ -8,7 +8,8 @@ from typing import Dict, List, Optional, Tuple, Union
 
 import numpy as np
 
-from torch_isc.images.arrays import ImageLike
+from torch_isc._helpers import load_npz_arrays
+from torch_isc.images.arrays import ImageError, ImageLike
 from torch_isc.images.polylines import closed_polygons
 
 __all__ = ["contour_hierarchy", "to_cv_contours", "find_contours", "CONTOURS_FORMAT", "contour_arrays",
@@ -202,6 +203,33 @@ def cv2_approx(q: np.ndarray, epsilon: float) -> np.ndarray:
     return out if len(out) >= 1 else q
 
 
+def _check_contour_options(offset, min_area, epsilon, smooth, dtype) -> None:
+    """The numeric options of :func:`find_contours_batch`, checked with the option named (a
+    smoothing of 10**12 iterations never ended; a NaN offset gave NaN contours)."""
+    def real(v):
+        return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool) and np.isfinite(v)
+
+    if offset is not None:
+        try:
+            ok = len(offset) == 2 and all(real(v) for v in offset)
+        except TypeError:
+            ok = False
+        if not ok:
+            raise ImageError(f"offset must be (dx, dy), two finite numbers, got {offset!r:.60}")
+    if not (real(min_area) and min_area >= 0):
+        raise ImageError(f"min_area must be a finite number >= 0, got {min_area!r:.30}")
+    if not (real(epsilon) and epsilon >= 0):
+        raise ImageError(f"epsilon must be a finite number >= 0, got {epsilon!r:.30}")
+    if not (isinstance(smooth, (int, np.integer)) and not isinstance(smooth, bool) and 0 <= smooth <= 10_000):
+        raise ImageError(f"smooth must be an integer in [0, 10000] (iterations), got {smooth!r:.30}")
+    try:
+        dt = np.dtype(dtype)
+    except TypeError:
+        dt = None
+    if dt not in (np.dtype(np.float32), np.dtype(np.int32)):
+        raise ImageError(f"dtype must be np.float32 (sub-pixel) or np.int32 (pixel chain), got {dtype!r:.30}")
+
+
 def find_contours_batch(masks, mode=3, method=1, offset=None, *, connectivity: int = 8, dtype=np.float32,
                         min_area: float = 0.0, epsilon: float = 0.1, smooth: int = 12,
                         threshold: Optional[float] = None, batch_pixels: int = 1 << 22):
@@ -212,20 +240,8 @@ def find_contours_batch(masks, mode=3, method=1, offset=None, *, connectivity: i
 
     mode = retr_mode(mode)
     method = _chain_method(method)
-    try:
-        dt = np.dtype(dtype)
-    except TypeError:
-        dt = None
-    if dt not in (np.dtype(np.float32), np.dtype(np.int32)):
-        raise ValueError(f"dtype must be np.float32 (sub-pixel) or np.int32 (pixel chain), got {dtype!r}")
-    integer = dt == np.dtype(np.int32)
-    if offset is not None:
-        try:
-            offset = np.asarray(offset, np.float64).reshape(2)
-        except (TypeError, ValueError):
-            raise ValueError(f"offset must be (dx, dy), got {offset!r}") from None
-    if not (isinstance(min_area, (int, float, np.integer, np.floating)) and min_area >= 0):
-        raise ValueError(f"min_area must be a number >= 0, got {min_area!r}")
+    _check_contour_options(offset, min_area, epsilon, smooth, dtype)
+    integer = np.issubdtype(np.dtype(dtype), np.integer)
     ts = [binarize(t, threshold) for t in image_list(masks, "mask")]
     out = []
     b0 = 0
@@ -341,9 +357,21 @@ def contour_arrays(src, mode: str = "tree") -> Dict[str, np.ndarray]:
 
 def load_contours(path: Union[str, os.PathLike], dtype=np.float32) -> Tuple[List[np.ndarray], Optional[np.ndarray]]:
     """Read a contours ``.npz`` (:func:`contour_arrays`): ``(contours [(n, 1, 2)], hierarchy (1, N, 4) or None)``,
-    as ``cv2.findContours`` returns them."""
-    with np.load(path, allow_pickle=False) as z:
+    as ``cv2.findContours`` returns them.
+
+    Raises:
+        ImageError: missing, unreadable or inconsistent file (one line naming it; the reading
+            is bounded: :func:`torch_isc._helpers.load_npz_arrays`)."""
+    z = load_npz_arrays(path, ImageError, "a contours file")
+    try:
         pts, counts, h = z["points"], z["counts"], z["hierarchy"]
+    except KeyError as e:
+        raise ImageError(f"{path}: not a contours file (no {e} array)") from None
+    ok = (pts.ndim == 2 and pts.shape[1] == 2 and counts.ndim == 1 and np.issubdtype(counts.dtype, np.integer)
+          and (counts >= 0).all() and int(counts.sum()) == pts.shape[0] and h.shape == (counts.size, 4))
+    if not ok:
+        raise ImageError(f"{path}: inconsistent contours file (points {pts.shape}, counts {counts.shape}, "
+                         f"hierarchy {h.shape})")
     pieces = np.split(pts, np.cumsum(counts)[:-1]) if counts.size else []
     if np.issubdtype(np.dtype(dtype), np.integer):
         pieces = [np.rint(p).astype(np.int32) for p in pieces]

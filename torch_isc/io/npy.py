@@ -7,7 +7,7 @@ from typing import Optional, Tuple
 
 import numpy as np
 
-from torch_isc._helpers import one_line
+from torch_isc._helpers import npy_header, one_line
 from torch_isc.io.errors import PointFileError
 
 __all__ = ["SUFFIXES", "MAGIC", "is_npy", "decode_points"]
@@ -24,16 +24,9 @@ def is_npy(raw: bytes) -> bool:
 def _check_header(p: Path, raw: bytes) -> None:
     """Check the declared shape, dtype and size against the bytes present, before numpy
     allocates anything: a 289-byte file may declare an array of a terabyte."""
-    fmt = np.lib.format
     fp = _io.BytesIO(raw)
     try:
-        version = fmt.read_magic(fp)
-        if version == (1, 0):
-            shape, _, dtype = fmt.read_array_header_1_0(fp)
-        elif version == (2, 0):
-            shape, _, dtype = fmt.read_array_header_2_0(fp)
-        else:
-            shape, _, dtype = fmt._read_array_header(fp, version)      # (3, 0): utf-8 header
+        shape, _, dtype = npy_header(fp)
     except Exception as e:  # corrupt or unknown headers
         raise PointFileError(f"{p}: unreadable .npy file ({one_line(e) or type(e).__name__})") from None
     if dtype.hasobject:

@@ -15,7 +15,7 @@ from typing import Any, BinaryIO, Dict, Optional, Tuple, Union
 import numpy as np
 import torch
 
-from torch_isc._helpers import one_line
+from torch_isc._helpers import load_npz_arrays, one_line
 from torch_isc.core.curve import ImplicitCurve, InvalidValuesError
 from torch_isc.core.mesh import InvalidMeshError, MeshBatch
 from torch_isc.io.errors import CurveFileError
@@ -76,24 +76,21 @@ def load_npz(path: PathLike, device: Union[str, torch.device, None] = None,
         CurveFileError: missing, unreadable or inconsistent file (one line naming the file).
     """
     p = Path(path)
+    # bounded: a regular file, members' decompressed and declared sizes checked before numpy allocates
+    z = load_npz_arrays(p, CurveFileError, "a curve file")
     try:
-        with np.load(p, allow_pickle=False) as z:
-            missing = [k for k in _ARRAYS + ("dtypes",) if k not in z.files]
-            if missing:
-                raise CurveFileError(f"{p}: not a torch_isc curve file (no '{missing[0]}' array)")
-            fmt = int(z["format"]) if "format" in z.files else NPZ_FORMAT
-            if fmt > NPZ_FORMAT:
-                raise CurveFileError(f"{p}: curve file format {fmt} is newer than this version reads ({NPZ_FORMAT})")
-            dtypes = json.loads(str(z["dtypes"]))
-            t = {k: _from_numpy(z[k], dtypes.get(k, "")) for k in _ARRAYS}
-            meta = json.loads(str(z["metadata"])) if "metadata" in z.files else {}
+        missing = [k for k in _ARRAYS + ("dtypes",) if k not in z]
+        if missing:
+            raise CurveFileError(f"{p}: not a torch_isc curve file (no '{missing[0]}' array)")
+        fmt = int(z["format"]) if "format" in z else NPZ_FORMAT
+        if fmt > NPZ_FORMAT:
+            raise CurveFileError(f"{p}: curve file format {fmt} is newer than this version reads ({NPZ_FORMAT})")
+        dtypes = json.loads(str(z["dtypes"]))
+        t = {k: _from_numpy(z[k], dtypes.get(k, "")) for k in _ARRAYS}
+        meta = json.loads(str(z["metadata"])) if "metadata" in z else {}
     except CurveFileError:
         raise
-    except FileNotFoundError:
-        raise CurveFileError(f"{p}: no such file") from None
-    except OSError as e:
-        raise CurveFileError(f"{p}: cannot read ({e.strerror or one_line(e)})") from None
-    except Exception as e:  # zipfile.BadZipFile, ValueError, KeyError, json errors from a corrupt file
+    except Exception as e:  # ValueError, KeyError, json errors, RecursionError from a corrupt file
         raise CurveFileError(f"{p}: unreadable curve file ({type(e).__name__}: {one_line(e)})") from None
     try:
         if device is not None:

@@ -1,5 +1,6 @@
-"""Point sets as text: ``x y`` or ``x,y`` rows, ``#`` comments, blank lines, one optional
-header line of words (e.g. ``x,y``)."""
+"""Point sets as text: ``x y``, ``x,y`` or ``x;y`` rows, ``#`` comments, blank lines, one
+optional header line of words (e.g. ``x,y``). A decimal comma (``1,5;2,5``) is not read as one:
+such a row has four fields and is refused with its line number."""
 from __future__ import annotations
 
 import io as _io
@@ -18,10 +19,10 @@ __all__ = ["SUFFIXES", "decode_points"]
 #: Suffixes of text point files picked up from a folder (any file given by name is tried as text).
 SUFFIXES = (".xy", ".txt", ".csv")
 
-_FIELD_SPLIT = re.compile(r"\s*,\s*|\s+")
+_FIELD_SPLIT = re.compile(r"\s*[,;]\s*|\s+")
 _COMMENT = re.compile(r"#[^\n]*")
 _FIRST_LINE = re.compile(r"^[ \t\f\v]*(\S[^\n]*)$", re.M)
-_EMPTY_FIELD = re.compile(r"^[ \t]*,|,[ \t]*,|,[ \t]*$", re.M)
+_EMPTY_FIELD = re.compile(r"^[ \t]*[,;]|[,;][ \t]*[,;]|[,;][ \t]*$", re.M)
 
 
 def _is_number(tok: str) -> bool:
@@ -57,7 +58,7 @@ def decode_points(p: Path, raw: bytes) -> Tuple[np.ndarray, Optional[np.ndarray]
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")          # "input contained no data"
-                pts = np.loadtxt(_io.StringIO(text.replace(",", " ")), dtype=np.float64, ndmin=2, comments=None)
+                pts = np.loadtxt(_io.StringIO(text.replace(",", " ").replace(";", " ")), dtype=np.float64, ndmin=2, comments=None)
         except ValueError:
             pts = None
     if pts is not None and pts.size == 0:

@@ -43,7 +43,7 @@ def read_points(path: PathLike) -> np.ndarray:
     Args:
         path: a text file of ``x y`` rows (whitespace- or comma-separated; ``#`` starts a
             comment; blank lines are skipped; the first data line may be a header of
-            non-numeric words such as ``x,y``; :mod:`~torch_isc.io.points_text`), or a ``.npy``
+            non-numeric words such as ``x,y``; ``;`` separates too; :mod:`~torch_isc.io.points_text`), or a ``.npy``
             file holding a numeric ``(N, 2)`` array (:mod:`~torch_isc.io.npy`). A file that
             starts with the ``.npy`` magic is read as ``.npy`` whatever its extension; any other
             suffix is read as text.

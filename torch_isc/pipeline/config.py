@@ -15,11 +15,12 @@ across the sections, so a flat key says where it belongs. Every field is documen
 from __future__ import annotations
 
 import dataclasses
+import os
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Dict, Iterable, List, Mapping, Optional, Union
 
-from torch_isc._helpers import decode_text
+from torch_isc._helpers import decode_text, is_regular_file
 from torch_isc.pipeline.band import BandConfig
 from torch_isc.pipeline.evidence import EvidenceConfig
 from torch_isc.pipeline.knobs import ConfigError, check_bounds, check_section, knob
@@ -249,6 +250,8 @@ def read_config_mapping(path: Union[str, Path]) -> Dict[str, Any]:
         ConfigError: one line naming the file.
     """
     p = Path(path)
+    if os.path.exists(p) and not os.path.isdir(p) and not is_regular_file(p):       # a FIFO would block, a device never end
+        raise ConfigError(f"{path}: cannot read config file (not a regular file)")
     try:
         with open(p, "rb") as fh:
             raw = fh.read(MAX_CONFIG_BYTES + 1)

@@ -85,6 +85,28 @@ def reconstruct(points: PointsLike, config: Optional[ReconstructConfig] = None, 
     return reconstruct_batch([points], config, None if name is None else [name], oracles)[0]
 
 
+def _sequence(x, what: str) -> list:
+    """``x`` (a list, tuple, generator, or a tensor/array iterated along its first axis) as a
+    list; :class:`PointSetError` for a string, a mapping or something not iterable."""
+    if isinstance(x, (str, bytes, dict)) or not hasattr(x, "__iter__"):
+        raise PointSetError(f"{what}: expected a sequence, got {type(x).__name__}")
+    return list(x)
+
+
+def _as_lists(point_sets, names, sign_oracles):
+    """The arguments of :func:`reconstruct_batch` as lists (a generator is read once), checked
+    at the boundary: every oracle callable or None."""
+    point_sets = _sequence(point_sets, "point_sets")
+    if names is not None:
+        names = _sequence(names, "names")
+    if sign_oracles is not None and not callable(sign_oracles):
+        sign_oracles = _sequence(sign_oracles, "sign_oracles")
+        for i, o in enumerate(sign_oracles):
+            if o is not None and not callable(o):
+                raise PointSetError(f"sign_oracles[{i}]: expected a callable or None, got {type(o).__name__}")
+    return point_sets, names, sign_oracles
+
+
 def reconstruct_batch(point_sets: Sequence[PointsLike], config: Optional[ReconstructConfig] = None,
                       names: Optional[Sequence[Optional[str]]] = None,
                       sign_oracles: Union[None, Callable, Sequence[Optional[Callable]]] = None,
@@ -115,6 +137,7 @@ def reconstruct_batch(point_sets: Sequence[PointsLike], config: Optional[Reconst
     :func:`torch_isc.pipeline.refit.attach_point_gradients`). Otherwise nothing changes.
     """
     cfg = _as_config(config)
+    point_sets, names, sign_oracles = _as_lists(point_sets, names, sign_oracles)
     if len(point_sets) == 0:
         return ([], None) if packed else []
     if sign_oracles is not None and not callable(sign_oracles) and len(sign_oracles) != len(point_sets):

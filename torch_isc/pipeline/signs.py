@@ -14,6 +14,8 @@ from typing import TYPE_CHECKING, Callable, Optional, Protocol, Sequence, Union
 
 import torch
 
+from torch_isc._helpers import one_line
+
 from torch_isc.core.mesh import MeshBatch
 from torch_isc.core.points import PointSetError
 from torch_isc.core.segments import edge_components, first_index, hash_keys, hash_to_unit, mix32, segment_count, segment_max, segment_min
@@ -547,7 +549,7 @@ class OracleSigns:
         b = ws.items[item]
         xc = ws.caller_points(x, item)
         if callable(self.oracles):                                  # batched: one call for all items
-            inside = torch.as_tensor(self.oracles(xc, b), device=x.device).bool().reshape(-1)
+            inside = _ask(self.oracles, "sign oracle", x.device, xc, b)
             if inside.shape[0] != xc.shape[0]:
                 raise SignOracleError(f"sign oracle returned {inside.shape[0]} values for {xc.shape[0]} points")
             return inside
@@ -559,7 +561,7 @@ class OracleSigns:
             if o is None:
                 raise SignOracleError(f"item {b}: sign oracles must be given for every item or none")
             if n:
-                got = torch.as_tensor(o(xc[s0:s0 + n]), device=x.device).bool().reshape(-1)
+                got = _ask(o, f"item {b}: sign oracle", x.device, xc[s0:s0 + n])
                 if got.shape[0] != n:
                     raise SignOracleError(f"item {b}: sign oracle returned {got.shape[0]} values for {n} points")
                 out[s0:s0 + n] = got
@@ -588,3 +590,16 @@ class OracleSigns:
 
 class SignOracleError(PointSetError):
     """A sign oracle that answered with the wrong number of values, or was missing."""
+
+
+def _ask(oracle: Callable, what: str, device, *args) -> torch.Tensor:
+    """``oracle(*args)`` as a flat bool tensor on ``device``; an oracle that raises or answers
+    with something that is not an array of booleans is a :class:`SignOracleError` (one line)."""
+    try:
+        got = oracle(*args)
+    except Exception as e:
+        raise SignOracleError(f"{what} raised {type(e).__name__}: {one_line(e, '(no message)')}") from e
+    try:
+        return torch.as_tensor(got, device=device).bool().reshape(-1)
+    except (TypeError, ValueError, RuntimeError) as e:
+        raise SignOracleError(f"{what} returned {type(got).__name__}, not an array of booleans") from None

@@ -437,12 +437,12 @@ def test_reconstruct_finds_satellites_of_eight_points():
         c = 1.5 * torch.tensor([math.cos(1.0 + 2.1 * k), math.sin(1.0 + 2.1 * k)], dtype=torch.float64)
         parts.append(c + 0.15 * torch.stack([torch.cos(u), torch.sin(u)], 1))
     pts = torch.cat(parts)
-    loops = torch_isc.reconstruct(pts).polylines
+    loops = torch_isc.reconstruct(pts, config=torch_isc.ReconstructConfig().replace(enclose_chord=1.8)).polylines
     assert len(loops) == 4 and all(pl["closed"] for pl in loops)
     # each satellite's loop lies around its centre, within its points' ring
     for k in range(3):
         c = 1.5 * torch.tensor([math.cos(1.0 + 2.1 * k), math.sin(1.0 + 2.1 * k)], dtype=torch.float64)
         d = [float((torch.as_tensor(pl["points"]) - c).norm(dim=1).max()) for pl in loops]
         assert min(d) < 0.25
-    off = torch_isc.reconstruct(pts, torch_isc.ReconstructConfig().replace(enclose_chord=0.0))
+    off = torch_isc.reconstruct(pts, config=torch_isc.ReconstructConfig())     # the default: off
     assert len(off.polylines) < 4

@@ -1,6 +1,7 @@
 """Does a small closed curve beside a large one survive? A unit circle of 300 points and one
 small circle (radius 0.03-0.12, 12-40 points) 1.6 away, noise 0 and 0.5% of the diagonal, with
-the speck rule as configured, without its surrounded guard, and off; prints a table of curve
+the speck rule as configured, without its surrounded guard, and off, and with the enclosure rule
+on (enclose_chord 1.8); prints a table of curve
 counts (2 is right).
 
     OMP_NUM_THREADS=1 python scripts/evaluate_small_components.py [--seed 0]
@@ -14,7 +15,7 @@ import numpy as np
 from torch_isc import reconstruct
 
 VARIANTS = (("default", {}), ("no surrounded guard", {"open_keep_surrounded": False}),
-            ("speck rule off", {"open_tolerances": 0.0}))
+            ("speck rule off", {"open_tolerances": 0.0}), ("enclosure rule on", {"enclose_chord": 1.8}))
 
 
 def main():

@@ -315,3 +315,134 @@ def test_a_speck_its_own_data_surround_is_kept():
     assert not surrounded_regions(mesh, speck, pts[:4], face[:4])[speck].any()
     # a point in no triangle (face −1) counts for nothing
     assert not surrounded_regions(mesh, speck, pts, torch.where(torch.arange(5) == 4, -1, face))[speck].any()
+
+
+def _enclosed_by_loops(mesh, s, pts, face, clear, chord, rings, min_points):
+    """enclosed_vertices by plain loops: breadth-first edge distances from every vertex, the
+    points of the triangles with a corner within ``rings`` edges, sorted by angle."""
+    V = len(s)
+    faces = mesh.faces.tolist()
+    verts = mesh.verts.tolist()
+    nbr = [set() for _ in range(V)]
+    for a, b in mesh.edges.tolist():
+        nbr[a].add(b)
+        nbr[b].add(a)
+    bnd = mesh.is_boundary_vert.tolist()
+    crossed = [any(s[u] != s[v] for u in nbr[v]) for v in range(V)]
+    cut = [len({s[c] for c in f}) > 1 for f in faces]
+    out = []
+    for v in range(V):
+        if bnd[v] or crossed[v]:
+            out.append(False)
+            continue
+        near_set, front = {v}, {v}
+        for _ in range(rings):
+            front = {w for u in front for w in nbr[u]} - near_set
+            near_set |= front
+        got = []
+        for p, f in zip(pts.tolist(), face.tolist()):
+            if f < 0 or cut[f] or not near_set & set(faces[f]):
+                continue
+            got.append((math.atan2(p[1] - verts[v][1], p[0] - verts[v][0]) + math.pi, p))
+        if len(got) < max(min_points, 3):
+            out.append(False)
+            continue
+        got.sort()
+        r = min(math.hypot(p[0] - verts[v][0], p[1] - verts[v][1]) for _, p in got)
+        closed = got + [(got[0][0] + 2 * math.pi, got[0][1])]
+        big = max(math.hypot(q[1][0] - p[1][0], q[1][1] - p[1][1]) for p, q in zip(closed, closed[1:]))
+        gap = max(q[0] - p[0] for p, q in zip(closed, closed[1:]))
+        out.append(r >= clear and big <= chord * r and gap <= 2 * math.asin(min(chord / 2, 1)))
+    return out
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_enclosed_vertices_against_loops(seed):
+    from torch_isc.pipeline.simplify import enclosed_vertices
+    mesh = mesh_of(6)
+    g = torch.Generator().manual_seed(seed)
+    V = mesh.verts.shape[0]
+    s = torch.where(torch.rand(V, generator=g) < 0.06, -1.0, 1.0).double()
+    # scattered points and small rings of 6-10 points (with jitter)
+    parts = [(torch.rand(80, 2, generator=g, dtype=torch.float64) - 0.5) * 1.6]
+    for _ in range(8):
+        n = int(torch.randint(6, 11, (1,), generator=g))
+        t = torch.rand(1, generator=g, dtype=torch.float64) + torch.arange(n, dtype=torch.float64) * (2 * math.pi / n)
+        r = 0.05 + 0.1 * torch.rand(1, generator=g, dtype=torch.float64)
+        ring = torch.stack([torch.cos(t), torch.sin(t)], 1) * r * (1 + 0.2 * torch.rand(n, 1, generator=g, dtype=torch.float64))
+        parts.append(ring + (torch.rand(1, 2, generator=g, dtype=torch.float64) - 0.5) * 1.2)
+    pts = torch.cat(parts)
+    face = _faces_by_brute_force(mesh, pts)
+    hits = 0
+    for chord, clear, rings, m in ((1.5, 0.0, 0, 3), (1.8, 0.02, 1, 6), (1.2, 0.0, 2, 4), (2.5, 0.0, 1, 8)):
+        got = enclosed_vertices(mesh, s, pts, face, torch.full((V,), clear, dtype=torch.float64), chord, rings, m)
+        ref = _enclosed_by_loops(mesh, s.tolist(), pts, face, clear, chord, rings, m)
+        assert got.tolist() == ref
+        hits += sum(ref)
+    assert hits > 0                                  # the case is not vacuous
+
+
+def test_enclose_flips_the_vertex_a_missed_ring_surrounds():
+    from torch_isc.pipeline.simplify import enclosed_vertices
+    mesh = mesh_of(12)
+    h = 1.0 / 12
+    v = mesh.verts
+    c = int(((v - torch.tensor([0.0, 0.5], dtype=torch.float64)) ** 2).sum(1).argmin())
+    V = v.shape[0]
+    t = torch.arange(8, dtype=torch.float64) * (2 * math.pi / 8) + 0.2
+    ring = v[c] + 0.6 * h * torch.stack([torch.cos(t), torch.sin(t)], 1)   # 8 points about vertex c
+    face = _faces_by_brute_force(mesh, ring)
+    clear = torch.full((V,), 0.3 * h, dtype=torch.float64)
+    plus = torch.ones(V, dtype=torch.float64)
+    # chords 2 sin(pi/8) 0.6 h = 0.46 h against the distance 0.6 h: a ring at 1.5, not at 0.7
+    hit = enclosed_vertices(mesh, plus, ring, face, clear, 1.5, 2)
+    assert hit.nonzero().squeeze(1).tolist() == [c]
+    assert not enclosed_vertices(mesh, plus, ring, face, clear, 0.7, 2).any()
+    # inside a negative region the same ring is a hole: the vertex is found just the same
+    minus = torch.where(((v - v[c]) ** 2).sum(1) < (4 * h) ** 2, -1.0, 1.0).double()
+    assert enclosed_vertices(mesh, minus, ring, face, clear, 1.5, 2).nonzero().squeeze(1).tolist() == [c]
+    # the zero set nearer than the ring's farthest point (0.6 h): the ring is the curve's noise
+    for dep, fires in ((0.5 * h, False), (0.7 * h, True)):
+        got = enclosed_vertices(mesh, plus, ring, face, clear, 1.5, 2, 6, torch.full((V,), dep, dtype=torch.float64))
+        assert bool(got[c]) == fires
+    # fewer points than min_points: no ring
+    assert not enclosed_vertices(mesh, plus, ring, face, clear, 1.5, 2, 9).any()
+    # a curve already there (c negative): nothing to do
+    cneg = plus.clone()
+    cneg[c] = -1
+    assert not enclosed_vertices(mesh, cneg, ring, face, clear, 1.5, 2).any()
+    # half a ring: a gap of 5 pi / 4 (short chords, but all on one side)
+    assert not enclosed_vertices(mesh, plus, ring[:4], face[:4], clear, 1.5, 2).any()
+    # data nearer than the clearance: the vertex sits in the data, not inside a curve
+    assert not enclosed_vertices(mesh, plus, ring, face, torch.full((V,), 0.7 * h, dtype=torch.float64), 1.5, 2).any()
+    # two walls 0.5 h either side of c, 3 h long: all round it by angle, but the chord that
+    # closes each end (h) is twice the distance (0.5 h)
+    x = torch.linspace(-3 * h, 3 * h, 25, dtype=torch.float64)
+    walls = torch.cat([torch.stack([x, torch.full_like(x, 0.5 * h)], 1),
+                       torch.stack([x, torch.full_like(x, -0.5 * h)], 1)]) + v[c]
+    wf = _faces_by_brute_force(mesh, walls)
+    assert not enclosed_vertices(mesh, plus, walls, wf, clear * 0, 1.8, 2).any()
+    # ...which a chord bound above 2 would take for a ring
+    assert enclosed_vertices(mesh, plus, walls, wf, clear * 0, 2.01, 2)[c]
+
+
+def test_reconstruct_finds_satellites_of_eight_points():
+    """A unit circle (200 points) and three circles of radius 0.15 at distance 1.5, 8 points
+    each: line fits cannot describe an 8-point circle, the enclosure rule finds all three."""
+    import torch_isc
+    t = 0.3 + torch.arange(200, dtype=torch.float64) * (2 * math.pi / 200)
+    parts = [torch.stack([torch.cos(t), torch.sin(t)], 1)]
+    for k in range(3):
+        u = torch.arange(8, dtype=torch.float64) * (2 * math.pi / 8) + 0.4 * k
+        c = 1.5 * torch.tensor([math.cos(1.0 + 2.1 * k), math.sin(1.0 + 2.1 * k)], dtype=torch.float64)
+        parts.append(c + 0.15 * torch.stack([torch.cos(u), torch.sin(u)], 1))
+    pts = torch.cat(parts)
+    loops = torch_isc.reconstruct(pts, config=torch_isc.ReconstructConfig().replace(enclose_chord=1.8)).polylines
+    assert len(loops) == 4 and all(pl["closed"] for pl in loops)
+    # each satellite's loop lies around its centre, within its points' ring
+    for k in range(3):
+        c = 1.5 * torch.tensor([math.cos(1.0 + 2.1 * k), math.sin(1.0 + 2.1 * k)], dtype=torch.float64)
+        d = [float((torch.as_tensor(pl["points"]) - c).norm(dim=1).max()) for pl in loops]
+        assert min(d) < 0.25
+    off = torch_isc.reconstruct(pts, config=torch_isc.ReconstructConfig())     # the default: off
+    assert len(off.polylines) < 4

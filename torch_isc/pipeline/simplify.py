@@ -28,9 +28,14 @@ tolerances (or noise widths) is below what the data resolve: if one vertex of th
 separates it from another region of its sign (a tip cut off its body, an arm pinched off at
 a sharp inner corner), that vertex joins them; otherwise it flips (a speck, a sliver hole).
 Either way its loop goes; joining keeps its data on the curve.
+
+Last, the enclosure rule (:func:`enclosed_vertices`, :func:`enclose_stage`), the converse: a
+vertex with no curve in its star that a closed ring of unexplained points goes all the way
+round (a satellite of 7-9 points, which line fits cannot describe) takes the other sign.
 """
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING
 
 import torch
@@ -42,7 +47,8 @@ if TYPE_CHECKING:
     from torch_isc.pipeline.signs import TopologyConfig
     from torch_isc.pipeline.workset import WorkingSet
 
-__all__ = ["cluster_flip_change", "descend_clusters", "zero_set_distance", "ball_cover", "open_signs", "open_stage", "surrounded_regions"]
+__all__ = ["cluster_flip_change", "descend_clusters", "zero_set_distance", "ball_cover", "open_signs", "open_stage", "surrounded_regions",
+           "enclosed_vertices", "enclose_stage"]
 
 
 def cluster_flip_change(edges: torch.Tensor, H: torch.Tensor, signs: torch.Tensor, lab: torch.Tensor) -> torch.Tensor:
@@ -229,3 +235,104 @@ def open_stage(ws: "WorkingSet", signs: torch.Tensor, pinned: torch.Tensor, cfg:
     data = (ws.points, ws.face) if cfg.open_keep_surrounded else None
     return open_signs(mesh, signs, pinned, r.to(signs.dtype)[mesh.vert_item], cfg.open_rounds,
                       cfg.open_whole_regions, cfg.open_merge, data)
+
+
+def enclosed_vertices(mesh: MeshBatch, signs: torch.Tensor, points: torch.Tensor, face: torch.Tensor,
+                      clearance: torch.Tensor, chord: float = 1.5, rings: int = 2, min_points: int = 6,
+                      depth: "torch.Tensor | None" = None) -> torch.Tensor:
+    """``(V,)`` bool: vertices that a ring of unexplained data encloses while no curve passes
+    near them.
+
+    The unexplained points are those (``points (P, 2)``, ``face (P,)`` their triangles, −1 for
+    none) in triangles the signs do not cross: no curve passes through their triangle. About a vertex ``v``, take the unexplained points in the triangles with a
+    corner at most ``rings`` edges from ``v`` (``rings = 1``: its star and its neighbours'
+    stars), ``r`` the nearest one's distance. ``v`` fires when (1) it is no boundary vertex and
+    every neighbour has its sign, (2) it sees at least ``min_points`` such points and ``r >=
+    clearance (V,)`` (it lies off the data, not in a noise band), and (3) going round ``v`` by
+    angle, every two consecutive points (the last and the first too) are at most ``chord · r``
+    apart and at most ``2 asin(chord / 2)`` apart in angle (97° at 1.5; the chord alone bounds
+    the angle only up to 180°, and a tight cluster on one side has short chords). So (3) asks
+    for a closed ring of samples around ``v``: two walls of a stroke (a gap between their ends
+    of twice ``r``) or scattered outliers (chords as long as their distance) are no such ring.
+    Data all around a vertex with no curve near is a small closed curve the signs have missed
+    (a satellite of a few points, a small counter): the vertex takes the other sign, so its
+    region is on the other side of that curve whichever side the surrounding is on. With
+    ``depth (V,)`` (each vertex's distance to the zero set, :func:`zero_set_distance`) the
+    farthest point of the ring must be nearer than the zero set: the noisy points round a
+    coarse curve, outside its crossed triangles, ring the curve's centre too."""
+    with torch.no_grad():
+        V = signs.shape[0]
+        P = points.shape[0]
+        dev = signs.device
+        e = mesh.edges
+        neg = signs < 0
+        cut = neg[e[:, 0]] != neg[e[:, 1]]
+        crossed = torch.zeros(V, dtype=torch.bool, device=dev)
+        crossed.index_fill_(0, e[:, 1][cut], True).index_fill_(0, e[:, 0][cut], True)
+        fn = neg[mesh.faces]
+        face_cut = fn.any(1) & ~fn.all(1)
+        ok = face >= 0
+        idx = (ok & ~face_cut[face.clamp_min(0)]).nonzero().squeeze(1)     # one host read
+        first, nbrs = mesh.vert_neighbors
+        M = max(P, 1)
+        key = torch.unique(mesh.faces[face[idx]].reshape(-1) * M + idx.repeat_interleave(3))
+        for _ in range(int(rings)):
+            # receivers: each vertex so far and its neighbours ((vertex, point) pairs, once)
+            recv, pid = key // M, key % M
+            deg = first[recv + 1] - first[recv]
+            rep = pid.repeat_interleave(deg)
+            start = torch.repeat_interleave(first[recv] - torch.cumsum(deg, 0) + deg, deg)
+            nb = nbrs[start + torch.arange(rep.shape[0], device=dev)]
+            key = torch.unique(torch.cat([key, nb * M + rep]))
+        recv, pts = key // M, key % M
+        v = mesh.verts.detach()
+        x = points.detach().to(v.dtype)[pts]
+        d = x - v[recv]
+        dist = d.norm(dim=1)
+        near = torch.full((V,), float("inf"), dtype=v.dtype, device=dev).scatter_reduce(0, recv, dist, "amin")
+        far = torch.zeros(V, dtype=v.dtype, device=dev).scatter_reduce(0, recv, dist, "amax")
+        # round each vertex by angle: consecutive chords, and the closing one (last to first)
+        ang = torch.atan2(d[:, 1], d[:, 0]) + torch.pi                      # [0, 2 pi]
+        order = torch.argsort(recv.to(v.dtype) * 8.0 + ang)
+        recv, x, ang = recv[order], x[order], ang[order]
+        n = recv.shape[0]
+        big = torch.zeros(V, dtype=v.dtype, device=dev)
+        gap = torch.zeros(V, dtype=v.dtype, device=dev)
+        if n:
+            same = recv[1:] == recv[:-1]
+            zero = torch.zeros_like(dist[1:])
+            big.scatter_reduce_(0, recv[1:], torch.where(same, (x[1:] - x[:-1]).norm(dim=1), zero), "amax")
+            gap.scatter_reduce_(0, recv[1:], torch.where(same, ang[1:] - ang[:-1], zero), "amax")
+            head = torch.ones(n, dtype=torch.bool, device=dev)
+            head[1:] = ~same
+            tail = torch.ones(n, dtype=torch.bool, device=dev)
+            tail[:-1] = ~same
+            hx = torch.zeros(V, 2, dtype=v.dtype, device=dev).index_copy_(0, recv[head], x[head])
+            tx = torch.zeros(V, 2, dtype=v.dtype, device=dev).index_copy_(0, recv[tail], x[tail])
+            ha = torch.zeros(V, dtype=v.dtype, device=dev).index_copy_(0, recv[head], ang[head])
+            ta = torch.zeros(V, dtype=v.dtype, device=dev).index_copy_(0, recv[tail], ang[tail])
+            big = torch.maximum(big, (hx - tx).norm(dim=1))
+            gap = torch.maximum(gap, ha + 2 * torch.pi - ta)
+        count = torch.zeros(V, dtype=torch.long, device=dev).index_add_(0, recv, torch.ones_like(recv))
+        # the chord bounds the angle between two points only up to pi: the gap is asked too
+        max_gap = 2 * math.asin(min(chord / 2, 1.0))
+        hit = (~mesh.is_boundary_vert & ~crossed & (count >= max(int(min_points), 3)) & (near >= clearance.to(v.dtype))
+               & (big <= chord * near) & (gap <= max_gap))
+        if depth is not None:
+            # the ring lies inside the vertex's own region, nearer than the zero set: noisy
+            # points round a coarse curve (outside its crossed triangles) ring its centre too
+            hit = hit & (far < depth.to(v.dtype))
+        return hit
+
+
+def enclose_stage(ws: "WorkingSet", signs: torch.Tensor, cfg: "TopologyConfig") -> torch.Tensor:
+    """``signs`` with :func:`enclosed_vertices` flipped (chords of ``enclose_chord`` times the
+    ring's distance, points within ``enclose_rings`` edges, off the data by
+    ``enclose_noise_widths`` noise widths)."""
+    mesh = ws.mesh
+    clear = (cfg.enclose_noise_widths * ws.noise).to(signs.dtype)[mesh.vert_item]
+    cap = torch.full_like(signs, float("inf"))
+    depth = zero_set_distance(mesh, signs, cap, int(cfg.open_rounds))
+    hit = enclosed_vertices(mesh, signs, ws.points, ws.face, clear, float(cfg.enclose_chord),
+                            int(cfg.enclose_rings), int(cfg.enclose_min_points), depth)
+    return torch.where(hit, -signs, signs)

@@ -34,7 +34,7 @@ class NoiseConfig:
     #: neighbours of each point (approximate kNN) among which its local parabola is fitted
     denoise_neighbours: int = knob(24, ge=3)
     #: radius of the fit, in noise widths (at least the point's few nearest neighbours)
-    denoise_radius: float = knob(4.0, gt=0)
+    denoise_radius: float = knob(8.0, gt=0)
     #: scale of the weight across the point's tangent, in noise widths (bilateral: a close
     #: second curve or the other side of a corner barely counts)
     denoise_band: float = knob(1.5, gt=0)

@@ -164,3 +164,14 @@ def test_config_keys_reach_the_noise_section():
     assert cfg.noise.denoise_iterations == 2 and cfg.noise.denoise_radius == 5.0
     with pytest.raises(ValueError):
         ReconstructConfig().replace(denoise_iterations=-1)
+
+
+def test_the_loop_assumes_the_scaled_noise_after_denoising():
+    from torch_isc.pipeline.loop import reconstruct
+    pts = _circle(200, 0.01, seed=7)
+    base = ReconstructConfig().replace(max_level=2)
+    n_raw = reconstruct(pts, base).stats[0].noise
+    n_on = reconstruct(pts, base.replace(denoise_iterations=1)).stats[0].noise
+    n_half = reconstruct(pts, base.replace(denoise_iterations=1, denoise_noise_scale=0.5)).stats[0].noise
+    assert n_on == pytest.approx(n_raw, rel=1e-6)          # the estimate is of the raw points
+    assert n_half == pytest.approx(0.5 * n_raw, rel=1e-6)

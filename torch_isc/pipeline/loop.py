@@ -192,12 +192,15 @@ def _start(batch: PointBatch, cfg: ReconstructConfig, rec: StatsRecorder) -> Wor
         use = cfg.noise.denoise_use
         points = batch.points if use == "evidence" else den
         sign_points = None if den is batch.points or use == "all" else (den if use == "evidence" else batch.points)
+        # what noise the loop's rules assume (tolerance floor, thin features, band size): the
+        # denoised points' residual spread is below the raw estimate
+        level = est.level if den is batch.points else est.level * cfg.noise.denoise_noise_scale
     rec.skip()                                   # the noise estimate is not a stage of the loop
     mesh = initial_mesh(cfg.mesh, B, device, dtype)
     face, bary = locate_grid(mesh, points, batch.point_item)
     rec.tick("locate")
     return WorkingSet.start(mesh, points, batch.point_item, face, bary, est.frames, batch.center,
-                            batch.scale, tol, est.level, batch.flat, sign_points=sign_points)
+                            batch.scale, tol, level, batch.flat, sign_points=sign_points)
 
 
 def run_loop(batch: PointBatch, cfg: ReconstructConfig, source: SignSource,

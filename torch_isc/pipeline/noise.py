@@ -43,6 +43,8 @@ class NoiseConfig:
     #: what sees the denoised points: all (the whole loop), evidence (only the sign evidence),
     #: geometry (the fit, the test and the band; the signs read the raw points)
     denoise_use: str = knob("all", choices=("all", "evidence", "geometry"))
+    #: the noise level the loop assumes after denoising, as a fraction of the raw estimate
+    denoise_noise_scale: float = knob(1.0, gt=0, le=1)
 
     def __post_init__(self):
         check_section(self)

@@ -29,6 +29,7 @@ from torch_isc.core.points import PointBatch, PointSetError, PointsLike, check_e
 from torch_isc.core.segments import segment_count, segment_sum
 from torch_isc.pipeline.config import ConfigError, MeshConfig, ReconstructConfig, from_dict, initial_triangles
 from torch_isc.pipeline.band import band_stage
+from torch_isc.pipeline.denoise import denoise_points
 from torch_isc.pipeline.evidence import gather_evidence
 from torch_isc.pipeline.noise import noise_and_frames
 from torch_isc.pipeline.relax import relax_stage
@@ -208,12 +209,21 @@ def _start(batch: PointBatch, cfg: ReconstructConfig, rec: StatsRecorder) -> Wor
     with torch.no_grad():
         tol = _tolerance(batch, cfg, dtype).to(dtype)
         est = noise_and_frames(batch.points, batch.point_item, B, cfg.noise, batch.source)
+        # the loop sees the points averaged at their noise scale (identity when disabled); with
+        # denoise_use evidence (geometry) only the sign evidence (the fit and the test) does
+        den = denoise_points(batch.points, batch.point_item, est.level, est.frames, cfg.noise)
+        use = cfg.noise.denoise_use
+        points = batch.points if use == "evidence" else den
+        sign_points = None if den is batch.points or use == "all" else (den if use == "evidence" else batch.points)
+        # what noise the loop's rules assume (tolerance floor, thin features, band size): the
+        # denoised points' residual spread is below the raw estimate
+        level = est.level if den is batch.points else est.level * cfg.noise.denoise_noise_scale
     rec.skip()                                   # the noise estimate is not a stage of the loop
     mesh = initial_mesh(cfg.mesh, B, device, dtype)
-    face, bary = locate_grid(mesh, batch.points, batch.point_item)
+    face, bary = locate_grid(mesh, points, batch.point_item)
     rec.tick("locate")
-    return WorkingSet.start(mesh, batch.points, batch.point_item, face, bary, est.frames, batch.center,
-                            batch.scale, tol, est.level, batch.flat)
+    return WorkingSet.start(mesh, points, batch.point_item, face, bary, est.frames, batch.center,
+                            batch.scale, tol, level, batch.flat, sign_points=sign_points)
 
 
 def run_loop(batch: PointBatch, cfg: ReconstructConfig, source: SignSource,
@@ -227,7 +237,7 @@ def run_loop(batch: PointBatch, cfg: ReconstructConfig, source: SignSource,
     ws = _start(batch, cfg, rec)
     for level in range(cfg.limits.max_level + 1):
         ev = gather_evidence(ws, cfg.evidence)                         # EstimateTopology
-        ws = ws.replace(signs=source.signs(ws, ev, level))
+        ws = ws.replace(signs=source.signs(ws, ev if ws.sign_points is None else _sign_evidence(ws, cfg), level))
         rec.tick("topology")
         slack = effective_tolerance(ws.tol, ws.noise, cfg.test.noise_factor)
         values, d1 = estimate_values(ws, ev, cfg.geometry, slack)      # EstimateGeometry
@@ -273,6 +283,12 @@ def run_loop(batch: PointBatch, cfg: ReconstructConfig, source: SignSource,
         rec.close_level()
     rec.flush()
     return results  # type: ignore[return-value]
+
+
+def _sign_evidence(ws: WorkingSet, cfg: ReconstructConfig):
+    """The evidence of the signs from ``ws.sign_points`` (located in this level's mesh)."""
+    face, bary = locate_grid(ws.mesh, ws.sign_points, ws.point_item)
+    return gather_evidence(ws.replace(points=ws.sign_points, face=face, bary=bary), cfg.evidence)
 
 
 def _decide(ws: WorkingSet, verdict, cfg: ReconstructConfig, level: int):

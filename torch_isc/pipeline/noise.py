@@ -29,6 +29,22 @@ class NoiseConfig:
     noise_line_aspect: float = knob(2.5, gt=0)
     #: the fewest points a hashed subset may keep
     noise_min_subset: int = knob(64, gt=0)
+    #: passes of the point denoising before the loop (pipeline/denoise.py); 0 disables
+    denoise_iterations: int = knob(0, ge=0)
+    #: neighbours of each point (approximate kNN) among which its local parabola is fitted
+    denoise_neighbours: int = knob(24, ge=3)
+    #: radius of the fit, in noise widths (at least the point's few nearest neighbours)
+    denoise_radius: float = knob(8.0, gt=0)
+    #: scale of the weight across the point's tangent, in noise widths (bilateral: a close
+    #: second curve or the other side of a corner barely counts)
+    denoise_band: float = knob(1.5, gt=0)
+    #: the largest move of a point, in noise widths (outliers stay)
+    denoise_max_move: float = knob(3.0, ge=0)
+    #: what sees the denoised points: all (the whole loop), evidence (only the sign evidence),
+    #: geometry (the fit, the test and the band; the signs read the raw points)
+    denoise_use: str = knob("all", choices=("all", "evidence", "geometry"))
+    #: the noise level the loop assumes after denoising, as a fraction of the raw estimate
+    denoise_noise_scale: float = knob(1.0, gt=0, le=1)
 
     def __post_init__(self):
         check_section(self)

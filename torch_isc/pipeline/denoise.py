@@ -1,0 +1,142 @@
+"""Denoise the points at the item's own noise scale before the loop.
+
+A triangle of five noisy points says little: its line fit (the sign evidence) and the
+magnitude fit follow the noise. Each point is moved onto a weighted local parabola fitted to
+its neighbours, the weights being
+
+* spatial: a bump ``(1 - (r/R)²)²`` over a radius ``R = denoise_radius`` noise widths (never
+  fewer than the point's few nearest neighbours), so the fit averages over the noise's scale;
+* along the local normal: ``exp(-s² / 2(denoise_band σ)²)`` of the neighbour's offset ``s``
+  across the point's current tangent (bilateral), so a second curve a few noise widths away,
+  or the other side of a sharp corner, barely counts.
+
+The parabola (not a line) keeps the curvature: a line through the neighbours of a point of a
+circle would pull it inward by about ``R²/6ρ``. A move is at most ``denoise_max_move`` noise
+widths, so an outlier (whose neighbours are all far along its normal) stays where it is, and
+noise-free data (noise estimate 0) are not moved at all. The fit is repeated
+``denoise_iterations`` times (Jacobi: every point from the previous positions), the neighbours
+found once (approximate kNN along Morton orders, :func:`noise.approximate_knn`). Everything is a
+few tensor ops over the packed batch, in blocks of points (bounded memory); dtype and device
+follow the points; points are expected normalized per item (so the result is invariant to the
+item's translation and scale).
+"""
+from __future__ import annotations
+
+import torch
+
+from torch_isc.core.segments import sym2_eigvals, sym2_eigvec
+from torch_isc.pipeline.noise import KNN_BUDGET, NoiseConfig, approximate_knn
+
+__all__ = ["denoise_points"]
+
+#: the fewest neighbours (self excluded) the radius always covers
+MIN_NEIGHBOURS = 8
+#: a fit whose weights sum below this (the point itself counts 1) moves nothing
+MIN_WEIGHT = 3.0
+#: rounds of the reweighted fit per pass
+ROUNDS = 3
+
+
+def _tangents(x: torch.Tensor, nbr: torch.Tensor, valid: torch.Tensor, R: torch.Tensor, fallback: torch.Tensor,
+              block: int) -> torch.Tensor:
+    """``(P, 2)`` each point's unit tangent: the major axis of its neighbourhood's covariance,
+    weighted by the bump over the fit's radius ``R`` (the noise estimate's frames come from 8
+    neighbours: where the points are denser than the noise is wide, a round blob with a random
+    axis). ``fallback`` where the neighbourhood has no axis."""
+    P = x.shape[0]
+    t = torch.empty_like(fallback)
+    for b0 in range(0, P, block):
+        idx = torch.arange(b0, min(P, b0 + block), device=x.device)
+        q = x[nbr[idx]] - x[idx, None, :]
+        w = (1.0 - (q * q).sum(-1) / R[idx, None] ** 2).clamp_min(0) ** 2
+        w = torch.where(valid[idx], w, torch.zeros_like(w))
+        W = (1.0 + w.sum(1)).clamp_min(torch.finfo(x.dtype).tiny)          # the point itself (q = 0) counts
+        mean = (w[..., None] * q).sum(1) / W[:, None]
+        qd = q - mean[:, None, :]
+        C = torch.einsum("pk,pki,pkj->pij", w, qd, qd) + mean[:, :, None] * mean[:, None, :]
+        a, b, d = C[:, 0, 0], C[:, 0, 1], C[:, 1, 1]
+        _, lmax = sym2_eigvals(a, b, d)
+        v = sym2_eigvec(a, b, d, lmax)
+        v = v / v.norm(dim=1, keepdim=True).clamp_min(torch.finfo(x.dtype).tiny)
+        good = torch.isfinite(v).all(1, keepdim=True) & (v.norm(dim=1, keepdim=True) > 0.5) & (lmax[:, None] > 0)
+        t[idx] = torch.where(good, v, fallback[idx])
+    return t
+
+
+def denoise_points(points: torch.Tensor, point_item: torch.Tensor, noise: torch.Tensor, frames: torch.Tensor,
+                   cfg: NoiseConfig) -> torch.Tensor:
+    """``(P, 2)`` the points moved onto their local weighted parabolas (see the module).
+
+    ``points (P, 2)`` normalized per item, ``point_item (P,)``, ``noise (B,)`` each item's noise
+    level (a standard deviation, normalized units), ``frames (P, 3)`` each point's unit tangent
+    (first two columns; :func:`noise.noise_and_frames`). ``cfg.denoise_iterations == 0``
+    returns ``points`` itself."""
+    iters = cfg.denoise_iterations
+    P = points.shape[0]
+    if iters <= 0 or P < 3:
+        return points
+    with torch.no_grad():
+        dev, dt = points.device, points.dtype
+        k = cfg.denoise_neighbours
+        nbr, d2 = approximate_knn(points, point_item, k, max(cfg.noise_window, (k + 1) // 2))
+        valid = torch.isfinite(d2)
+        kk = nbr.shape[1]
+        sigma = noise.to(dt)[point_item]                                  # (P,)
+        # the radius: denoise_radius noise widths, but at least the MIN_NEIGHBOURS-th neighbour
+        # (sparse data: the fit needs points); only the k neighbours found can count
+        dk = torch.where(valid, d2, torch.zeros_like(d2)).sqrt()
+        near = dk[:, min(MIN_NEIGHBOURS, kk) - 1]
+        R = torch.maximum(cfg.denoise_radius * sigma, near) * (1.0 + 1e-3)
+        R = R.clamp_min(torch.finfo(dt).tiny)
+        sband = (cfg.denoise_band * sigma).clamp_min(torch.finfo(dt).tiny)
+        cap = cfg.denoise_max_move * sigma
+        x = points.detach()
+        block = max(1, KNN_BUDGET // (8 * (kk + 1)))
+        t = _tangents(x, nbr, valid, R, frames[:, :2].to(dt), block)
+        ridge = torch.tensor([0.0, 1e-3, 1e-3], dtype=dt, device=dev)
+        sel = torch.tensor([[0, 1, 2], [1, 2, 3], [2, 3, 4]], device=dev)   # the Hankel matrix of the moments
+        for _ in range(iters):
+            xn = torch.empty_like(x)
+            tn = torch.empty_like(t)
+            for b0 in range(0, P, block):
+                idx = torch.arange(b0, min(P, b0 + block), device=dev)
+                xi, ti = x[idx], t[idx]
+                ni = torch.stack([-ti[:, 1], ti[:, 0]], 1)
+                q = x[nbr[idx]] - xi[:, None, :]                          # (n, kk, 2)
+                q = torch.cat([torch.zeros_like(q[:, :1]), q], 1)          # the point itself first
+                ok = torch.cat([torch.ones_like(valid[idx, :1]), valid[idx]], 1)
+                Ri = R[idx, None]
+                u = (q * ti[:, None, :]).sum(-1) / Ri                      # along the tangent, in radii
+                s = (q * ni[:, None, :]).sum(-1)                           # across it
+                r2 = u * u + (s / Ri) ** 2
+                wsp = (1.0 - r2).clamp_min(0) ** 2
+                wsp = torch.where(ok, wsp, torch.zeros_like(wsp))
+                # the normal equations of the parabola need the moments of u up to the fourth
+                upow = torch.stack([torch.ones_like(u), u, u * u, u * u * u, (u * u) ** 2], -1)    # (n, kk+1, 5)
+                W = wsp.sum(1)
+                reg = torch.diag_embed(ridge.expand(idx.shape[0], 3) * W[:, None])
+                fit = torch.zeros_like(s)                                  # round 0: about the point itself
+                for _ in range(ROUNDS):
+                    # the weight across is centred on the last fit: a mean shift across the curve
+                    # within the parabola model, which settles on the nearest ridge of the data
+                    w = wsp * torch.exp(-0.5 * ((s - fit) / sband[idx, None]) ** 2)
+                    mom = torch.einsum("pk,pkj->pj", w, upow)                  # (n, 5)
+                    A = mom[:, sel] + reg
+                    rhs = torch.einsum("pk,pkj->pj", w * s, upow[..., :3])
+                    coef = torch.linalg.solve_ex(A, rhs[..., None])[0][..., 0]      # singular: not finite, no move
+                    fit = coef[:, None, 0] + u * (coef[:, None, 1] + u * coef[:, None, 2])
+                W = w.sum(1)
+                move = coef[:, 0].clamp(-cap[idx], cap[idx])
+                good = (W >= MIN_WEIGHT) & torch.isfinite(coef).all(1)
+                move = torch.where(good, move, torch.zeros_like(move))
+                xn[idx] = xi + move[:, None] * ni
+                # the parabola's slope at the point turns the tangent (slope per radius)
+                slope = torch.where(good, coef[:, 1] / Ri[:, 0], torch.zeros_like(move))
+                tt = ti + slope[:, None] * ni
+                tn[idx] = tt / tt.norm(dim=1, keepdim=True).clamp_min(torch.finfo(dt).tiny)
+            x, t = xn, tn
+        # the total move is bounded too (a point is never carried off by its neighbours' drift)
+        d = x - points.detach()
+        dn = d.norm(dim=1)
+        x = points.detach() + d * (cap / dn.clamp_min(torch.finfo(dt).tiny)).clamp(max=1.0)[:, None]
+        return x.to(points.dtype)

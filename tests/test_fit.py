@@ -732,15 +732,20 @@ def test_line_search_layout_does_not_change_trajectories(history, device):
     round (the sequential halving search), and to each problem solved alone."""
     specs = _lbfgs_specs()
     prob = Problems(specs, device)
-    ref = batched_lbfgs(prob, prob.x0, prob.seg, len(specs), iterations=60, history=history, trials=1, check_every=1)
-    for trials, check_every in [(2, 4), (3, 1), (5, 7), (12, 3)]:
+    ref = batched_lbfgs(prob, prob.x0, prob.seg, len(specs), iterations=60, history=history, trials=1, check_every=1,
+                        tail_entries=0)
+    n = prob.x0.shape[0]
+    # tail: more trials per call once the working set is small (never, from the start, or once
+    # compaction has taken it below half of its entries)
+    for trials, check_every, tail in [(2, 4, 0), (3, 1, 0), (5, 7, 0), (12, 3, 0), (1, 4, n), (1, 2, n // 2),
+                                      (2, 3, n // 2)]:
         got = batched_lbfgs(prob, prob.x0, prob.seg, len(specs), iterations=60, history=history, trials=trials,
-                            check_every=check_every)
-        assert all(torch.equal(u, v) for u, v in zip(ref, got)), (trials, check_every)
+                            check_every=check_every, tail_entries=tail)
+        assert all(torch.equal(u, v) for u, v in zip(ref, got)), (trials, check_every, tail)
         st = StackedProblems(specs, device)
         got = batched_lbfgs(st, prob.x0, prob.seg, len(specs), iterations=60, history=history, trials=trials,
-                            check_every=check_every, stacked=True, restrict=st.restrict)
-        assert all(torch.equal(u, v) for u, v in zip(ref, got)), ("stacked, compacted", trials, check_every)
+                            check_every=check_every, stacked=True, restrict=st.restrict, tail_entries=tail)
+        assert all(torch.equal(u, v) for u, v in zip(ref, got)), ("stacked, compacted", trials, check_every, tail)
     # the iterations differ per problem, so compaction really happened
     assert len(set(ref[2].tolist())) > 2
     o = 0
@@ -770,7 +775,7 @@ def test_line_search_host_reads_bounded(device):
     history, trials, every = 2, 2, 5
     with Count():
         batched_lbfgs(st, prob.x0, prob.seg, len(specs), iterations=60, history=history, trials=trials,
-                      check_every=every, stacked=True)
+                      check_every=every, stacked=True, tail_entries=0)
     rounds = st.calls - 1
     # the lockstep rounds read once per block of trials at most; later ones once per check
     bound = history * (1 + 12 // trials) + (rounds - history) // every + 1

@@ -1987,14 +1987,18 @@ def test_vertex_coloring_is_the_priority_greedy(active_frac, device, monkeypatch
     assert vertex_coloring(mesh, active).cpu().tolist() == want
 
 
-@pytest.mark.parametrize("R, dt", [(1, torch.float64), (3, torch.float64), (4, torch.float64), (4, torch.float32)])
-def test_annealer_tables_give_the_local_fields(R, dt, device):
+@pytest.mark.parametrize("R, dt, fans", [(1, torch.float64, False), (3, torch.float64, False), (4, torch.float64, False),
+                                         (4, torch.float32, False), (3, torch.float64, True), (4, torch.float32, True)])
+def test_annealer_tables_give_the_local_fields(R, dt, fans, device):
     """The padded-gather fields of every colour class equal the neighbour sums: to rounding
     against a dense float64 product, and on the CPU bit for bit against the sum in neighbour
     order (the CSR order), rounded to the dtype at each step. Every free vertex is in exactly
-    one class, no class holds an edge."""
+    one class, no class holds an edge. With ``fans``, two adjacent wide vertices (degrees 28
+    and 16, in different classes, each class's table as wide as its own largest degree)."""
     from torch_isc.pipeline.signs import _color_layout
     mesh = annealer_meshes(device, dt)
+    if fans:
+        mesh = MeshBatch.cat([double_fan(device, dt), mesh])
     V = mesh.verts.shape[0]
     g = torch.Generator().manual_seed(R)
     H = (torch.rand(mesh.edges.shape[0], generator=g, dtype=torch.float64) * 2 - 1).to(device, dt)
@@ -2090,3 +2094,40 @@ def test_anneal_same_signs_as_csr_annealer(dtype_, warm):
     want = csr_anneal(mesh, H, init, fixed, cfg, 4, warm)
     assert torch.equal(got, want)
     assert bool((got != init).any())                          # the annealer did flip signs
+
+
+def double_fan(device, dtype, n=40, top=10, bottom=36):
+    """Two adjacent interior vertices A, B, each the centre of a fan over part of a ring of
+    ``n``: A of degree ``bottom - top + 2``, B of ``n - bottom + top + 2`` (different colours,
+    full-width tables of different widths)."""
+    t = torch.arange(n, dtype=torch.float64) * (2 * math.pi / n)
+    ring = 2.0 * torch.stack([t.cos(), t.sin()], 1)
+    v = torch.cat([torch.tensor([[-0.5, 0.0], [0.5, 0.0]], dtype=torch.float64), ring]).to(device, dtype)
+    A, B = 0, 1
+    f = [[A, 2 + k, 2 + k + 1] for k in range(top, bottom)]
+    f += [[B, 2 + k % n, 2 + (k + 1) % n] for k in range(bottom, top + n)]
+    f += [[A, B, 2 + top], [B, A, 2 + bottom]]
+    return MeshBatch(v, torch.tensor(f, device=device), torch.tensor([n + 2]), torch.tensor([len(f)]))
+
+
+@pytest.mark.parametrize("dtype_", [torch.float32, torch.float64])
+def test_anneal_tables_of_per_class_width_same_signs_as_csr(dtype_):
+    """Full-width tables as wide as their own class's largest degree (28 with carries, 16, 11
+    and 23 in one batch): the signs of the CSR annealer, bit for bit."""
+    from torch_isc.pipeline.signs import vertex_coloring
+    mesh = MeshBatch.cat([double_fan(torch.device("cpu"), dtype_), annealer_meshes(torch.device("cpu"), dtype_)])
+    assert bool((mesh.signed_areas() > 0).all())
+    col = vertex_coloring(mesh, ~mesh.is_boundary_vert)
+    deg = mesh.degrees
+    assert deg[0] == 28 and deg[1] == 16 and col[0] != col[1]
+    V = mesh.verts.shape[0]
+    g = torch.Generator().manual_seed(3)
+    H = (torch.rand(mesh.edges.shape[0], generator=g, dtype=torch.float64) * 2 - 1).to(dtype_)
+    H[::5] = 0.0
+    fixed = mesh.is_boundary_vert.clone()
+    init = torch.where(fixed | (torch.rand(V, generator=g) < 0.5), 1.0, -1.0).to(dtype_)
+    cfg = TopologyConfig(anneal_sweeps=30, anneal_replicas=3, anneal_greedy_sweeps=2)
+    for warm in (False, True):
+        got = anneal(mesh, H, init, fixed, cfg, seed=9, warm=warm)
+        assert torch.equal(got, csr_anneal(mesh, H, init, fixed, cfg, 9, warm))
+        assert bool((got != init).any())

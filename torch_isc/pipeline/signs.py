@@ -290,12 +290,16 @@ def _color_layout(mesh: MeshBatch, H: torch.Tensor, fixed: torch.Tensor, R: int)
         color = col.result()
         key = torch.where(color >= 0, 2 * color + (deg > _NARROW).long(), nbins - 1)
         counts = torch.zeros(nbins, dtype=torch.long, device=dev).index_add_(0, key, torch.ones_like(key))
-        dmax = deg.max() if V else torch.zeros((), dtype=torch.long, device=dev)
-        info = torch.cat([changed.long()[None], dmax[None], counts]).tolist()
+        # the largest degree of each bin: a class's full-width table is as wide as its own
+        # largest degree, not the batch's (the number of chunked sums per sweep then does not
+        # grow with the batch's extreme vertex)
+        dbin = torch.zeros(nbins, dtype=torch.long, device=dev).scatter_reduce_(0, key, deg, "amax")
+        info = torch.cat([changed.long()[None], counts, dbin]).tolist()
         if not info[0]:
             break
         changed = col.run(8)
-    D, cnt = max(info[1], 1), info[2:]
+    cnt, dmax = info[1:1 + nbins], info[1 + nbins:]
+    D = max(max(dmax), 1)
     padded = [-(-n // _BLOCK) * _BLOCK for n in cnt[:-1]] + [cnt[-1]]
     pad_t = (counts + _BLOCK - 1) // _BLOCK * _BLOCK           # the same on the device
     pad_t[-1] = counts[-1]
@@ -316,7 +320,7 @@ def _color_layout(mesh: MeshBatch, H: torch.Tensor, fixed: torch.Tensor, R: int)
         for wide in (0, 1):
             n, m = cnt[2 * c + wide], padded[2 * c + wide]
             if n:
-                Dt = D if wide else min(D, _NARROW)
+                Dt = max(dmax[2 * c + 1], 1) if wide else min(D, _NARROW)
                 nb = torch.nn.functional.pad(nb_all[:Dt, a_sorted:a_sorted + n], (0, m - n), value=Z)
                 w = torch.nn.functional.pad(w_all[:Dt, a_sorted:a_sorted + n], (0, m - n))
                 if Dt > _ORDERED_SLOTS:

@@ -732,15 +732,20 @@ def test_line_search_layout_does_not_change_trajectories(history, device):
     round (the sequential halving search), and to each problem solved alone."""
     specs = _lbfgs_specs()
     prob = Problems(specs, device)
-    ref = batched_lbfgs(prob, prob.x0, prob.seg, len(specs), iterations=60, history=history, trials=1, check_every=1)
-    for trials, check_every in [(2, 4), (3, 1), (5, 7), (12, 3)]:
+    ref = batched_lbfgs(prob, prob.x0, prob.seg, len(specs), iterations=60, history=history, trials=1, check_every=1,
+                        tail_entries=0)
+    n = prob.x0.shape[0]
+    # tail: more trials per call once the working set is small (never, from the start, or once
+    # compaction has taken it below half of its entries)
+    for trials, check_every, tail in [(2, 4, 0), (3, 1, 0), (5, 7, 0), (12, 3, 0), (1, 4, n), (1, 2, n // 2),
+                                      (2, 3, n // 2)]:
         got = batched_lbfgs(prob, prob.x0, prob.seg, len(specs), iterations=60, history=history, trials=trials,
-                            check_every=check_every)
-        assert all(torch.equal(u, v) for u, v in zip(ref, got)), (trials, check_every)
+                            check_every=check_every, tail_entries=tail)
+        assert all(torch.equal(u, v) for u, v in zip(ref, got)), (trials, check_every, tail)
         st = StackedProblems(specs, device)
         got = batched_lbfgs(st, prob.x0, prob.seg, len(specs), iterations=60, history=history, trials=trials,
-                            check_every=check_every, stacked=True, restrict=st.restrict)
-        assert all(torch.equal(u, v) for u, v in zip(ref, got)), ("stacked, compacted", trials, check_every)
+                            check_every=check_every, stacked=True, restrict=st.restrict, tail_entries=tail)
+        assert all(torch.equal(u, v) for u, v in zip(ref, got)), ("stacked, compacted", trials, check_every, tail)
     # the iterations differ per problem, so compaction really happened
     assert len(set(ref[2].tolist())) > 2
     o = 0
@@ -770,7 +775,7 @@ def test_line_search_host_reads_bounded(device):
     history, trials, every = 2, 2, 5
     with Count():
         batched_lbfgs(st, prob.x0, prob.seg, len(specs), iterations=60, history=history, trials=trials,
-                      check_every=every, stacked=True)
+                      check_every=every, stacked=True, tail_entries=0)
     rounds = st.calls - 1
     # the lockstep rounds read once per block of trials at most; later ones once per check
     bound = history * (1 + 12 // trials) + (rounds - history) // every + 1
@@ -1982,14 +1987,18 @@ def test_vertex_coloring_is_the_priority_greedy(active_frac, device, monkeypatch
     assert vertex_coloring(mesh, active).cpu().tolist() == want
 
 
-@pytest.mark.parametrize("R, dt", [(1, torch.float64), (3, torch.float64), (4, torch.float64), (4, torch.float32)])
-def test_annealer_tables_give_the_local_fields(R, dt, device):
+@pytest.mark.parametrize("R, dt, fans", [(1, torch.float64, False), (3, torch.float64, False), (4, torch.float64, False),
+                                         (4, torch.float32, False), (3, torch.float64, True), (4, torch.float32, True)])
+def test_annealer_tables_give_the_local_fields(R, dt, fans, device):
     """The padded-gather fields of every colour class equal the neighbour sums: to rounding
     against a dense float64 product, and on the CPU bit for bit against the sum in neighbour
     order (the CSR order), rounded to the dtype at each step. Every free vertex is in exactly
-    one class, no class holds an edge."""
+    one class, no class holds an edge. With ``fans``, two adjacent wide vertices (degrees 28
+    and 16, in different classes, each class's table as wide as its own largest degree)."""
     from torch_isc.pipeline.signs import _color_layout
     mesh = annealer_meshes(device, dt)
+    if fans:
+        mesh = MeshBatch.cat([double_fan(device, dt), mesh])
     V = mesh.verts.shape[0]
     g = torch.Generator().manual_seed(R)
     H = (torch.rand(mesh.edges.shape[0], generator=g, dtype=torch.float64) * 2 - 1).to(device, dt)
@@ -2085,3 +2094,40 @@ def test_anneal_same_signs_as_csr_annealer(dtype_, warm):
     want = csr_anneal(mesh, H, init, fixed, cfg, 4, warm)
     assert torch.equal(got, want)
     assert bool((got != init).any())                          # the annealer did flip signs
+
+
+def double_fan(device, dtype, n=40, top=10, bottom=36):
+    """Two adjacent interior vertices A, B, each the centre of a fan over part of a ring of
+    ``n``: A of degree ``bottom - top + 2``, B of ``n - bottom + top + 2`` (different colours,
+    full-width tables of different widths)."""
+    t = torch.arange(n, dtype=torch.float64) * (2 * math.pi / n)
+    ring = 2.0 * torch.stack([t.cos(), t.sin()], 1)
+    v = torch.cat([torch.tensor([[-0.5, 0.0], [0.5, 0.0]], dtype=torch.float64), ring]).to(device, dtype)
+    A, B = 0, 1
+    f = [[A, 2 + k, 2 + k + 1] for k in range(top, bottom)]
+    f += [[B, 2 + k % n, 2 + (k + 1) % n] for k in range(bottom, top + n)]
+    f += [[A, B, 2 + top], [B, A, 2 + bottom]]
+    return MeshBatch(v, torch.tensor(f, device=device), torch.tensor([n + 2]), torch.tensor([len(f)]))
+
+
+@pytest.mark.parametrize("dtype_", [torch.float32, torch.float64])
+def test_anneal_tables_of_per_class_width_same_signs_as_csr(dtype_):
+    """Full-width tables as wide as their own class's largest degree (28 with carries, 16, 11
+    and 23 in one batch): the signs of the CSR annealer, bit for bit."""
+    from torch_isc.pipeline.signs import vertex_coloring
+    mesh = MeshBatch.cat([double_fan(torch.device("cpu"), dtype_), annealer_meshes(torch.device("cpu"), dtype_)])
+    assert bool((mesh.signed_areas() > 0).all())
+    col = vertex_coloring(mesh, ~mesh.is_boundary_vert)
+    deg = mesh.degrees
+    assert deg[0] == 28 and deg[1] == 16 and col[0] != col[1]
+    V = mesh.verts.shape[0]
+    g = torch.Generator().manual_seed(3)
+    H = (torch.rand(mesh.edges.shape[0], generator=g, dtype=torch.float64) * 2 - 1).to(dtype_)
+    H[::5] = 0.0
+    fixed = mesh.is_boundary_vert.clone()
+    init = torch.where(fixed | (torch.rand(V, generator=g) < 0.5), 1.0, -1.0).to(dtype_)
+    cfg = TopologyConfig(anneal_sweeps=30, anneal_replicas=3, anneal_greedy_sweeps=2)
+    for warm in (False, True):
+        got = anneal(mesh, H, init, fixed, cfg, seed=9, warm=warm)
+        assert torch.equal(got, csr_anneal(mesh, H, init, fixed, cfg, 9, warm))
+        assert bool((got != init).any())

@@ -235,6 +235,7 @@ def run_loop(batch: PointBatch, cfg: ReconstructConfig, source: SignSource,
     results: List[Optional[ReconstructionResult]] = [None] * B
     t_start = time.perf_counter()
     ws = _start(batch, cfg, rec)
+    finished: list = []                        # per finishing level: (working set, slack, marked, over)
     for level in range(cfg.limits.max_level + 1):
         ev = gather_evidence(ws, cfg.evidence)                         # EstimateTopology
         ws = ws.replace(signs=source.signs(ws, ev if ws.sign_points is None else _sign_evidence(ws, cfg), level))
@@ -260,15 +261,19 @@ def run_loop(batch: PointBatch, cfg: ReconstructConfig, source: SignSource,
             # finished items last, each part ascending: no second host read for the split
             order = torch.argsort(done.to(torch.uint8), stable=True)
             fin = order[nb - n_done:]
-            # the band stage refines and refits the finished items only
-            sub = band_stage(ws.select(fin), cfg.band, cfg.geometry, slack[fin])
+            finished.append((ws if n_done == nb else ws.select(fin), slack[fin], n_marked[fin], over[fin]))
+        if n_done == nb:
+            # the band stage refines and refits the finished items of every level in one call
+            # (its cost is per call, not per item: once per solve, not once per finishing level)
+            sub = band_stage(WorkingSet.cat([f[0] for f in finished]), cfg.band, cfg.geometry,
+                             torch.cat([f[1] for f in finished]))
             rec.tick("geometry")
-            local = torch.arange(n_done, device=fin.device)
-            for b, res in finish_items(sub, local, n_marked[fin], over[fin], batch, cfg, rec.per_item, names):
+            local = torch.arange(sub.num_items, device=sub.device)
+            n_mk, ovr = torch.cat([f[2] for f in finished]), torch.cat([f[3] for f in finished])
+            for b, res in finish_items(sub, local, n_mk, ovr, batch, cfg, rec.per_item, names):
                 if b in timed:
                     res.converged, res.limit = False, "max_seconds"
                 results[b] = res
-        if n_done == nb:
             rec.close_level()
             break
         if n_done:                                                     # the others go on

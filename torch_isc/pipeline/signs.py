@@ -234,8 +234,9 @@ class _ColorClass:
         self.sg = s[:, a:a + width]
         self.p = torch.empty(idx.shape[0], dtype=s.dtype, device=s.device)
         self.f = torch.empty(R, width, dtype=s.dtype, device=s.device)
-        self.x, self.neg = torch.empty_like(self.f), torch.empty_like(self.f)
-        self.acc = torch.empty(R, width, dtype=torch.bool, device=s.device)
+        self.x = torch.empty_like(self.f)
+        self.zero = torch.zeros((), dtype=s.dtype, device=s.device)
+        self.one = torch.ones((), dtype=s.dtype, device=s.device)
         pv = self.p.view(R, -1)
         self.sums = []                                  # (slots, out): in order, chunk by chunk
         for a0, D, m, c0 in parts:
@@ -258,10 +259,13 @@ class _ColorClass:
         f = self.fields()
         if field is not None:
             f.add_(field)
-        torch.mul(self.sg, f, out=self.x)
-        torch.gt(self.x, half, out=self.acc)
-        torch.neg(self.sg, out=self.neg)
-        torch.where(self.acc, self.neg, self.sg, out=self.sg)
+        # flip where F_i h_i > half, in 3 ops instead of 4: d = half − F_i h_i (F_i = ±1, so the
+        # product is exact and d rounds once: d < 0 exactly when F_i h_i > half, d = +0 on a
+        # tie), then F_i ← copysign(1, F_i·d) = −F_i where d < 0, F_i where d ≥ 0 (a tie's
+        # ±0 carries F_i's sign)
+        torch.addcmul(self.zero if isinstance(half, float) else half, self.sg, f, value=-1.0, out=self.x)
+        self.x.mul_(self.sg)
+        torch.copysign(self.one, self.x, out=self.sg)
 
 
 def _with_carries(t: torch.Tensor, fill) -> torch.Tensor:
@@ -300,12 +304,16 @@ def _color_layout(mesh: MeshBatch, H: torch.Tensor, fixed: torch.Tensor, R: int)
         color = col.result()
         key = torch.where(color >= 0, 2 * color + (deg > _NARROW).long(), nbins - 1)
         counts = torch.zeros(nbins, dtype=torch.long, device=dev).index_add_(0, key, torch.ones_like(key))
-        dmax = deg.max() if V else torch.zeros((), dtype=torch.long, device=dev)
-        info = torch.cat([changed.long()[None], dmax[None], counts]).tolist()
+        # the largest degree of each bin: a class's full-width table is as wide as its own
+        # largest degree, not the batch's (the number of chunked sums per sweep then does not
+        # grow with the batch's extreme vertex)
+        dbin = torch.zeros(nbins, dtype=torch.long, device=dev).scatter_reduce_(0, key, deg, "amax")
+        info = torch.cat([changed.long()[None], counts, dbin]).tolist()
         if not info[0]:
             break
         changed = col.run(8)
-    D, cnt = max(info[1], 1), info[2:]
+    cnt, dmax = info[1:1 + nbins], info[1 + nbins:]
+    D = max(max(dmax), 1)
     padded = [-(-n // _BLOCK) * _BLOCK for n in cnt[:-1]] + [cnt[-1]]
     pad_t = (counts + _BLOCK - 1) // _BLOCK * _BLOCK           # the same on the device
     pad_t[-1] = counts[-1]
@@ -326,7 +334,7 @@ def _color_layout(mesh: MeshBatch, H: torch.Tensor, fixed: torch.Tensor, R: int)
         for wide in (0, 1):
             n, m = cnt[2 * c + wide], padded[2 * c + wide]
             if n:
-                Dt = D if wide else min(D, _NARROW)
+                Dt = max(dmax[2 * c + 1], 1) if wide else min(D, _NARROW)
                 nb = torch.nn.functional.pad(nb_all[:Dt, a_sorted:a_sorted + n], (0, m - n), value=Z)
                 w = torch.nn.functional.pad(w_all[:Dt, a_sorted:a_sorted + n], (0, m - n))
                 if Dt > _ORDERED_SLOTS:

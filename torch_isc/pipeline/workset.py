@@ -106,6 +106,24 @@ class WorkingSet:
             out["point_item"] = new_item[self.point_item[kp]]
         return WorkingSet(mesh=mesh, **out)
 
+    @staticmethod
+    def cat(sets: "list[WorkingSet]") -> "WorkingSet":
+        """The items of ``sets`` in one working set, in order (meshes packed one after the
+        other, point triangles and items renumbered). Sizes come from the tensors' shapes: no
+        host read."""
+        if len(sets) == 1:
+            return sets[0]
+        with torch.no_grad():
+            out = {k: torch.cat([getattr(w, k) for w in sets]) for k in
+                   WorkingSet.ITEM_FIELDS + WorkingSet.VERT_FIELDS + WorkingSet.FACE_FIELDS + WorkingSet.POINT_FIELDS}
+            faces, items, f0, b0 = [], [], 0, 0
+            for w in sets:
+                faces.append(torch.where(w.face >= 0, w.face + f0, w.face))
+                items.append(w.point_item + b0)
+                f0, b0 = f0 + w.mesh.faces.shape[0], b0 + w.num_items
+            out["face"], out["point_item"] = torch.cat(faces), torch.cat(items)
+        return WorkingSet(mesh=MeshBatch.cat([w.mesh for w in sets]), **out)
+
     def follow(self, sd: Subdivision) -> "WorkingSet":
         """The working set on the subdivided mesh ``sd.mesh`` (of this set's mesh): values
         carried over (new vertices take their edge's mean), signs read from them, points

@@ -30,7 +30,7 @@ class NoiseConfig:
     #: the fewest points a hashed subset may keep
     noise_min_subset: int = knob(64, gt=0)
     #: passes of the point denoising before the loop (pipeline/denoise.py); 0 disables
-    denoise_iterations: int = knob(0, ge=0)
+    denoise_iterations: int = knob(3, ge=0)
     #: neighbours of each point (approximate kNN) among which its local parabola is fitted
     denoise_neighbours: int = knob(24, ge=3)
     #: radius of the fit, in noise widths (at least the point's few nearest neighbours)

@@ -69,7 +69,7 @@ class TopologyConfig:
     #: sign (a missed small closed curve; pipeline/simplify.py: enclose_stage); 0 disables (the
     #: default: 1.8 found satellites, +3/+3/+2 of 192 on the broad suite's seeds 0/1/2, but lost
     #: an annulus at 1% noise on the default sample, 413 -> 412 of 440)
-    enclose_chord: float = knob(0.0, ge=0, le=2)
+    enclose_chord: float = knob(1.8, ge=0, le=2)
     #: ...when no point of its star is nearer than this many noise widths
     enclose_noise_widths: float = knob(2.0, ge=0)
     #: ...seeing the points of the triangles with a corner at most this many edges away

@@ -62,6 +62,7 @@ from torch_isc.runner import (DEFAULT_FORMATS, DEFAULT_IMAGE_FORMATS, ImageOptio
                               run_arguments, run_inputs, shown, unique_stems, overwritten_inputs)
 from torch_isc.pipeline.loop import _as_config
 from torch_isc._helpers import decode_text, one_line, read_file_bytes
+from torch_isc.io.json import as_written
 
 __all__ = ["ENGINES", "TABLE_SCHEMA", "DatasetReport", "BatchReconstructor", "resolve_inputs", "read_manifest",
            "reconstruct_dataset", "records_from_table"]
@@ -281,7 +282,8 @@ class BatchReconstructor:
                                converged=s["converged"], limit=s["limit"], levels=s["levels"],
                                points_beyond_tolerance=s["points_beyond_tolerance"], seconds=float(s["seconds"]),
                                closed=[bool(p["closed"]) for p in pls],
-                               polylines=[p["points"].detach().double().cpu().numpy() for p in pls])
+                               # as the JSON writes them, so a rerun's table (read from it) is the same
+                               polylines=[as_written(p["points"].detach().double().cpu().numpy()) for p in pls])
                 elif rec.status == "skipped" and "json" in self._formats_of(src):
                     row.update(_summary_from_json(self.out_dir / f"{rec.stem}.json") or {})
         except Exception as e:          # the batch as a whole: every input of it failed, the job goes on

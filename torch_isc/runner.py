@@ -53,11 +53,11 @@ import torch
 
 import torch_isc
 from torch_isc import images
-from torch_isc._helpers import is_regular_file, one_line, printable
+from torch_isc._helpers import is_regular_file, one_line, printable, read_file_bytes
 from torch_isc.io import ExportContext, PointFileError, chosen_formats, export, formats_needing, loader_for
 from torch_isc.io.registry import LOADERS
 from torch_isc.io.files import atomic_write
-from torch_isc.images.read import DEFAULT_MAX_PIXELS, read_image
+from torch_isc.images.read import DEFAULT_MAX_PIXELS, decode_image
 from torch_isc.pipeline.config import ReconstructConfig, config_hash
 from torch_isc.pipeline.loop import PointSetError, _as_config
 from torch_isc.core.points import item_label
@@ -409,7 +409,10 @@ class _Run:
             job.points = torch.from_numpy(loader_for(job.source).load(job.source)).to(self.device)
             return
         o = self.opts
-        gray = read_image(job.source, max_pixels=o.max_pixels)
+        # the file is read once: its bytes are decoded and hashed (the manifest's input sha256)
+        data = read_file_bytes(Path(job.source), images.ImageError, "an image")
+        job.input_sha256 = hashlib.sha256(data).hexdigest()
+        gray = decode_image(data, Path(job.source), max_pixels=o.max_pixels)
         job.image = gray
         if o.mode == "mask":
             thr = o.threshold if o.threshold is not None else images.auto_threshold(gray)
@@ -442,7 +445,8 @@ class _Run:
         """:meth:`read`, any failure made the job's failed record (one line naming it)."""
         try:
             self.read(job)
-            job.input_sha256 = file_sha256(job.source)
+            if job.input_sha256 is None:
+                job.input_sha256 = file_sha256(job.source)
             return True
         except (PointFileError, images.ImageError, PointSetError) as e:
             self.fail_read(job, _message(job.source, e))
@@ -537,10 +541,12 @@ class _Run:
         ctx = ExportContext(y_down=job.is_image, image=image, zoom=self.opts.zoom, region=self.opts.region)
         written: List[Path] = []
         try:
+            digests: List[Tuple[str, int]] = []
             for f in formats:
-                # no fsync: the manifest hashes every file, so a set torn by a power loss is redone
-                written += export(res, self.out_dir / job.stem, [f], context=ctx, fsync=False)
-            files = [{"name": p.name, "sha256": file_sha256(p), "bytes": p.stat().st_size} for p in written]
+                # no fsync: the manifest hashes every file, so a set torn by a power loss is redone;
+                # the hashes are of the bytes written, taken in memory (no read back)
+                written += export(res, self.out_dir / job.stem, [f], context=ctx, fsync=False, digests=digests)
+            files = [{"name": p.name, "sha256": sha, "bytes": size} for p, (sha, size) in zip(written, digests)]
             doc = {"manifest_format": MANIFEST_FORMAT, "torch_isc": torch_isc.__version__,
                    "input": {"path": os.fspath(job.source), "sha256": job.input_sha256},
                    "config_sha256": self.config_sha[job.is_image], "formats": list(formats), "files": files}

@@ -131,15 +131,16 @@ def extract_zero_set(mesh: MeshBatch, values: torch.Tensor, with_points: bool = 
         j = jump.clone()
         if bool(is_tail.any()):
             for _ in range(iters):
-                j = j[j]
+                j = j.index_select(0, j)
             on_chain = is_tail[j]
         else:                       # closed loops only (a mask's curves): no tail to reach
             on_chain = torch.zeros_like(is_tail)
         # loops: label by the smallest node of the loop
         mn, jj = ar.clone(), jump.clone()
+        # index_select, not x[idx]: the same gather, 3-5x faster on CPU (torch's advanced indexing)
         for _ in range(iters):
-            mn = torch.minimum(mn, mn[jj])
-            jj = jj[jj]
+            mn = torch.minimum(mn, mn.index_select(0, jj))
+            jj = jj.index_select(0, jj)
         comp = torch.where(on_chain, j, mn)
         # cut each loop just before its smallest node, then rank by distance to the cut
         brk = is_tail | (~on_chain & (jump == comp))
@@ -147,8 +148,8 @@ def extract_zero_set(mesh: MeshBatch, values: torch.Tensor, with_points: bool = 
         d = (~brk).long()
         jj = nxt2.clone()
         for _ in range(iters):
-            d = d + d[jj]
-            jj = jj[jj]
+            d = d + d.index_select(0, jj)
+            jj = jj.index_select(0, jj)
         order = torch.argsort(comp * (N + 1) + (N - d), stable=True)
         comp_sorted = comp[order]
         starts = torch.ones(N, dtype=torch.bool, device=dev)

@@ -232,7 +232,8 @@ def _smooth(a: torch.Tensor, d: torch.Tensor, prev: torch.Tensor, nxt: torch.Ten
     for it in range(iters):
         live = free if cap is None else free & (cap > it)
         for f in (lam, mu):
-            tn = torch.addcmul(torch.addcmul(c0 - t, cp, t[prev]), cn, t[nxt]).mul_(f).add_(t).clamp_(lo, hi)
+            tn = torch.addcmul(torch.addcmul(c0 - t, cp, t.index_select(0, prev)), cn, t.index_select(0, nxt)
+                               ).mul_(f).add_(t).clamp_(lo, hi)     # index_select: x[idx]'s gather, faster on CPU
             t = torch.where(live, tn, t)
     return t
 
@@ -719,7 +720,7 @@ def _realize(t: torch.Tensor, fg_v: torch.Tensor, bg_v: torch.Tensor, loop: torc
     s = s_sum / s_cnt.clamp_min(1)
     for _ in range(sweeps):      # Jacobi sweeps on sum (s[fg] - s[bg] - rho)^2: settles shared vertices
         tgt = torch.zeros(V, dtype=dt, device=dev)
-        tgt.index_add_(0, fg_v, s[bg_v] + rho).index_add_(0, bg_v, s[fg_v] - rho)
+        tgt.index_add_(0, fg_v, s.index_select(0, bg_v) + rho).index_add_(0, bg_v, s.index_select(0, fg_v) - rho)
         s = torch.where(s_cnt > 0, 0.5 * s + 0.5 * tgt / s_cnt.clamp_min(1), s)
     return s
 
@@ -748,12 +749,12 @@ def trace_masks(masks: Sequence[torch.Tensor], connectivity: int = 8, smooth: in
     pl = extract_zero_set(mesh, base_vals, with_points=False)      # the crossings are placed below
     dev = grid.device
     N = pl.edge.shape[0]
-    ends = mesh.edges[pl.edge]                                # (N, 2)
+    ends = mesh.edges.index_select(0, pl.edge)                # (N, 2); index_select: x[idx], faster on CPU
     a_is_fg = fg[ends[:, 0]]
     fg_v = torch.where(a_is_fg, ends[:, 0], ends[:, 1])
     bg_v = torch.where(a_is_fg, ends[:, 1], ends[:, 0])
-    a = mesh.verts[fg_v]
-    d = mesh.verts[bg_v] - a
+    a = mesh.verts.index_select(0, fg_v)
+    d = mesh.verts.index_select(0, bg_v) - a
     loop, k, prev, nxt = _loop_index(pl.first, pl.counts, N)
     K = pl.first.shape[0]
     # small loops (a few pixels) get fewer iterations: their curvature is all signal
@@ -778,14 +779,17 @@ def trace_masks(masks: Sequence[torch.Tensor], connectivity: int = 8, smooth: in
             v2, moved[inner_c] = _stretch_band(mesh.verts, mesh.faces, pix, W2, fg, fg_v, bg_v, frame[item], nodes, tip,
                                                convex, out_dir)
             mesh = mesh.with_verts(v2)
-            return v2[fg_v], v2[bg_v] - v2[fg_v], moved
+            a2 = v2.index_select(0, fg_v)
+            return a2, v2.index_select(0, bg_v) - a2, moved
 
         t, tips = _corner_tips(a, d, t, prev, nxt, pl.counts[loop], stretch=stretch if stretch_tips else None)
     s = _realize(t, fg_v, bg_v, loop, k, pl.first, pl.counts, nxt, V)
     mag = torch.exp(s - s.max().clamp_min(0) if V else s)
     values = torch.where(fg, -mag, mag)
-    pts = mesh.verts[ends[:, 0]] + (values[ends[:, 0]] / (values[ends[:, 0]] - values[ends[:, 1]]))[:, None] * (
-        mesh.verts[ends[:, 1]] - mesh.verts[ends[:, 0]])
+    e0, e1 = ends[:, 0].contiguous(), ends[:, 1].contiguous()
+    v0, v1 = mesh.verts.index_select(0, e0), mesh.verts.index_select(0, e1)
+    f0, f1 = values.index_select(0, e0), values.index_select(0, e1)
+    pts = v0 + (f0 / (f0 - f1))[:, None] * (v1 - v0)
     first, counts, edge, out_mesh = pl.first, pl.counts, pl.edge, mesh
     spliced = None if tips is None else _insert_tips(mesh, values, fg, pix, (B, H2, W2), sizes.to(dev), pts, fg_v,
                                                      bg_v, edge, loop, k, first, counts, nxt, tips)

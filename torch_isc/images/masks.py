@@ -249,9 +249,12 @@ def auto_threshold(image: np.ndarray) -> float:
     >>> auto_threshold(np.array([[0, 1 / 255]])), auto_threshold(np.array([[0.0, 0.2, 1.0]]))
     (0.00196078431372549, 0.5)
     """
-    levels = np.unique(np.asarray(image))
-    if levels.size == 2:
-        return float(levels.astype(np.float64).mean())
+    a = np.asarray(image)
+    if a.size == 0:
+        return 0.5
+    lo, hi = a.min(), a.max()      # two levels iff every value is one of the extremes (no sort)
+    if lo != hi and bool(((a == lo) | (a == hi)).all()):
+        return float(np.array([lo, hi], dtype=np.float64).mean())
     return 0.5
 
 

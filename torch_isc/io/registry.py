@@ -13,6 +13,8 @@ Example:
 """
 from __future__ import annotations
 
+import hashlib
+import io
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -188,7 +190,8 @@ def formats_needing(available: Iterable[str]) -> List[str]:
 
 def export(result, path_stem: PathLike, formats: Iterable[str] = ("json", "npz", "svg", "png"),
            y_down: bool = False, image: Optional[ImageLike] = None,
-           context: Optional[ExportContext] = None, fsync: bool = True) -> List[Path]:
+           context: Optional[ExportContext] = None, fsync: bool = True,
+           digests: Optional[List[Tuple[str, int]]] = None) -> List[Path]:
     """Write ``result`` as ``<path_stem>.<fmt>`` for every format, each write atomic.
 
     Args:
@@ -197,6 +200,9 @@ def export(result, path_stem: PathLike, formats: Iterable[str] = ("json", "npz",
         image: the source image, for ``overlay.png``.
         context: an :class:`ExportContext` instead of ``y_down`` and ``image``.
         fsync: sync each file to disk before its move (see :func:`~torch_isc.io.files.atomic_write`).
+        digests: a list to which ``(sha256 hex, size in bytes)`` of each written file is
+            appended, in the order of ``formats``: each file is then encoded in memory and
+            hashed from there, not read back (the batch runner's manifests).
 
     Returns:
         the written paths, in the order of ``formats``.
@@ -218,5 +224,12 @@ def export(result, path_stem: PathLike, formats: Iterable[str] = ("json", "npz",
     out = []
     for f in formats:
         enc = EXPORTERS[f].encode
-        out.append(atomic_write(Path(f"{stem}.{f}"), lambda fh, enc=enc: enc(result, fh, ctx), fsync))
+        if digests is None:
+            out.append(atomic_write(Path(f"{stem}.{f}"), lambda fh, enc=enc: enc(result, fh, ctx), fsync))
+            continue
+        buf = io.BytesIO()
+        enc(result, buf, ctx)
+        data = buf.getvalue()
+        out.append(atomic_write(Path(f"{stem}.{f}"), data, fsync))
+        digests.append((hashlib.sha256(data).hexdigest(), len(data)))
     return out

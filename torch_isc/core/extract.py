@@ -98,15 +98,16 @@ def extract_zero_set(mesh: MeshBatch, values: torch.Tensor, with_points: bool = 
     dev = mesh.device
     with torch.no_grad():
         neg = values.detach() < 0
-        fneg = neg[mesh.faces]                                  # (T,3)
+        # index_select, not x[idx]: the same gather, 3-5x faster on CPU (torch's advanced indexing)
+        fneg = neg.index_select(0, mesh.faces.reshape(-1)).view(mesh.faces.shape)   # (T,3)
         nneg = fneg.sum(1)
         mixed = (nneg > 0) & (nneg < 3)
         tid = mixed.nonzero().squeeze(1)
-        fn = fneg[tid]
+        fn = fneg.index_select(0, tid)
         lone_neg = nneg[tid] == 1
         # the lone vertex: the negative one if one is negative, else the positive one
         lone = torch.where(lone_neg, torch.argmax(fn.to(torch.int8), 1), torch.argmin(fn.to(torch.int8), 1))
-        fe = mesh.face_edges[tid]
+        fe = mesh.face_edges.index_select(0, tid)
         e_m1 = fe.gather(1, ((lone + 2) % 3)[:, None]).squeeze(1)   # edge (m, m+1)
         e_m2 = fe.gather(1, ((lone + 1) % 3)[:, None]).squeeze(1)   # edge (m+2, m)
         src = torch.where(lone_neg, e_m1, e_m2)
@@ -137,7 +138,6 @@ def extract_zero_set(mesh: MeshBatch, values: torch.Tensor, with_points: bool = 
             on_chain = torch.zeros_like(is_tail)
         # loops: label by the smallest node of the loop
         mn, jj = ar.clone(), jump.clone()
-        # index_select, not x[idx]: the same gather, 3-5x faster on CPU (torch's advanced indexing)
         for _ in range(iters):
             mn = torch.minimum(mn, mn.index_select(0, jj))
             jj = jj.index_select(0, jj)

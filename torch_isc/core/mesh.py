@@ -241,8 +241,8 @@ class MeshBatch:
         with torch.no_grad():
             T = self.faces.shape[0]
             V = max(self.verts.shape[0], 1)
-            a = self.faces[:, [1, 2, 0]].reshape(-1)        # edge opposite k = (v[k+1], v[k+2])
-            b = self.faces[:, [2, 0, 1]].reshape(-1)
+            a = self.faces.roll(-1, 1).reshape(-1)          # edge opposite k = (v[k+1], v[k+2])
+            b = self.faces.roll(1, 1).reshape(-1)           # (roll: faces[:, [1, 2, 0]], [2, 0, 1], faster)
             lo, hi = torch.minimum(a, b), torch.maximum(a, b)
             key = lo * V + hi
             uniq, inv, counts = torch.unique(key, return_inverse=True, return_counts=True)
@@ -280,7 +280,7 @@ class MeshBatch:
 
     @cached_property
     def edge_item(self) -> torch.Tensor:
-        return self.vert_item[self.edges[:, 0]]
+        return self.vert_item.index_select(0, self.edges[:, 0].contiguous())
 
     @cached_property
     def edges_per_item(self) -> torch.Tensor:

@@ -140,7 +140,7 @@ def grid_mesh(grid: torch.Tensor, connectivity: int = 8, dtype: torch.dtype = to
     vid = torch.full((B * H2 * W2,), -1, dtype=torch.long, device=dev)
     vid[pix] = torch.arange(pix.shape[0], device=dev)
     base = (b * H2 + i) * W2 + j
-    TL, TR, BL, BR = vid[base], vid[base + 1], vid[base + W2], vid[base + W2 + 1]
+    TL, TR, BL, BR = (vid.index_select(0, base + o) for o in (0, 1, W2, W2 + 1))
     # positively oriented in (x, y) with y down: (TL, BR, BL), (TL, TR, BR); (TL, TR, BL), (TR, BR, BL)
     t1 = torch.where(d2[:, None], torch.stack([TL, TR, BL], 1), torch.stack([TL, BR, BL], 1))
     t2 = torch.where(d2[:, None], torch.stack([TR, BR, BL], 1), torch.stack([TL, TR, BR], 1))
@@ -197,10 +197,11 @@ class GridCurves:
 def _loop_index(first: torch.Tensor, counts: torch.Tensor, n: int):
     K = first.shape[0]
     loop = torch.repeat_interleave(torch.arange(K, device=first.device), counts)
-    k = torch.arange(n, device=first.device) - first[loop]
-    nk = counts[loop]
-    prev = first[loop] + (k - 1) % nk
-    nxt = first[loop] + (k + 1) % nk
+    fl = first.index_select(0, loop)
+    k = torch.arange(n, device=first.device) - fl
+    nk = counts.index_select(0, loop)
+    prev = fl + (k - 1) % nk
+    nxt = fl + (k + 1) % nk
     return loop, k, prev, nxt
 
 
@@ -217,18 +218,18 @@ def _smooth(a: torch.Tensor, d: torch.Tensor, prev: torch.Tensor, nxt: torch.Ten
     p = a + t[:, None] * d
     # corners: the turn between the chords to the second neighbours on either side
     p2, n2 = prev[prev], nxt[nxt]
-    u, w = p - p[p2], p[n2] - p
+    u, w = p - p.index_select(0, p2), p.index_select(0, n2) - p
     cosang = (u * w).sum(1) / (u.norm(dim=1) * w.norm(dim=1)).clamp_min(1e-12)
     corner = cosang < 0.05
     # a corner holds its two neighbours in place too (a corner is a feature, not noise)
-    hold = corner | corner[prev] | corner[nxt]
+    hold = corner | corner.index_select(0, prev) | corner.index_select(0, nxt)
     free = ~hold
     # a step moves p = a + t d to p + f (mid - p), mid = (p[prev] + p[nxt]) / 2, and projects it
     # on the edge: t' = t + f ((mid - p) . d) / |d|^2, which is affine in t, t[prev], t[nxt]:
     # t' = t + f (c0 + cp t[prev] + cn t[nxt] - t), so the loop runs on (N,) scalars only
     c0 = ((0.5 * (a[prev] + a[nxt]) - a) * d).sum(1) / dd
-    cp = 0.5 * (d[prev] * d).sum(1) / dd
-    cn = 0.5 * (d[nxt] * d).sum(1) / dd
+    cp = 0.5 * (d.index_select(0, prev) * d).sum(1) / dd
+    cn = 0.5 * (d.index_select(0, nxt) * d).sum(1) / dd
     for it in range(iters):
         live = free if cap is None else free & (cap > it)
         for f in (lam, mu):
@@ -703,12 +704,12 @@ def _realize(t: torch.Tensor, fg_v: torch.Tensor, bg_v: torch.Tensor, loop: torc
     dev, dt = t.device, t.dtype
     rho = torch.log(t / (1 - t))
     N = t.shape[0]
-    share_fg = fg_v[nxt] == fg_v
+    share_fg = fg_v.index_select(0, nxt) == fg_v
     inc = torch.where(share_fg, torch.zeros_like(rho), rho[nxt] - rho)    # U[next] - U[this]
     K = first.shape[0]
     total = torch.zeros(K, dtype=dt, device=dev).index_add_(0, loop, inc)
     cs = torch.cumsum(inc, 0) - inc                                       # exclusive
-    U = cs - cs[first[loop]]                                              # U at node k, from U[0] = 0
+    U = cs - cs.index_select(0, first.index_select(0, loop))              # U at node k, from U[0] = 0
     U = U - total[loop] * k.to(dt) / counts[loop].to(dt)                  # spread the closing error
     mean = torch.zeros(K, dtype=dt, device=dev).index_add_(0, loop, U) / counts.to(dt)
     U = U - mean[loop]
@@ -793,14 +794,14 @@ def trace_masks(masks: Sequence[torch.Tensor], connectivity: int = 8, smooth: in
     first, counts, edge, out_mesh = pl.first, pl.counts, pl.edge, mesh
     spliced = None if tips is None else _insert_tips(mesh, values, fg, pix, (B, H2, W2), sizes.to(dev), pts, fg_v,
                                                      bg_v, edge, loop, k, first, counts, nxt, tips)
-    a = verts0[fg_v]
+    a = verts0.index_select(0, fg_v)
     if tips is None:
         tip_pts, tip_item = verts0.new_zeros((0, 2)), torch.zeros(0, dtype=torch.long, device=dev)
     else:
         tip_pts, tip_item = tips[1], mesh.vert_item[fg_v[tips[0]]]
     if spliced is not None:
         out_mesh, values, (pts, fg_v, bg_v, edge, first, counts), _ = spliced
-        a = verts0[fg_v]
+        a = verts0.index_select(0, fg_v)
         loop, k, prev, nxt = _loop_index(first, counts, pts.shape[0])
     pl = Polylines(pts, first, counts, pl.closed, pl.item, edge, pl.num_items)
 
@@ -812,20 +813,20 @@ def trace_masks(masks: Sequence[torch.Tensor], connectivity: int = 8, smooth: in
     # ---- the start pixel of OpenCV's scan: the top-left foreground pixel of an outer border,
     # the foreground pixel left of the top-left pixel of a hole
     big = torch.iinfo(torch.long).max
-    key_fg = torch.full((K,), big, dtype=torch.long, device=dev).scatter_reduce_(0, loop, pix[fg_v], "amin")
-    key_bg = torch.full((K,), big, dtype=torch.long, device=dev).scatter_reduce_(0, loop, pix[bg_v], "amin")
+    pf, pb = pix.index_select(0, fg_v), pix.index_select(0, bg_v)
+    key_fg = torch.full((K,), big, dtype=torch.long, device=dev).scatter_reduce_(0, loop, pf, "amin")
+    key_bg = torch.full((K,), big, dtype=torch.long, device=dev).scatter_reduce_(0, loop, pb, "amin")
     start = torch.where(outer, key_fg, key_bg - 1)
     # the crossing of that pixel's crack with its left (outer) or right (hole) neighbour: OpenCV's
     # chain starts there (the start pixel may appear several times in a chain)
-    pf, pb = pix[fg_v], pix[bg_v]
     at = (pf == start[loop]) & (pb == torch.where(outer[loop], pf - 1, pf + 1))
     node_ids = torch.arange(pf.shape[0], device=dev)
     start_node = torch.full((K,), big, dtype=torch.long, device=dev).scatter_reduce_(
         0, loop, torch.where(at, node_ids, torch.full_like(node_ids, big)), "amin")
     start_node = torch.where(start_node == big, first, start_node)
     # ---- the enclosing border: look left along the start row for the nearest horizontal crack
-    horiz = (pix[fg_v] // W2) == (pix[bg_v] // W2)
-    left = torch.minimum(pix[fg_v], pix[bg_v])[horiz]         # crack between pixel `left` and `left + 1`
+    horiz = (pf // W2) == (pb // W2)
+    left = torch.minimum(pf, pb)[horiz]                       # crack between pixel `left` and `left + 1`
     crack_loop = loop[horiz]
     order = torch.argsort(left)
     left, crack_loop = left[order], crack_loop[order]

@@ -591,19 +591,21 @@ def _insert_tips(mesh: MeshBatch, values: torch.Tensor, fg: torch.Tensor, pix: t
         fs += [(2 * ci)[:, None].expand(-1, S), (2 * ci + 1)[:, None].expand(-1, S)]
         oks += [hit, hit]
     f = torch.stack(fs, -1)
-    P = verts[faces[f]]                                              # (C, S, 8, 3, 2)
+    # index_select of the flattened indices: x[idx]'s gather, 3-5x faster on CPU
+    fv = faces.index_select(0, f.reshape(-1)).view(*f.shape, 3)     # (C, S, 8, 3)
+    P = verts.index_select(0, fv.reshape(-1)).view(*fv.shape, 2)     # (C, S, 8, 3, 2)
     qq = q[..., None, :]
     den = _cross2(P[..., 1, :] - P[..., 0, :], P[..., 2, :] - P[..., 0, :])
     lam = torch.stack([_cross2(P[..., 1, :] - qq, P[..., 2, :] - qq), _cross2(P[..., 2, :] - qq, P[..., 0, :] - qq),
                        _cross2(P[..., 0, :] - qq, P[..., 1, :] - qq)], -1) / den[..., None]
     valid = torch.stack(oks, -1) & (lam.min(-1).values > -1e-9)
-    fv = faces[f]                                                    # (C, S, 8, 3)
     kin = fg[fv] == convex[:, None, None, None]                      # of the corner's class
     nk = kin.sum(-1)
     valid &= (nk >= 1) & (nk <= 2)
     node_of_edge = torch.full((mesh.edges.shape[0],), -1, dtype=torch.long, device=dev)
     node_of_edge[edge] = torch.arange(N, device=dev)
-    nn = node_of_edge[mesh.face_edges[f]]                            # (C, S, 8, 3), -1: not crossed
+    nn = node_of_edge.index_select(0, mesh.face_edges.index_select(0, f.reshape(-1)).view(-1)
+                                   ).view(*f.shape, 3)               # (C, S, 8, 3), -1: not crossed
     lc = loop[node]
     cnt = counts[lc][:, None, None, None]
     dk = (k[nn.clamp(min=0)] - k[node][:, None, None, None]) % cnt

@@ -8,7 +8,7 @@ import sys
 def main() -> int:
     try:
         from torch_isc.cli import main as cli_main
+        return cli_main()        # its own handler covers the run; this one also the parser's set-up
     except KeyboardInterrupt:
         sys.stderr.write("torch-isc: interrupted\n")
         return 130
-    return cli_main()

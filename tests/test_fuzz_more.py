@@ -326,3 +326,22 @@ def test_out_dir_is_a_file(tmp_path):
                  lambda: reconstruct_dataset([tmp_path / "a.xy"], tmp_path / "a.xy", formats=["json"])):
         with pytest.raises(RunError, match=rf"^{tmp_path / 'a.xy'}: cannot create the output folder \(File exists\)"):
             call()
+
+
+def test_every_numeric_key_is_bounded():
+    """Every integer and float key has an upper bound (its own ``le``/``lt`` or
+    ``UPPER_BOUNDS``), except ``tolerance`` (clamped to ``TOLERANCE_CEILING`` diagonals): with
+    none, ``spike_rounds=1000000`` ran for minutes. A new key without one fails here."""
+    import dataclasses
+    from torch_isc.pipeline.config import UPPER_BOUNDS, ConfigError, ReconstructConfig, from_dict
+    cfg, loose = ReconstructConfig(), []
+    for sec in dataclasses.fields(cfg):
+        for f in dataclasses.fields(getattr(cfg, sec.name)):
+            v = getattr(getattr(cfg, sec.name), f.name)
+            if isinstance(v, (int, float)) and not isinstance(v, bool) and f.name not in UPPER_BOUNDS \
+                    and f.metadata.get("le") is None and f.metadata.get("lt") is None:
+                loose.append(f.name)
+    assert loose == ["tolerance"]
+    for key in ("spike_rounds", "snap_rounds"):
+        with pytest.raises(ConfigError, match=rf"config key '{key}': must be <= 1000, got 1000000"):
+            from_dict({key: 10 ** 6})

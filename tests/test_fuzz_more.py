@@ -345,3 +345,11 @@ def test_every_numeric_key_is_bounded():
     for key in ("spike_rounds", "snap_rounds"):
         with pytest.raises(ConfigError, match=rf"config key '{key}': must be <= 1000, got 1000000"):
             from_dict({key: 10 ** 6})
+
+
+def test_far_points_kept_with_a_sign_oracle():
+    """With a sign oracle (masks) the far points stay: the oracle says a far speck is real."""
+    ring = np.vstack([_circle(), [[60.0, 0.0], [60.5, 0.0], [60.0, 0.5]]])
+    inside = lambda p: (p.norm(dim=1) < 1) | ((p - torch.tensor([60.2, 0.2], dtype=p.dtype)).norm(dim=1) < 0.3)
+    res = reconstruct(torch.tensor(ring), config={"max_level": 3}, sign_oracle=inside)
+    assert res.far_outliers == 0 and res.stats[0].points == 203

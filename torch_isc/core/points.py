@@ -241,8 +241,10 @@ class PointBatch:
 
 
 def prepare_points(point_sets: Sequence[PointsLike], names: Optional[Sequence[Optional[str]]] = None,
-                   dtype: torch.dtype = torch.float32) -> PointBatch:
-    """Check, merge repeats, pack and normalize ``point_sets`` (each ``(N_b, 2)``).
+                   dtype: torch.dtype = torch.float32, drop_far: bool = True) -> PointBatch:
+    """Check, merge repeats, pack and normalize ``point_sets`` (each ``(N_b, 2)``); with
+    ``drop_far``, leave out far outliers (:func:`drop_far_outliers`; not with a sign oracle,
+    which knows a far speck is real).
 
     Raises :class:`PointSetError` naming the first bad set.
 
@@ -266,7 +268,9 @@ def prepare_points(point_sets: Sequence[PointsLike], names: Optional[Sequence[Op
         item = _item_index([p.shape[0] for p in raw], device)
         _check_finite(x64, item, labels)
         pts64, point_item, counts, source = _distinct_packed(x64, item, B, labels)
-        pts64, point_item, counts, source, far = drop_far_outliers(pts64, point_item, counts, source, B)
+        far = [0] * B
+        if drop_far:
+            pts64, point_item, counts, source, far = drop_far_outliers(pts64, point_item, counts, source, B)
         # normalize in float64, then cast: large offsets (1e7) must not cost precision
         big = torch.finfo(torch.float64).max
         idx2 = point_item[:, None].expand(-1, 2)

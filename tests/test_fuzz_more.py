@@ -82,6 +82,11 @@ def test_too_few_rounding_steps_is_an_error():
         reconstruct(torch.tensor(_circle(r=1.0) + 1e7, dtype=torch.float32))
     tri = torch.tensor([[0, 0], [1, 0], [0, 1]], dtype=torch.int64) + 10 ** 15
     assert reconstruct(tri).limit in (None, "no_curve", "max_level")
+    # int64 beyond 2^53 is rounded by the float64 packing (steps of 1024 at 2^62): the same rule
+    ring = torch.tensor(np.round(_circle(r=1000.0))).long() + 2 ** 62
+    with pytest.raises(PointSetError, match="only 2.8 rounding steps of float64 there"):
+        reconstruct(ring)
+    assert reconstruct(ring - 2 ** 62 + 2 ** 52, config={"max_level": 2}).num_closed == 1
     # a long line at that offset is collinear (no curve), not an error
     x = torch.linspace(0, 1000, 300, dtype=torch.float64)
     line = torch.stack([x + 1e15, 0.5 * x + 1e15], 1)

@@ -304,13 +304,16 @@ def prepare_points(point_sets: Sequence[PointsLike], names: Optional[Sequence[Op
         # float64 steps by 0.125, is 11 ulps across and still reconstructed)
         ulp = torch.tensor([torch.finfo(p.dtype).eps if p.dtype.is_floating_point else 0.0 for p in raw],
                            dtype=torch.float64, device=device)
+        # integers are exact until the float64 packing rounds them (beyond 2^53)
+        ulp = torch.where((ulp == 0) & (reach > 2.0 ** 53), torch.finfo(torch.float64).eps, ulp)
         step = ulp * reach
         coarse = (scale64 > 0) & (scale64 < MIN_RESOLVED_STEPS * step)      # one point: no curve, not an error
         if bool(coarse.any()):
             b = int(coarse.nonzero()[0, 0])
             raise PointSetError(
                 f"{labels[b]}: the points span {float(scale64[b]):.3g} at coordinates of magnitude {float(reach[b]):.3g}, "
-                f"only {float(scale64[b] / step[b]):.1f} rounding steps of {str(raw[b].dtype).replace('torch.', '')} "
+                f"only {float(scale64[b] / step[b]):.1f} rounding steps of "
+                f"{str(raw[b].dtype if raw[b].dtype.is_floating_point else torch.float64).replace('torch.', '')} "
                 f"there (at least {MIN_RESOLVED_STEPS:g} needed): subtract the offset first")
         # points on one line (up to the rounding of the input: each coordinate is off by at most
         # half a step, the fitted axis by about as much) enclose no region: such an item stops at

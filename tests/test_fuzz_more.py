@@ -121,6 +121,11 @@ def test_far_cluster_is_kept():
     near = np.vstack([_circle(), [[3.0, 0.0]]])
     pb = prepare_points([torch.tensor(two), torch.tensor(near)])
     assert pb.far_outliers == [0, 0] and pb.counts.tolist() == [200, 201]
+    # an item's drop does not depend on its batch
+    far = torch.tensor(np.vstack([_circle(), [[1e12, 1e12]]]))
+    alone, mixed = prepare_points([far]), prepare_points([torch.tensor(two), far, torch.tensor(near)])
+    assert alone.far_outliers == [1] and mixed.far_outliers == [0, 1, 0]
+    assert torch.equal(alone.points, mixed.points[200:400]) and torch.equal(alone.source, mixed.source[200:400])
 
 
 # ============================================================================ images

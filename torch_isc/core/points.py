@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from torch_isc._helpers import one_line, printable
-from torch_isc.core.segments import first_index, segment_count, segment_max, segment_median, segment_min, segment_sum
+from torch_isc.core.segments import first_index, segment_count, segment_max, segment_min, segment_sum
 
 __all__ = ["PointsLike", "PointSetError", "item_label", "PointBatch", "check_points", "distinct_points", "collinear_items",
            "prepare_points", "check_extent", "output_dtypes"]
@@ -147,6 +147,16 @@ FAR_OUTLIER_FRACTION = 0.01
 FAR_OUTLIER_MIN_ALLOWED = 4
 
 
+def _sorted_median(x: torch.Tensor, item: torch.Tensor, first: torch.Tensor, counts: torch.Tensor) -> torch.Tensor:
+    """``(B,)`` the lower median of ``x`` per item of the packed, item-major rows, exactly (no
+    key that would round differently with the item's place in the batch): a sort by value, its
+    order among equal values irrelevant (they are equal), then a stable sort by item."""
+    o1 = torch.argsort(x)
+    order = o1[torch.argsort(item[o1], stable=True)]
+    mid = first + (counts - 1).clamp_min(0) // 2
+    return x[order[mid.clamp_max(x.numel() - 1)]]
+
+
 def drop_far_outliers(pts64: torch.Tensor, point_item: torch.Tensor, counts: torch.Tensor,
                       source: torch.Tensor, B: int):
     """Drop the few points lying far from the bulk of their item. One point 1e12 away from a
@@ -156,12 +166,14 @@ def drop_far_outliers(pts64: torch.Tensor, point_item: torch.Tensor, counts: tor
     dropped per item (one host read)."""
     if pts64.shape[0] == 0:
         return pts64, point_item, counts, source, [0] * B
-    med = torch.stack([segment_median(pts64[:, 0], point_item, B), segment_median(pts64[:, 1], point_item, B)], 1)
-    # distances in units of the item's largest coordinate: no overflow near 1e308
-    m = (pts64.abs().amax(1)).new_zeros(B).scatter_reduce(0, point_item, pts64.abs().amax(1), "amax")
-    m = m.clamp_min(torch.finfo(torch.float64).tiny)[point_item]
-    d = torch.hypot(pts64[:, 0] / m - med[point_item, 0] / m, pts64[:, 1] / m - med[point_item, 1] / m)
-    d50 = segment_median(d, point_item, B)
+    # in units of the item's largest coordinate: no overflow near 1e308
+    m = pts64.abs().amax(1).new_zeros(B).scatter_reduce(0, point_item, pts64.abs().amax(1), "amax")
+    u = pts64 / m.clamp_min(torch.finfo(torch.float64).tiny)[point_item, None]
+    first = first_index(counts)
+    med = torch.stack([_sorted_median(u[:, 0], point_item, first, counts),
+                       _sorted_median(u[:, 1], point_item, first, counts)], 1)
+    d = torch.hypot(u[:, 0] - med[point_item, 0], u[:, 1] - med[point_item, 1])
+    d50 = _sorted_median(d, point_item, first, counts)
     far = (d > FAR_OUTLIER_FACTOR * d50[point_item]) & (d50[point_item] > 0)
     n_far = segment_sum(far.long(), point_item, B)
     allowed = torch.maximum((counts.double() * FAR_OUTLIER_FRACTION).floor().long(), torch.full_like(counts, FAR_OUTLIER_MIN_ALLOWED))

@@ -363,3 +363,19 @@ def test_far_points_kept_with_a_sign_oracle():
     inside = lambda p: (p.norm(dim=1) < 1) | ((p - torch.tensor([60.2, 0.2], dtype=p.dtype)).norm(dim=1) < 0.3)
     res = reconstruct(torch.tensor(ring), config={"max_level": 3}, sign_oracle=inside)
     assert res.far_outliers == 0 and res.stats[0].points == 203
+
+
+@pytest.mark.parametrize("delay", [0.05, 0.15, 0.4])
+def test_interrupt_early_in_the_entry(tmp_path, delay):
+    """Ctrl-C at several instants of the libraries' loading: always status 130 and one line.
+    Before, one landing in numpy's import (done lazily by torch's C++, which clears the error)
+    was lost: the run went on with numpy half-imported and failed, or finished with status 0."""
+    import subprocess
+    import sys
+    child = ("import os, signal, sys, threading, torch_isc.entry as e\n"
+             "sys.argv = ['torch-isc', 'reconstruct', '--example', '--out', sys.argv[1], '--set', 'max_level=1']\n"
+             f"threading.Timer({delay}, os.kill, (os.getpid(), signal.SIGINT)).start()\n"
+             "sys.exit(e.main())\n")
+    p = subprocess.run([sys.executable, "-c", child, str(tmp_path)], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 130 and "Traceback" not in p.stderr, p.stderr[-500:]
+    assert [ln for ln in p.stderr.splitlines() if "[" not in ln] == ["torch-isc: interrupted"]

@@ -673,7 +673,7 @@ def run_arguments(inputs, formats, image_formats, batch_size, image_options=None
     except TypeError:
         size = None
     if size is None or isinstance(batch_size, bool) or size < 1:
-        raise RunError(f"batch size must be >= 1 (an integer), got {batch_size!r:.50}")
+        raise RunError(f"batch size must be >= 1, got {batch_size!r:.50} (an integer)")
     if image_options is not None and not isinstance(image_options, ImageOptions):
         raise RunError(f"image_options: expected an ImageOptions, got {type(image_options).__name__}")
     return inputs, lists[0], lists[1]

@@ -17,6 +17,18 @@ int32 / int16 / float / 12-bit TIFF (divided by 2^31   test_pixel_types_read_by_
 - 1 or clipped: no edges, empty mask)
 a JPEG cut short but closed with EOI, or with flipped  test_damaged_jpeg_is_an_error
 bits (decoded silently, grey filled)
+an animated PNG (first frame read silently)            test_animated_png_is_rejected
+numpy arrays: reversed view (error), read-only (torch  test_api_array_layouts_and_types
+warning), complex / bool / masked (silently cast)
+numpy scalars as config values (refused)               test_config_numpy_scalars
+UTF-16 text, quoted CSV fields (refused), 1_0 (read    test_text_encodings_quotes_and_underscores
+as 10 on the slow path only)
+.npz / .gif given by name ("byte 16 is not UTF-8")     test_binary_file_of_another_suffix
+a 250-character input name (the whole run lost)        test_long_input_name
+an output folder that is a file (FileExistsError)      test_out_dir_is_a_file
+spike_rounds / snap_rounds unbounded (minutes)         test_every_numeric_key_is_bounded
+far points with a sign oracle (kept)                   test_far_points_kept_with_a_sign_oracle
+Ctrl-C during numpy's lazy import (lost: exit 0/1)     test_interrupt_early_in_the_entry
 =====================================================  ==========================================
 """
 from __future__ import annotations

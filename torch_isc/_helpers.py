@@ -90,12 +90,24 @@ def read_file_bytes(path: Union[str, os.PathLike], error: type, what: str, limit
 
 
 def decode_text(raw: bytes, label: str, what: str, error: type) -> str:
-    """``raw`` as UTF-8 text (a BOM allowed), or ``error`` saying ``"<label>: not a <what>"``
+    """``raw`` as UTF-8 text (a BOM allowed), or UTF-16 / UTF-32 when it starts with their BOM
+    (what Windows editors and PowerShell write), or ``error`` saying ``"<label>: not a <what>"``
     and why (a byte that is not UTF-8, NUL bytes: a binary file)."""
-    try:
-        text = raw.decode("utf-8-sig")
-    except UnicodeDecodeError as e:
-        raise error(f"{label}: not a {what} (byte {e.start} is not UTF-8)") from None
+    import codecs
+
+    for bom, enc in ((codecs.BOM_UTF32_LE, "utf-32"), (codecs.BOM_UTF32_BE, "utf-32"),
+                     (codecs.BOM_UTF16_LE, "utf-16"), (codecs.BOM_UTF16_BE, "utf-16")):
+        if raw.startswith(bom):
+            try:
+                text = raw.decode(enc).removeprefix("\ufeff")
+            except UnicodeDecodeError as e:
+                raise error(f"{label}: not a {what} (byte {e.start} is not {enc.upper()})") from None
+            break
+    else:
+        try:
+            text = raw.decode("utf-8-sig")
+        except UnicodeDecodeError as e:
+            raise error(f"{label}: not a {what} (byte {e.start} is not UTF-8)") from None
     if "\x00" in text:
         raise error(f"{label}: not a {what} (contains NUL bytes)")
     return text

@@ -59,7 +59,7 @@ from typing import Any, Callable, Dict, Iterable, Iterator, List, Optional, Sequ
 import torch_isc
 from torch_isc import images
 from torch_isc.runner import (DEFAULT_FORMATS, DEFAULT_IMAGE_FORMATS, ImageOptions, Record, RunError, expand_inputs,
-                              run_arguments, run_inputs, shown, unique_stems, overwritten_inputs)
+                              run_arguments, run_inputs, shown, unique_stems, overwritten_inputs, make_out_dir)
 from torch_isc.pipeline.loop import _as_config
 from torch_isc._helpers import decode_text, one_line, read_file_bytes
 from torch_isc.io.json import as_written
@@ -516,8 +516,7 @@ def reconstruct_dataset(inputs: Iterable[PathLike], out_dir: PathLike, config=No
     if not sources:
         raise RunError("no input")
     stems = unique_stems(sources, on_note)
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    out = make_out_dir(out_dir)
     if table is not None:           # before any work: a table that cannot be written would lose the rows
         if os.path.realpath(table) in {os.path.realpath(src) for src in sources}:
             raise RunError(f"table {shown(table)}: is an input of the run; writing it would overwrite that input")

@@ -63,7 +63,7 @@ from torch_isc.pipeline.loop import PointSetError, _as_config
 from torch_isc.core.points import item_label
 
 __all__ = ["RunError", "ImageOptions", "Record", "RunReport", "DEFAULT_FORMATS", "DEFAULT_IMAGE_FORMATS",
-           "expand_inputs", "unique_stems", "overwritten_inputs", "run_arguments", "run_inputs", "shown", "file_sha256", "manifest_path", "manifest_matches",
+           "expand_inputs", "make_out_dir", "unique_stems", "overwritten_inputs", "run_arguments", "run_inputs", "shown", "file_sha256", "manifest_path", "manifest_matches",
            "MANIFEST_FORMAT"]
 
 #: Version of the ``<stem>.manifest.json`` layout.
@@ -240,6 +240,18 @@ def expand_inputs(sources: Iterable[PathLike], errors: Optional[Dict[str, str]] 
     return out
 
 
+def make_out_dir(out_dir: PathLike) -> Path:
+    """The output folder, created if needed; a :class:`RunError` naming it when it cannot be
+    (a file of that name, no permission), not an ``OSError`` traceback."""
+    out = Path(out_dir)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except (OSError, ValueError) as e:
+        raise RunError(f"{shown(out_dir)}: cannot create the output folder "
+                       f"({getattr(e, 'strerror', None) or one_line(e, type(e).__name__)})") from None
+    return out
+
+
 def unique_stems(sources: Sequence[str], note: Optional[Callable[[str], None]] = None) -> List[str]:
     """Output stems, by a rule that does not depend on the order of the inputs:
 
@@ -247,7 +259,10 @@ def unique_stems(sources: Sequence[str], note: Optional[Callable[[str], None]] =
     2. else the stem and the suffix (``a.xy`` -> ``a_xy``, ``a.npy`` -> ``a_npy``);
     3. where that still clashes (``d1/a.xy`` and ``d2/a.xy``, or another input's name), also the
        first 8 hex digits of the sha256 of the input's absolute path (``a_xy_1f2e3d4c``);
-    4. the same path given twice: ``_2``, ``_3``... on the repeats.
+    4. the same path given twice: ``_2``, ``_3``... on the repeats;
+    5. a stem longer than :data:`MAX_STEM_BYTES` (200 bytes of UTF-8) is cut and ends with 8
+       hex digits of the sha256 of the whole stem (a 250-character name overflowed the file
+       system's 255 bytes with ``.manifest.json`` and lost the whole run).
 
     ``note`` is told about each renaming.
 
@@ -274,11 +289,30 @@ def unique_stems(sources: Sequence[str], note: Optional[Callable[[str], None]] =
         seen[names[i]] += 1
         if seen[names[i]] > 1:
             names[i] = f"{names[i]}_{seen[names[i]]}"
+    renamed = [name != stem for stem, name in zip(plain, names)]
+    names = [_fit_stem(n) for n in names]
     if note is not None:
-        for src, stem, name in zip(sources, plain, names):
-            if name != stem:
+        for src, stem, name, clash in zip(sources, plain, names, renamed):
+            if clash:
                 note(f"note: another input is also named '{shown(stem)}': {shown(src)} is written as '{shown(name)}'")
+            elif name != stem:
+                note(f"note: {shown(src)}: name too long for an output file, written as '{shown(name)}'")
     return names
+
+
+#: The longest output stem, in bytes (UTF-8): a file name holds 255 bytes, and the longest name
+#: written is ``.<stem>.manifest.json.XXXXXXXX.tmp`` (the atomic write's temporary file).
+MAX_STEM_BYTES = 200
+
+
+def _fit_stem(stem: str) -> str:
+    """``stem`` when it fits :data:`MAX_STEM_BYTES`; else its first bytes (whole characters)
+    and 8 hex digits of the sha256 of all of it, so two long names never collide."""
+    raw = stem.encode("utf-8", "surrogateescape")
+    if len(raw) <= MAX_STEM_BYTES:
+        return stem
+    head = raw[:MAX_STEM_BYTES - 9].decode("utf-8", "ignore")      # a cut character is dropped
+    return f"{head}_{hashlib.sha256(raw).hexdigest()[:8]}"
 
 
 def overwritten_inputs(sources: Sequence[str], stems: Sequence[str], out_dir: PathLike,
@@ -562,7 +596,10 @@ class _Run:
 
     def complete(self, job: _Job) -> bool:
         """Whether the job's outputs are a complete set made from this input and config."""
-        if not manifest_path(self.out_dir, job.stem).exists():
+        try:
+            if not manifest_path(self.out_dir, job.stem).exists():
+                return False
+        except (OSError, ValueError):           # a name the file system refuses: redo (its write reports it)
             return False
         if not is_regular_file(job.source):     # hashing a FIFO or a device would block or never end
             return False
@@ -713,8 +750,7 @@ def run_inputs(inputs: Iterable[PathLike], config: ReconstructConfig, out_dir: P
         raise RunError(f"image mode must be 'mask' or 'edges', got {image_options.mode!r}")
     listing: Dict[str, str] = {}
     sources = expand_inputs(inputs, listing)
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    out = make_out_dir(out_dir)
     if image_config is None:
         image_config = images.image_config(config, mode=image_options.mode)
     run = _Run(config, image_config, out, list(formats), list(image_formats), batch_size, image_options,

@@ -14,7 +14,7 @@ from typing import List, Optional, Sequence, Union
 import numpy as np
 import torch
 
-from torch_isc._helpers import printable
+from torch_isc._helpers import one_line, printable
 from torch_isc.core.segments import first_index, segment_count, segment_max, segment_min, segment_sum
 
 __all__ = ["PointsLike", "PointSetError", "item_label", "PointBatch", "check_points", "distinct_points", "collinear_items",
@@ -46,10 +46,22 @@ def check_points(x: PointsLike, label: str, finite: bool = True) -> torch.Tensor
         if x.is_quantized:
             raise PointSetError(f"{label}: expected real coordinates, got a quantized tensor")
     else:
+        if isinstance(x, np.ma.MaskedArray) and bool(np.ma.getmaskarray(x).any()):
+            raise PointSetError(f"{label}: a masked array with {int(np.ma.getmaskarray(x).sum())} masked "
+                                f"value(s): drop or fill them first")
         try:
-            x = torch.as_tensor(np.asarray(x, dtype=np.float64))
-        except (TypeError, ValueError) as e:
-            raise PointSetError(f"{label}: not an array of numbers ({e})") from None
+            a = np.asarray(x)
+            if a.dtype.kind in "cbmMV":       # complex, bool, dates, raw bytes: as a tensor of them would be
+                raise PointSetError(f"{label}: expected real coordinates, got dtype {a.dtype}")
+            a = np.asarray(a, dtype=np.float64)
+        except (TypeError, ValueError, OverflowError) as e:
+            if isinstance(e, PointSetError):
+                raise
+            raise PointSetError(f"{label}: not an array of numbers ({one_line(e, type(e).__name__)[:200]})") from None
+        # torch takes neither negative strides (a[::-1]) nor, without a warning, read-only memory
+        if any(st < 0 for st in a.strides) or not a.flags.writeable:
+            a = a.copy()
+        x = torch.from_numpy(a)
     if x.dim() != 2 or x.shape[1] != 2:
         raise PointSetError(f"{label}: expected points of shape (N, 2), got {tuple(x.shape)}")
     if not (x.dtype.is_floating_point or x.dtype in (torch.int16, torch.int32, torch.int64, torch.uint8, torch.int8)):
@@ -126,6 +138,60 @@ def _distinct_packed(x: torch.Tensor, item: torch.Tensor, B: int, labels: Sequen
     return x[keep], item[keep], counts, keep - start[item[keep]]
 
 
+#: far outliers: points farther from the item's median centre than this many times the median
+#: distance to it ...
+FAR_OUTLIER_FACTOR = 16.0
+#: ... are dropped when they are at most this fraction of the item's distinct points (or 4 points),
+#: so a second cluster of real data (more points) is kept; the result counts them (``far_outliers``)
+FAR_OUTLIER_FRACTION = 0.01
+FAR_OUTLIER_MIN_ALLOWED = 4
+
+
+def _sorted_median(x: torch.Tensor, item: torch.Tensor, first: torch.Tensor, counts: torch.Tensor) -> torch.Tensor:
+    """``(B,)`` the lower median of ``x`` per item of the packed, item-major rows, exactly (no
+    key that would round differently with the item's place in the batch): a sort by value, its
+    order among equal values irrelevant (they are equal), then a stable sort by item."""
+    o1 = torch.argsort(x)
+    order = o1[torch.argsort(item[o1], stable=True)]
+    mid = first + (counts - 1).clamp_min(0) // 2
+    return x[order[mid.clamp_max(x.numel() - 1)]]
+
+
+def drop_far_outliers(pts64: torch.Tensor, point_item: torch.Tensor, counts: torch.Tensor,
+                      source: torch.Tensor, B: int):
+    """Drop the few points lying far from the bulk of their item. One point 1e12 away from a
+    ring of radius 1 makes the bounding box 1e12 wide: the ring would be a dot in it (no curve);
+    one 100 radii away already leaves it unresolved at the default tolerance. Returns the
+    packed rows kept ``(pts64, point_item, counts, source)`` and the host list of the number
+    dropped per item (one host read)."""
+    if pts64.shape[0] == 0:
+        return pts64, point_item, counts, source, [0] * B
+    # in units of the item's largest coordinate: no overflow near 1e308
+    m = pts64.abs().amax(1).new_zeros(B).scatter_reduce(0, point_item, pts64.abs().amax(1), "amax")
+    u = pts64 / m.clamp_min(torch.finfo(torch.float64).tiny)[point_item, None]
+    first = first_index(counts)
+    med = torch.stack([_sorted_median(u[:, 0], point_item, first, counts),
+                       _sorted_median(u[:, 1], point_item, first, counts)], 1)
+    d = torch.hypot(u[:, 0] - med[point_item, 0], u[:, 1] - med[point_item, 1])
+    d50 = _sorted_median(d, point_item, first, counts)
+    far = (d > FAR_OUTLIER_FACTOR * d50[point_item]) & (d50[point_item] > 0)
+    n_far = segment_sum(far.long(), point_item, B)
+    allowed = torch.maximum((counts.double() * FAR_OUTLIER_FRACTION).floor().long(), torch.full_like(counts, FAR_OUTLIER_MIN_ALLOWED))
+    ok = (n_far > 0) & (n_far <= allowed) & (counts - n_far >= 3)
+    dropped = torch.where(ok, n_far, torch.zeros_like(n_far))
+    host = dropped.tolist()
+    if not any(host):
+        return pts64, point_item, counts, source, host
+    keep = ~(far & ok[point_item])
+    return pts64[keep], point_item[keep], counts - dropped, source[keep], host
+
+
+#: a point set's diagonal must span at least this many rounding steps (eps x its largest
+#: coordinate) of its dtype, else :class:`PointSetError`: float64 at an offset of 1e15 steps by
+#: 0.125 to 0.25, so a shape there must be at least ~2 across
+MIN_RESOLVED_STEPS = 8.0
+
+
 def collinear_items(pts64: torch.Tensor, point_item: torch.Tensor, B: int, slack: torch.Tensor) -> torch.Tensor:
     """``(B,)`` bool: every point of the item lies within ``slack`` of one line (float64,
     normalized coordinates). Measured as the largest distance to the principal axis, so no
@@ -159,6 +225,7 @@ class PointBatch:
         labels: a name per item for messages.
         source: ``(P,)`` long, each point's index in its caller's set (None: its index in the
             item), the key of per-point hashes (a merged repeat does not shift the others').
+        far_outliers: per item, how many distinct points :func:`drop_far_outliers` dropped (host ints).
     """
     points: torch.Tensor
     point_item: torch.Tensor
@@ -169,6 +236,7 @@ class PointBatch:
     raw: List[torch.Tensor]
     labels: List[str]
     source: Optional[torch.Tensor] = None
+    far_outliers: Optional[List[int]] = None
 
     @property
     def num_items(self) -> int:
@@ -185,8 +253,10 @@ class PointBatch:
 
 
 def prepare_points(point_sets: Sequence[PointsLike], names: Optional[Sequence[Optional[str]]] = None,
-                   dtype: torch.dtype = torch.float32) -> PointBatch:
-    """Check, merge repeats, pack and normalize ``point_sets`` (each ``(N_b, 2)``).
+                   dtype: torch.dtype = torch.float32, drop_far: bool = True) -> PointBatch:
+    """Check, merge repeats, pack and normalize ``point_sets`` (each ``(N_b, 2)``); with
+    ``drop_far``, leave out far outliers (:func:`drop_far_outliers`; not with a sign oracle,
+    which knows a far speck is real).
 
     Raises :class:`PointSetError` naming the first bad set.
 
@@ -210,6 +280,9 @@ def prepare_points(point_sets: Sequence[PointsLike], names: Optional[Sequence[Op
         item = _item_index([p.shape[0] for p in raw], device)
         _check_finite(x64, item, labels)
         pts64, point_item, counts, source = _distinct_packed(x64, item, B, labels)
+        far = [0] * B
+        if drop_far:
+            pts64, point_item, counts, source, far = drop_far_outliers(pts64, point_item, counts, source, B)
         # normalize in float64, then cast: large offsets (1e7) must not cost precision
         big = torch.finfo(torch.float64).max
         idx2 = point_item[:, None].expand(-1, 2)
@@ -237,12 +310,28 @@ def prepare_points(point_sets: Sequence[PointsLike], names: Optional[Sequence[Op
                 b = int(bad.nonzero()[0, 0])
                 raise PointSetError(f"{labels[b]}: coordinates too large for float64 (largest magnitude "
                                     f"{float(reach[b]):.3g}: the bounding box's diagonal overflows)")
-        # points on one line (up to the rounding of the input) enclose no region: such an item
-        # stops at level 0 with no curve (limit "no_curve"), not with a loop the data cannot support
+        # the input's rounding at its own magnitude (eps * largest coordinate: 1 to 2 ulps; 0 for
+        # integers). A set a few such steps across is a handful of grid nodes: refuse it by name
+        # rather than answer from rounding (a circle of radius 0.5 at an offset of 1e15, where
+        # float64 steps by 0.125, is 11 ulps across and still reconstructed)
         ulp = torch.tensor([torch.finfo(p.dtype).eps if p.dtype.is_floating_point else 0.0 for p in raw],
                            dtype=torch.float64, device=device)
-        flat = collinear_items(norm64, point_item, B, 1e-12 + 8 * ulp * reach / scale64)
-        return PointBatch(norm64.to(dtype), point_item, counts, center64, scale64, flat, raw, labels, source)
+        # integers are exact until the float64 packing rounds them (beyond 2^53)
+        ulp = torch.where((ulp == 0) & (reach > 2.0 ** 53), torch.finfo(torch.float64).eps, ulp)
+        step = ulp * reach
+        coarse = (scale64 > 0) & (scale64 < MIN_RESOLVED_STEPS * step)      # one point: no curve, not an error
+        if bool(coarse.any()):
+            b = int(coarse.nonzero()[0, 0])
+            raise PointSetError(
+                f"{labels[b]}: the points span {float(scale64[b]):.3g} at coordinates of magnitude {float(reach[b]):.3g}, "
+                f"only {float(scale64[b] / step[b]):.1f} rounding steps of "
+                f"{str(raw[b].dtype if raw[b].dtype.is_floating_point else torch.float64).replace('torch.', '')} "
+                f"there (at least {MIN_RESOLVED_STEPS:g} needed): subtract the offset first")
+        # points on one line (up to the rounding of the input: each coordinate is off by at most
+        # half a step, the fitted axis by about as much) enclose no region: such an item stops at
+        # level 0 with no curve (limit "no_curve"), not with a loop the data cannot support
+        flat = collinear_items(norm64, point_item, B, 1e-12 + 2 * step / scale64)
+        return PointBatch(norm64.to(dtype), point_item, counts, center64, scale64, flat, raw, labels, source, far)
 
 
 def output_dtypes(raw: Sequence[torch.Tensor], dtype: torch.dtype) -> List[torch.dtype]:

@@ -12,9 +12,13 @@ from __future__ import annotations
 
 import os
 import struct
+import sys
+import tempfile
+import threading
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional, Union
+from typing import Dict, Iterator, Optional, Union
 
 import numpy as np
 
@@ -31,7 +35,8 @@ DEFAULT_MAX_PIXELS = 100_000_000
 
 @dataclass(frozen=True)
 class ImageHeader:
-    """What an image file's header says: ``width``, ``height``, ``pages`` (TIFF), the EXIF
+    """What an image file's header says: ``width``, ``height``, ``pages`` (TIFF pages, animated
+    PNG frames), the EXIF
     ``orientation`` (1-8, 1 when absent) and the ``format`` name."""
     format: str
     width: int
@@ -87,16 +92,17 @@ def _png_header(b: bytes) -> Optional[ImageHeader]:
     if b[12:16] != b"IHDR":
         return None
     w, h = struct.unpack(">II", b[16:24])
-    orient, pos = 1, 8
-    while pos + 8 <= len(b):                          # an eXIf chunk comes before the image data
+    orient, frames, pos = 1, 1, 8
+    while pos + 8 <= len(b):                          # eXIf and acTL chunks come before the image data
         ln, typ = struct.unpack(">I4s", b[pos:pos + 8])
         if typ == b"eXIf":
             orient = _exif_orientation(b[pos + 8:pos + 8 + ln])
-            break
-        if typ in (b"IDAT", b"IEND"):
+        elif typ == b"acTL":                          # an animated PNG: its number of frames
+            frames = max(1, struct.unpack(">I", b[pos + 8:pos + 12])[0])
+        elif typ in (b"IDAT", b"IEND"):
             break
         pos += 12 + ln
-    return ImageHeader("png", w, h, 1, orient)
+    return ImageHeader("png", w, h, frames, orient)
 
 
 def _jpeg_header(b: bytes) -> Optional[ImageHeader]:
@@ -163,10 +169,77 @@ def _orient(img: np.ndarray, orientation: int) -> np.ndarray:
     return np.ascontiguousarray(ops[orientation](img)) if orientation in ops else img
 
 
+_STDERR_LOCK = threading.Lock()
+#: what libjpeg says (on the process's stderr, past OpenCV) when it decodes a damaged file anyway:
+#: the missing part grey, or garbage after flipped bits ("N extraneous bytes before marker")
+_JPEG_DAMAGE = ("Corrupt JPEG data", "Premature end of JPEG file")
+
+
+@contextmanager
+def _native_stderr() -> Iterator[Dict[str, str]]:
+    """Capture what native code (libjpeg, libpng) writes to file descriptor 2 meanwhile:
+    ``box["text"]`` after the block. libjpeg only *warns* there when it decodes a damaged
+    file (the rest filled in grey), and libpng's errors would add lines to our one-line
+    messages. Nothing is captured when descriptor 2 cannot be duplicated."""
+    box = {"text": ""}
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError, AttributeError):
+        yield box
+        return
+    with _STDERR_LOCK:
+        try:
+            with tempfile.TemporaryFile() as tmp:
+                os.dup2(tmp.fileno(), 2)
+                try:
+                    yield box
+                finally:
+                    os.dup2(saved, 2)
+                    tmp.seek(0)
+                    box["text"] = tmp.read(1 << 16).decode("utf-8", "replace")
+        finally:
+            os.close(saved)
+
+
 def _check_size(p: object, w: int, h: int, max_pixels: Optional[int]) -> None:
     if max_pixels is not None and w * h > max_pixels:
         raise ImageError(f"{p}: image too large: {w}x{h} pixels ({w * h / 1e6:.4g} megapixels), above the limit "
                          f"of {max_pixels / 1e6:.4g} megapixels (max_pixels, --max-pixels)")
+
+
+def _unit_range(img: np.ndarray, p: object) -> np.ndarray:
+    """``img`` as float32 in [0, 1]: uint8 by 255, uint16 by ``2^k - 1`` for the k bits its
+    largest value needs (8 to 16: 12-bit data stored in 16 bits reads as full range), floats
+    within [0, 1] as they are; other types (int8/16/32/64, uint32/64: no standard full scale, a
+    TIFF of counts or labels) and floats outside [0, 1] by the data's own range, min to max (a
+    constant image reads as 0). Before, an int32 TIFF was divided by 2^31 - 1: no edges, no mask."""
+    if img.dtype == np.uint8:
+        return img.astype(np.float32) / np.float32(255.0)
+    if img.dtype == np.uint16:
+        # by the bit depth the data uses, at least 8: 10-, 12- and 14-bit sensors and scanners
+        # store into 16 bits (a 12-bit image divided by 65535 would be black: no edges)
+        bits = max(8, int(img.max()).bit_length())
+        return img.astype(np.float32) / np.float32((1 << bits) - 1)
+    if img.dtype == np.bool_:
+        return img.astype(np.float32)
+    if not (np.issubdtype(img.dtype, np.integer) or np.issubdtype(img.dtype, np.floating)):
+        raise ImageError(f"{p}: unsupported pixel type {img.dtype}")
+    if np.issubdtype(img.dtype, np.floating) and not np.isfinite(img).all():
+        raise ImageError(f"{p}: image has NaN or Inf values")
+    chans = img[..., :3] if img.ndim == 3 and img.shape[2] in (3, 4) else img      # alpha keeps its own scale
+    lo, hi = float(chans.min()), float(chans.max())
+    if np.issubdtype(img.dtype, np.floating) and lo >= 0.0 and hi <= 1.0:
+        return img.astype(np.float32)
+    g = img.astype(np.float64)
+    if chans is not img:
+        alpha = g[..., 3:]
+        amax = float(alpha.max())
+        alpha = alpha / amax if amax > 1.0 else alpha            # an integer alpha: opaque is its largest value
+        g = np.concatenate([(g[..., :3] - lo) / (hi - lo) if hi > lo else np.zeros_like(g[..., :3]), alpha], 2)
+    else:
+        g = (g - lo) / (hi - lo) if hi > lo else np.zeros_like(g)
+    return g.astype(np.float32)
 
 
 def read_image(path: Union[str, os.PathLike], max_pixels: Optional[int] = DEFAULT_MAX_PIXELS) -> np.ndarray:
@@ -185,8 +258,12 @@ def decode_image(data: bytes, name: object = "image", max_pixels: Optional[int] 
     in ``[0, 1]``; ``name`` (e.g. the path) starts every error message.
 
     Colour is converted to gray (OpenCV weights); an alpha channel, when present and not
-    fully opaque, multiplies the gray value (a transparent background reads as black).
-    8-bit, 16-bit and float images are scaled to ``[0, 1]``. The header is checked first
+    fully opaque, multiplies the gray value (a transparent background reads as black), except
+    when the colour is the same wherever alpha > 0 (a one-colour icon, black glyph on
+    transparent): then the image is the alpha channel itself (opaque reads as white).
+    8-bit images are scaled to ``[0, 1]`` by 255, 16-bit ones by the bit depth they use (8 to
+    16 bits: 12-bit data stored in 16 bits is full range), floats in ``[0, 1]``
+    kept, other pixel types (signed, 32-bit) and floats beyond ``[0, 1]`` by their own min and max. The header is checked first
     (module docstring): more than ``max_pixels`` pixels (None: no limit) or several TIFF pages
     raise :class:`ImageError`; the EXIF orientation is applied.
 
@@ -203,39 +280,43 @@ def decode_image(data: bytes, name: object = "image", max_pixels: Optional[int] 
     if head is not None:
         _check_size(p, head.width, head.height, max_pixels)
         if head.pages > 1:
-            raise ImageError(f"{p}: multi-page TIFF ({head.pages} pages): only single images are read "
-                             f"(split the pages first)")
+            kind, unit = ("animated PNG", "frames") if head.format == "png" else ("multi-page TIFF", "pages")
+            raise ImageError(f"{p}: {kind} ({head.pages} {unit}): only single images are read "
+                             f"(split the {unit} first)")
     img = None
     log = cv2.utils.logging
     level = log.getLogLevel()
     log.setLogLevel(log.LOG_LEVEL_SILENT)     # a corrupt file is reported once, by us, not by OpenCV too
     try:
-        img = cv2.imdecode(raw, cv2.IMREAD_UNCHANGED)
-    except cv2.error:
-        img = None
+        with _native_stderr() as said:
+            try:
+                img = cv2.imdecode(raw, cv2.IMREAD_UNCHANGED)
+            except cv2.error:
+                img = None
     finally:
         log.setLogLevel(level)
     if img is None or img.size == 0:
         raise ImageError(f"{p}: not a readable image (unknown format, truncated or corrupt)")
+    damage = [ln.strip() for ln in said["text"].splitlines() if ln.strip().startswith(_JPEG_DAMAGE)]
+    if damage:
+        raise ImageError(f"{p}: truncated or corrupt JPEG (libjpeg: {damage[0][:120]})")
+    if said["text"].strip():                       # a decoder's other warnings: pass them on
+        sys.stderr.write(said["text"] if said["text"].endswith("\n") else said["text"] + "\n")
     _check_size(p, int(img.shape[1]), int(img.shape[0]), max_pixels)
     if head is not None and head.orientation != 1 and head.format in ("jpeg", "png"):
         img = _orient(img, head.orientation)        # OpenCV's TIFF decoder applies it itself
     if img.ndim == 3 and img.shape[2] == 1:
         img = img[:, :, 0]
-    if img.dtype == np.uint8:
-        scale = 255.0
-    elif img.dtype == np.uint16:
-        scale = 65535.0
-    elif np.issubdtype(img.dtype, np.floating):
-        scale = 1.0
-    else:
-        scale = float(np.iinfo(img.dtype).max) if np.issubdtype(img.dtype, np.integer) else 1.0
-    g = img.astype(np.float32) / np.float32(scale)
-    if g.ndim == 3:
-        alpha = g[:, :, 3] if g.shape[2] == 4 else None
-        g = cv2.cvtColor(np.ascontiguousarray(g[:, :, :3]), cv2.COLOR_BGR2GRAY)
+    g = _unit_range(img, p)
+    if g.ndim == 3 and g.shape[2] in (2, 3, 4):
+        alpha = g[:, :, -1] if g.shape[2] in (2, 4) else None
+        g = g[:, :, 0] if g.shape[2] == 2 else cv2.cvtColor(np.ascontiguousarray(g[:, :, :3]), cv2.COLOR_BGR2GRAY)
         if alpha is not None and (alpha < 1).any():
-            g = g * alpha
+            seen = g[alpha > 0]
+            if seen.size == 0 or float(seen.max() - seen.min()) <= 1.0 / 255.0:
+                g = alpha                   # one colour everywhere it shows: the shape is the alpha
+            else:
+                g = g * alpha               # composited on black
     if not np.isfinite(g).all():
         raise ImageError(f"{p}: image has NaN or Inf values")
     if g.ndim != 2:

@@ -1,5 +1,5 @@
 """Point sets as text: ``x y``, ``x,y`` or ``x;y`` rows, ``#`` comments, blank lines, one
-optional header line of words (e.g. ``x,y``). A decimal comma (``1,5;2,5``) is not read as one:
+optional header line of words (e.g. ``x,y``); fields may be quoted (``"1.5","2"``). A decimal comma (``1,5;2,5``) is not read as one:
 such a row has four fields and is refused with its line number."""
 from __future__ import annotations
 
@@ -22,10 +22,13 @@ SUFFIXES = (".xy", ".txt", ".csv")
 _FIELD_SPLIT = re.compile(r"\s*[,;]\s*|\s+")
 _COMMENT = re.compile(r"#[^\n]*")
 _FIRST_LINE = re.compile(r"^[ \t\f\v]*(\S[^\n]*)$", re.M)
+_QUOTED = re.compile(r'"([^"\n]*)"')
 _EMPTY_FIELD = re.compile(r"^[ \t]*[,;]|[,;][ \t]*[,;]|[,;][ \t]*$", re.M)
 
 
 def _is_number(tok: str) -> bool:
+    if "_" in tok:            # Python's float reads "1_000" as 1000; numpy (the fast path) does not
+        return False
     try:
         float(tok)
     except ValueError:
@@ -46,6 +49,8 @@ def decode_points(p: Path, raw: bytes) -> Tuple[np.ndarray, Optional[np.ndarray]
     """
     text = decode_text(raw, str(p), "text point file", PointFileError)
     text = _COMMENT.sub("", text.replace("\r\n", "\n").replace("\r", "\n"))
+    if '"' in text:
+        text = _QUOTED.sub(r"\1", text)          # "1.5","2" (spreadsheets quote every field)
     first = _FIRST_LINE.search(text)
     if first is None:
         raise PointFileError(f"{p}: no points (the file has no data lines)")

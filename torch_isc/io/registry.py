@@ -62,6 +62,13 @@ def read_points(path: PathLike) -> np.ndarray:
     p = Path(path)
     raw = read_file_bytes(p, PointFileError, "a point file")
     as_npy = npy.is_npy(raw) or p.suffix.lower() in npy.SUFFIXES
+    suffix = p.suffix.lower()
+    if not as_npy and suffix not in points_text.SUFFIXES and (
+            raw.startswith(b"PK\x03\x04") or (b"\x00" in raw[:4096] and raw[:2] not in (b"\xff\xfe", b"\xfe\xff"))):
+        # a binary file of another suffix (an .npz archive, a .gif): say what is read, not "byte 16 is not UTF-8"
+        what = "a .npz archive" if raw.startswith(b"PK\x03\x04") else f"a binary {suffix or 'suffix-less'} file"
+        raise PointFileError(f"{p}: {what}, neither a point file (.xy/.txt/.csv text rows, a .npy array) nor an "
+                             f"image read here ({'/'.join(IMAGE_SUFFIXES)})")
     pts, rows = (npy.decode_points if as_npy else points_text.decode_points)(p, raw)
     bad = ~np.isfinite(pts)
     if bad.any():

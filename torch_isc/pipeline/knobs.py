@@ -63,6 +63,8 @@ def check_section(obj: Any) -> None:
     for f in dataclasses.fields(obj):
         v = getattr(obj, f.name)
         want = f.type if isinstance(f.type, type) else _TYPES[f.type]
+        if type(v).__module__ == "numpy" and getattr(v, "ndim", None) == 0:
+            v = v.item()          # a numpy scalar (np.int64 from a parameter sweep): its Python value
         if want is float and isinstance(v, str):          # YAML 1.1 reads 1e-3 as a string
             try:
                 v = float(v)

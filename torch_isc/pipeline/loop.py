@@ -144,7 +144,7 @@ def reconstruct_batch(point_sets: Sequence[PointsLike], config: Optional[Reconst
     if sign_oracles is not None and not callable(sign_oracles) and len(sign_oracles) != len(point_sets):
         raise PointSetError(f"sign_oracles: {len(sign_oracles)} oracle(s) for {len(point_sets)} point set(s)")
     dtype = torch.float64 if cfg.run.dtype == "float64" else torch.float32
-    batch = prepare_points(point_sets, names, dtype)
+    batch = prepare_points(point_sets, names, dtype, drop_far=sign_oracles is None)
     check_extent(batch, initial_cover(cfg.mesh), dtype)
     source: SignSource = (OracleSigns(sign_oracles) if sign_oracles is not None
                           else IsingSigns(cfg.topology, cfg.evidence, cfg.run.seed))

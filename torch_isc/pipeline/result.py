@@ -39,6 +39,9 @@ class ReconstructionResult:
             ``converged`` False.
         The curve's dtype is the input's floating dtype promoted with the working dtype.
         name: an optional label (file stem) carried to the outputs.
+        far_outliers: how many points lay so far from the rest that they were left out (more
+            than 16 median distances from the median centre, at most 1% of the points or 4:
+            ``torch_isc.core.points.drop_far_outliers``); ``points`` still holds them.
     """
     curve: ImplicitCurve
     points: torch.Tensor
@@ -47,6 +50,7 @@ class ReconstructionResult:
     converged: bool
     limit: Optional[str] = None
     name: Optional[str] = None
+    far_outliers: int = 0
     _polylines: Optional[List[Dict[str, Any]]] = field(default=None, repr=False)
 
     @property
@@ -127,7 +131,8 @@ class ReconstructionResult:
         }
         if with_stats:
             d["stats"] = {"levels": [lv.to_dict() for lv in self.stats], "converged": self.converged, "limit": self.limit,
-                          "num_closed": self.num_closed, "num_open": self.num_open}
+                          "num_closed": self.num_closed, "num_open": self.num_open,
+                          "far_outliers": self.far_outliers}
         return d
 
 
@@ -179,4 +184,5 @@ def finish_items(ws: "WorkingSet", fin: torch.Tensor, n_marked: torch.Tensor, ov
                 # all of them on one line); a run cut short by a limit keeps that limit as its reason
                 converged, limit = False, "no_curve"
             yield b, ReconstructionResult(curve=curve, points=raw, stats=stats[b], config=cfg, converged=converged,
-                                          limit=limit, name=names[b])
+                                          limit=limit, name=names[b],
+                                          far_outliers=batch.far_outliers[b] if batch.far_outliers else 0)

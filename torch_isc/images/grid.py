@@ -243,9 +243,10 @@ def _corner_tips(a: torch.Tensor, d: torch.Tensor, t: torch.Tensor, prev: torch.
                  n_loop: torch.Tensor, side: Tuple[int, int] = (2, 7), zone: int = 3, radius: float = 2.0,
                  straight: float = 0.16, min_turn: float = 0.35, max_cos: float = 0.5,
                  min_loop: int = 64, min_side: float = 2.0, max_cos_smooth: float = 0.8,
-                 max_radius: float = 5.0, straight_long: float = 0.25, stretch_side: int = 16, long_sides: Sequence[int] = (11, 16, 24),
-                 stretch: Optional[Callable] = None, long_span: int = 8, max_cos_long: float = 0.6,
-                 max_cos_long_smooth: float = 0.7
+                 max_radius: float = 5.0, straight_long: float = 0.25, stretch_side: int = 16, long_sides: Sequence[int] = (11, 16, 24, 32, 40, 48, 56, 64),
+                 stretch: Optional[Callable] = None, long_span: int = 8, max_cos_long: float = 0.8,
+                 max_cos_long_smooth: float = 0.68, gap: int = 2, gap_span: int = 10, corner_gap: int = 3,
+                 straight_window: float = 0.22, min_loop_sure: int = 64, small_side: int = 11
                  ) -> Tuple[torch.Tensor, Optional[Tuple[torch.Tensor, torch.Tensor, torch.Tensor]]]:
     """Crossing parameters ``t`` with the sharp corners restored: at each corner of the loops
     (a turn of the chords 3 nodes either side with cosine below ``max_cos`` on the crack
@@ -265,9 +266,17 @@ def _corner_tips(a: torch.Tensor, d: torch.Tensor, t: torch.Tensor, prev: torch.
     the apex) and returns the crossings' edges ``(a, d)`` on the moved mesh, on which the zone
     is then projected, and the vertex moved per corner. Obtuse corners (a turn of 50-75
     degrees, which 3-step chords of a staircase misjudge by up to 30) are candidates too where
-    the chords ``long_span`` nodes long turn with cosine below ``max_cos_long`` (below
-    ``max_cos_long_smooth`` on the smoothed crossings), on loops of ``16 long_span`` crossings or
-    more, with both sides straight over ``2 long_span`` nodes or more.
+    the chords ``long_span`` nodes long turn with cosine below ``max_cos_long`` and the smoothed
+    crossings turn with cosine below ``max_cos_long_smooth`` between chords that leave out the
+    ``gap`` nodes either side (nodes ``gap..gap_span`` away: chords through the corner read a
+    60-degree turn that the mask rounds as 45-50), on loops of ``16 long_span`` crossings or
+    more, with both sides straight over ``2 long_span`` nodes or more. A side is fitted over the
+    longest straight window of ``long_sides`` (a near-axis side is one run of crossings over 24
+    nodes, and its direction is only measured across a step): windows beyond 24 nodes need an
+    RMS residual below ``straight_window`` and stop ``corner_gap`` nodes before the next corner
+    candidate along the loop. On loops below ``min_loop_sure`` crossings (down to ``min_loop``)
+    a corner needs both sides straight over ``small_side`` nodes (a small disc's arcs look
+    straight over a few).
 
     Returns ``(t, corners)``: ``corners`` is ``(node (C,), tip (C, 2), convex (C,), moved (C,))``
     of the corners found (for :func:`_insert_tips`; ``moved``: the band vertex ``stretch`` moved
@@ -302,8 +311,7 @@ def _corner_tips(a: torch.Tensor, d: torch.Tensor, t: torch.Tensor, prev: torch.
         ul, wl = m - m[pl_], m[nl_] - m
         cos_l = (ul * wl).sum(1) / (ul.norm(dim=1) * wl.norm(dim=1)).clamp_min(1e-12)
         cl = ((cos_l < max_cos_long) & (n_loop >= max(min_loop, 16 * long_span))).nonzero().squeeze(1)
-        usl, wsl = p[cl] - p[pl_[cl]], p[nl_[cl]] - p[cl]
-        keep = (usl * wsl).sum(1) / (usl.norm(dim=1) * wsl.norm(dim=1)).clamp_min(1e-12) < max_cos_long_smooth
+        keep = torch.ones_like(cl, dtype=torch.bool)
         cb, cf, cc = cl, cl, cos_l[cl]
         for _ in range(long_span // 2):
             cb, cf = prev[cb], nxt[cf]
@@ -325,47 +333,86 @@ def _corner_tips(a: torch.Tensor, d: torch.Tensor, t: torch.Tensor, prev: torch.
             near[cb] = True
             near[cf] = True
         cl = cl[~near[cl]]
+        # the turn itself is measured on the smoothed crossings between chords that leave out
+        # the `gap` nodes either side of the corner (the mask rounds a corner over a few
+        # crossings, and chords through it read a 60-degree turn as 45-50)
+        ends = []
+        for step in (prev, nxt):
+            j, out = cl, {}
+            for n_ in range(1, gap_span + 1):
+                j = step[j]
+                if n_ in (gap, gap_span):
+                    out[n_] = j
+            ends.append(out)
+        usl, wsl = p[ends[0][gap]] - p[ends[0][gap_span]], p[ends[1][gap_span]] - p[ends[1][gap]]
+        cl = cl[(usl * wsl).sum(1) / (usl.norm(dim=1) * wsl.norm(dim=1)).clamp_min(1e-12) < max_cos_long_smooth]
         c, srt = torch.cat([c, cl]).sort()
         from_long = (torch.arange(c.shape[0], device=c.device) >= c.shape[0] - cl.shape[0])[srt]
     else:
         from_long = torch.zeros(c.shape[0], dtype=torch.bool, device=c.device)
     if c.numel() == 0:
         return t, None
-    steps = max([side[1], zone] + list(long_sides))
+    steps = max([side[1], zone, gap_span] + list(long_sides))
     back, fwd = [c], [c]
-    for _ in range(steps):
+    for _ in range(steps + corner_gap):
         back.append(prev[back[-1]])
         fwd.append(nxt[fwd[-1]])
 
-    def fit(idx, forward):
-        q = p[idx]                                                    # (C, K, 2) in travel order
-        mu = q.mean(1)
-        x = q - mu[:, None]
-        sxx, syy, sxy = (x[..., 0] ** 2).mean(1), (x[..., 1] ** 2).mean(1), (x[..., 0] * x[..., 1]).mean(1)
-        th = 0.5 * torch.atan2(2 * sxy, sxx - syy)
-        v = torch.stack([torch.cos(th), torch.sin(th)], 1)
-        travel = q[:, -1] - q[:, 0]
-        v = torch.where(((v * travel).sum(1) < 0)[:, None], -v, v)
-        resid = ((x[..., 0] * v[:, None, 1] - x[..., 1] * v[:, None, 0]) ** 2).mean(1).sqrt()
-        return mu, v, torch.where(travel.norm(dim=1) >= min_side, resid, torch.full_like(resid, float("inf")))
-
-    def longest(nodes_of):
+    def longest(walk, reach_of, toward):
         # the longest straight fit of nodes side[0]..L, L in side_ends: a staircase of a shallow
-        # side is straight only over a whole step, and a short fit on one step tilts the line
-        best = None
-        for L in side_ends:
-            mu, v, r = fit(nodes_of(range(side[0], L + 1)), True)
+        # side is straight only over a whole step, and a short fit on one step tilts the line.
+        # All windows from one stack of the nodes outward from the corner, by prefix sums (in
+        # float64, about the corner: a window's scatter is a difference of sums)
+        short = [L for L in side_ends if L <= 24]
+        o = p[c].double()
+        q = p[torch.stack(walk[side[0]:short[-1] + 1], 1)].double() - o[:, None]        # (C, K, 2)
+        best = windows(q, o, short, reach_of, toward, None)
+        # the longer windows only where the side is straight over all 24 and may go on
+        go = ((best[3] == short[-1]) & (reach_of > short[-1])).nonzero().squeeze(1)
+        if go.numel() and len(side_ends) > len(short):
+            ql = p[torch.stack([w_[go] for w_ in walk[side[0]:side_ends[-1] + 1]], 1)].double() - o[go, None]
+            sub = windows(ql, o[go], side_ends[len(short):], reach_of[go], toward, tuple(x_[go] for x_ in best))
+            best = tuple(x_.index_copy(0, go, y_) for x_, y_ in zip(best, sub))
+        return tuple(x_.to(p.dtype) for x_ in best)
+
+    def windows(q, o, ends_, reach_of, toward, best):
+        x, y = q[..., 0], q[..., 1]
+        S = torch.stack([x, y, x * x, y * y, x * y], 0).cumsum(2)                       # (5, C, K)
+        for L in ends_:
+            col = L - side[0]
+            mx, my, mxx, myy, mxy = S[:, :, col] / (col + 1)
+            sxx, syy, sxy = mxx - mx * mx, myy - my * my, mxy - mx * my
+            th = 0.5 * torch.atan2(2 * sxy, sxx - syy)
+            v = torch.stack([torch.cos(th), torch.sin(th)], 1)
+            travel = (q[:, col] - q[:, 0]) * toward                                      # in travel order
+            v = torch.where(((v * travel).sum(1) < 0)[:, None], -v, v)
+            r = (0.5 * (sxx + syy) - torch.sqrt((0.5 * (sxx - syy)) ** 2 + sxy ** 2)).clamp_min(0).sqrt()
+            r = torch.where(travel.norm(dim=1) >= min_side, r, torch.full_like(r, float("inf")))
+            mu = torch.stack([mx, my], 1) + o
             if best is None:
                 best = (mu, v, r, torch.full_like(r, float(L)))
             else:
-                take = (r < (straight if L < 16 else straight_long))[:, None]
+                # a window stops short of the next corner candidate along the loop
+                take = ((r < (straight if L < 16 else straight_long if L <= 24 else straight_window))
+                        & ((L <= 24) | (L <= reach_of)))[:, None]
                 best = (torch.where(take, mu, best[0]), torch.where(take, v, best[1]),
                         torch.where(take[:, 0], r, best[2]), torch.where(take[:, 0], float(L), best[3]))
         return best
 
     side_ends = [side[1]] + [L for L in long_sides if L > side[1]]
-    mu1, v1, r1, L1 = longest(lambda K: torch.stack([back[j] for j in reversed(K)], 1))    # before the corner
-    mu2, v2, r2, L2 = longest(lambda K: torch.stack([fwd[j] for j in K], 1))              # after it
+    # how far each side may be fitted: to `corner_gap` nodes before the next candidate (beyond
+    # `gap_span` nodes: a corner can be found twice a few nodes apart) along the loop
+    is_c = torch.zeros(a.shape[0], dtype=torch.bool, device=a.device)
+    is_c[c] = True
+    big = float(steps + corner_gap + 1)
+
+    def room(walk):
+        hit = torch.stack([is_c[walk[j]] for j in range(gap_span + 1, steps + corner_gap + 1)], 1)
+        j = torch.arange(gap_span + 1, steps + corner_gap + 1, device=a.device, dtype=p.dtype)
+        return torch.where(hit, j, torch.full_like(j, big)).min(1).values - corner_gap
+
+    mu1, v1, r1, L1 = longest(back, room(back), -1.0)   # before the corner (travelled toward it)
+    mu2, v2, r2, L2 = longest(fwd, room(fwd), 1.0)      # after it
     den = v1[:, 0] * v2[:, 1] - v1[:, 1] * v2[:, 0]                             # > 0: a left turn, convex
     dm = mu2 - mu1
     sol = (dm[:, 0] * v2[:, 1] - dm[:, 1] * v2[:, 0]) / torch.where(den.abs() > 1e-9, den, torch.ones_like(den))
@@ -375,11 +422,16 @@ def _corner_tips(a: torch.Tensor, d: torch.Tensor, t: torch.Tensor, prev: torch.
     reach_tip = (0.5 / torch.tan(half).clamp_min(1e-3) + 1.0).clamp(min=radius, max=max_radius)
     # a turn of at least asin(min_turn) (any acute apex too), lines not near parallel
     turn_ok = (cos_turn < math.sqrt(1.0 - min_turn ** 2)) & (den.abs() > 0.1)
-    ok = turn_ok & (r1 < straight_long) & (r2 < straight_long) & ((tip - p[c]).norm(dim=1) < reach_tip + 0.5)
+    lim1, lim2 = [torch.where(L_ > 24, straight_window, straight_long) for L_ in (L1, L2)]
+    ok = turn_ok & (r1 < lim1) & (r2 < lim2) & ((tip - p[c]).norm(dim=1) < reach_tip + 0.5)
     # a corner seen only on the long chords needs sides straight beyond them, on a loop of 16
     # chords or more (on a small polygon the long chords reach past a side's ends, and a
     # near-axis side of a few steps tilts its fit)
     ok &= ~from_long | (torch.minimum(L1, L2) >= 2 * long_span)
+    # on a small loop (below `min_loop_sure` crossings) both sides straight over `small_side`
+    # nodes or more: a small disc's arcs look straight over a few crossings, and its staircase
+    # turns by 60 degrees or more
+    ok &= (n_loop[c] >= min_loop_sure) | (torch.minimum(L1, L2) >= small_side)
     if not bool(ok.any()):
         return t, None
     back, fwd = [x[ok] for x in back], [x[ok] for x in fwd]

@@ -351,6 +351,37 @@ def _color_layout(mesh: MeshBatch, H: torch.Tensor, fixed: torch.Tensor, R: int)
     return s, pos, classes, color, free
 
 
+#: random numbers the annealer hashes at once, at most (about 8 bytes each, a few buffers): on
+#: a CPU 2**20, which keeps the hashing in cache (2**22 or more ran 2-7x slower a number); on a
+#: GPU enough for a whole level's sweeps in a few blocks up to B ~ 4096 shapes of 500 points,
+#: so that the launches of a level's random numbers do not grow with the batch
+_RNG_NUMBERS = {"cpu": 1 << 20}
+_RNG_NUMBERS_OTHER = 1 << 26
+
+
+def _rng_block(sweeps: int, numbers_per_sweep: int, device: torch.device) -> int:
+    """Sweeps per block of random numbers (the memory bound of ``device``)."""
+    cap = _RNG_NUMBERS.get(device.type, _RNG_NUMBERS_OTHER)
+    return max(1, min(sweeps, cap // max(numbers_per_sweep, 1)))
+
+
+def _metropolis_thresholds(hc: torch.Tensor, koff: torch.Tensor, thalf: torch.Tensor, dt: torch.dtype) -> torch.Tensor:
+    """``(n, R, F)`` the thresholds ``(T/2) log u`` of ``n`` sweeps: ``u`` the hash of the keys
+    ``hc (R, F) + koff (n, 1, 1)`` (``hash_to_unit(mix32(.))``, bit for bit, in fewer ops and
+    in place), ``thalf (n, R)`` the halved temperatures."""
+    m = 0xFFFFFFFF
+    x = torch.add(hc[None], koff).bitwise_and_(m)                # mix32, in place
+    x.bitwise_xor_(x >> 16).mul_(0x7FEB352D).bitwise_and_(m)
+    x.bitwise_xor_(x >> 15).mul_(0x846CA68B).bitwise_and_(m)
+    x.bitwise_xor_(x >> 16)
+    # hash_to_unit: (h + 1/2) / 2**32 exactly in float64 (h < 2**32) as one op, then rounded
+    c = torch.full((), 2.0 ** -33, dtype=torch.float64, device=x.device)
+    u = torch.add(c, x, alpha=2.0 ** -32).to(dt)
+    u = u.clamp_max_(1.0 - torch.finfo(dt).eps / 2).log_()
+    return u.mul_(thalf[:, :, None])
+
+
+
 @functools.lru_cache(maxsize=32)
 def _temperatures(sweeps: int, t_start: float, t_end: float, warm_t_start: Optional[float], R: int,
                   dtype: torch.dtype, device: torch.device) -> torch.Tensor:
@@ -430,15 +461,19 @@ def anneal(mesh: MeshBatch, H: torch.Tensor, init: torch.Tensor, fixed: torch.Te
         # hash_keys(h0, key) = mix32(h0 * 0x9E3779B1 + key + 0x632BE5AB): its constant part once
         h0 = h0 * 0x9E3779B1 + 0x632BE5AB
         temps = _temperatures(sweeps, float(cfg.anneal_t_start), float(cfg.anneal_t_end), warm_t_start, R, dt, dev)
-        # the random numbers of a block of sweeps are hashed in one op; the block bounds the
-        # memory (on a CPU about 2**20 numbers at a time, which keeps the hashing in cache)
-        block = max(1, min(sweeps, (1 << (20 if dev.type == "cpu" else 23)) // max(F * R, 1)))
+        # the key of sweep k is h0 + (64 k + colour): the colour folded in once (int64 sums wrap,
+        # so the order of the additions does not change a bit), the sweep offsets made once
+        hc = h0 + cc[None, :]
+        koff = torch.arange(sweeps, device=dev)[:, None, None] * 64
+        # (T log u) / 2 as (T/2) log u: halving is exact, so the product's bits are the same
+        thalf = temps * 0.5
+        # the random numbers of a block of sweeps are hashed in one pass of ops; the block bounds
+        # the memory (_RNG_NUMBERS)
+        block = _rng_block(sweeps, F * R, dev)
         half = None
         for k in range(sweeps + greedy_sweeps):
             if k < sweeps and k % block == 0:
-                ks = torch.arange(k, min(k + block, sweeps), device=dev)[:, None, None] * 64
-                u = hash_to_unit(mix32(h0[None] + (ks + cc[None, None, :])), dt)
-                half = (-temps[k:k + ks.shape[0]][:, :, None] * torch.log(u)) * -0.5
+                half = _metropolis_thresholds(hc, koff[k:k + block], thalf[k:k + block], dt)
             hk = half[k % block] if k < sweeps else None
             for cl in classes:
                 cl.sweep(hk[:, cl.a:cl.a + cl.width] if k < sweeps else 0.0,

@@ -10,6 +10,9 @@ Runs ``reconstruct_batch`` on gpu_floor's generated shapes under gpu_floor's ``O
 whole run) with each chosen stage's function wrapped in an ``OpCounter`` of its own, and prints
 per stage its calls, kernels, syncs, the time floor they imply, its top sync sites and its CPU
 seconds (from a second run, not counted). ``--trials`` sets ``geometry.lbfgs_trials`` (0: default).
+``--gpu-layout`` counts the layout the code takes off the CPU (same results, other launches):
+``lbfgs_trials`` 3, the annealer's fields as one embedding bag and its random numbers in the
+large blocks (``pipeline/signs.py``: ``_FIELDS_BY_BAG``, ``_RNG_NUMBERS``).
 """
 from __future__ import annotations
 
@@ -46,6 +49,8 @@ def main() -> int:
     ap.add_argument("--top", type=int, default=5, help="sync sites shown per stage")
     ap.add_argument("--trials", type=int, default=0, help="geometry.lbfgs_trials (0: the default)")
     ap.add_argument("--tools", default="../shared/tools", help="folder of gpu_floor.py")
+    ap.add_argument("--gpu-layout", action="store_true",
+                    help="count the layout taken off the CPU (lbfgs_trials 3, bag fields, large RNG blocks)")
     a = ap.parse_args()
     stages = a.stage.split(",")
     if unknown := set(stages) - set(STAGES):
@@ -59,6 +64,11 @@ def main() -> int:
     torch.set_num_threads(1)
     cfg = ReconstructConfig()
     cfg.geometry.lbfgs_trials = a.trials
+    if a.gpu_layout:
+        from torch_isc.pipeline import signs
+        signs._FIELDS_BY_BAG["cpu"] = True
+        signs._RNG_NUMBERS["cpu"] = signs._RNG_NUMBERS_OTHER
+        cfg.geometry.lbfgs_trials = a.trials or 3
     Bs = [int(b) for b in a.B.split(",")]
     shapes = make_shapes(max(Bs), a.points)
     for B in Bs:

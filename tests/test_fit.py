@@ -1987,15 +1987,19 @@ def test_vertex_coloring_is_the_priority_greedy(active_frac, device, monkeypatch
     assert vertex_coloring(mesh, active).cpu().tolist() == want
 
 
+@pytest.mark.parametrize("bag", [False, True])
 @pytest.mark.parametrize("R, dt, fans", [(1, torch.float64, False), (3, torch.float64, False), (4, torch.float64, False),
                                          (4, torch.float32, False), (3, torch.float64, True), (4, torch.float32, True)])
-def test_annealer_tables_give_the_local_fields(R, dt, fans, device):
+def test_annealer_tables_give_the_local_fields(R, dt, fans, bag, device, monkeypatch):
     """The padded-gather fields of every colour class equal the neighbour sums: to rounding
     against a dense float64 product, and on the CPU bit for bit against the sum in neighbour
     order (the CSR order), rounded to the dtype at each step. Every free vertex is in exactly
     one class, no class holds an edge. With ``fans``, two adjacent wide vertices (degrees 28
-    and 16, in different classes, each class's table as wide as its own largest degree)."""
+    and 16, in different classes, each class's table as wide as its own largest degree). With
+    ``bag``, the fields of one embedding bag per sweep (the layout off the CPU), the same bits."""
+    from torch_isc.pipeline import signs
     from torch_isc.pipeline.signs import _color_layout
+    monkeypatch.setitem(signs._FIELDS_BY_BAG, device.type, bag)
     mesh = annealer_meshes(device, dt)
     if fans:
         mesh = MeshBatch.cat([double_fan(device, dt), mesh])
@@ -2110,11 +2114,15 @@ def double_fan(device, dtype, n=40, top=10, bottom=36):
     return MeshBatch(v, torch.tensor(f, device=device), torch.tensor([n + 2]), torch.tensor([len(f)]))
 
 
+@pytest.mark.parametrize("bag", [False, True])
 @pytest.mark.parametrize("dtype_", [torch.float32, torch.float64])
-def test_anneal_tables_of_per_class_width_same_signs_as_csr(dtype_):
+def test_anneal_tables_of_per_class_width_same_signs_as_csr(dtype_, bag, monkeypatch):
     """Full-width tables as wide as their own class's largest degree (28 with carries, 16, 11
-    and 23 in one batch): the signs of the CSR annealer, bit for bit."""
+    and 23 in one batch): the signs of the CSR annealer, bit for bit (also with the fields of
+    an embedding bag, ``bag``)."""
+    from torch_isc.pipeline import signs
     from torch_isc.pipeline.signs import vertex_coloring
+    monkeypatch.setitem(signs._FIELDS_BY_BAG, "cpu", bag)
     mesh = MeshBatch.cat([double_fan(torch.device("cpu"), dtype_), annealer_meshes(torch.device("cpu"), dtype_)])
     assert bool((mesh.signed_areas() > 0).all())
     col = vertex_coloring(mesh, ~mesh.is_boundary_vert)

@@ -219,6 +219,11 @@ _ORDERED_SLOTS = 17
 _BLOCK = 64
 #: most vertices have at most this many neighbours: they get a narrow table, the rest a full one
 _NARROW = 8
+#: the local fields of a sweep as one embedding bag (1 launch) instead of a gather, a product and
+#: a sum per part (3-4 launches; 5-7 colour classes x 124 sweeps a level), per device type (the
+#: rest: True). Same bits either way; on a CPU the bag ran about 1.2x slower (64 shapes: 3.0 s
+#: against 2.5 s an anneal call), so the CPU keeps the gathers
+_FIELDS_BY_BAG = {"cpu": False}
 
 
 class _ColorClass:
@@ -232,11 +237,15 @@ class _ColorClass:
         self.a, self.width, self.idx, self.w = a, width, idx, w
         self.flat = s.view(-1)
         self.sg = s[:, a:a + width]
-        self.p = torch.empty(idx.shape[0], dtype=s.dtype, device=s.device)
         self.f = torch.empty(R, width, dtype=s.dtype, device=s.device)
         self.x = torch.empty_like(self.f)
         self.zero = torch.zeros((), dtype=s.dtype, device=s.device)
         self.one = torch.ones((), dtype=s.dtype, device=s.device)
+        self.by_bag = _FIELDS_BY_BAG.get(s.device.type, True)
+        if self.by_bag:
+            self._bags(R, idx, w, parts)
+            return
+        self.p = torch.empty(idx.shape[0], dtype=s.dtype, device=s.device)
         pv = self.p.view(R, -1)
         self.sums = []                                  # (slots, out): in order, chunk by chunk
         for a0, D, m, c0 in parts:
@@ -245,8 +254,29 @@ class _ColorClass:
                 hi = lo + _ORDERED_SLOTS
                 self.sums.append((t[:, lo:hi], t[:, hi] if hi < D else self.f[:, c0:c0 + m]))
 
+    def _bags(self, R: int, idx: torch.Tensor, w: torch.Tensor, parts) -> None:
+        """The same tables as bags, one per (replica, column), slots in order: an embedding bag
+        sums a bag's weighted entries in order, so one op gives the fields bit for bit (the
+        products ``H_ij F_j`` are exact, ``F_j`` = ±1 or the zero column; a carry slot adds +0)."""
+        s = self.sg
+        iv = idx.view(R, -1)
+        bi, bw, bs = [], [], []
+        for a0, D, m, c0 in parts:
+            bi.append(iv[:, a0:a0 + D * m].view(R, D, m).transpose(1, 2).reshape(R, -1))
+            bw.append(w[a0:a0 + D * m].view(D, m).T.reshape(-1))
+            bs.append(torch.full((m,), D, dtype=torch.long, device=s.device))
+        self.bag_idx = torch.cat(bi, 1).reshape(-1)
+        self.bag_w = torch.cat(bw).repeat(R)
+        sizes = torch.cat(bs).repeat(R)
+        self.bag_off = torch.cumsum(sizes, 0) - sizes
+        self.table = self.flat.view(-1, 1)
+
     def fields(self) -> torch.Tensor:
-        """``(R, width)`` local fields ``Σ_j H_ij F_j`` (one gather, one product, a sum per part)."""
+        """``(R, width)`` local fields ``Σ_j H_ij F_j``: one embedding bag per sweep (with
+        ``_FIELDS_BY_BAG``), else one gather, one product and a sum per part."""
+        if self.by_bag:
+            return torch.nn.functional.embedding_bag(self.bag_idx, self.table, self.bag_off, mode="sum",
+                                                     per_sample_weights=self.bag_w).view(self.f.shape)
         torch.index_select(self.flat, 0, self.idx, out=self.p)
         self.p.view(self.f.shape[0], -1).mul_(self.w)
         for slots, out in self.sums:
@@ -351,6 +381,37 @@ def _color_layout(mesh: MeshBatch, H: torch.Tensor, fixed: torch.Tensor, R: int)
     return s, pos, classes, color, free
 
 
+#: random numbers the annealer hashes at once, at most (about 8 bytes each, a few buffers): on
+#: a CPU 2**20, which keeps the hashing in cache (2**22 or more ran 2-7x slower a number); on a
+#: GPU enough for a whole level's sweeps in a few blocks up to B ~ 4096 shapes of 500 points,
+#: so that the launches of a level's random numbers do not grow with the batch
+_RNG_NUMBERS = {"cpu": 1 << 20}
+_RNG_NUMBERS_OTHER = 1 << 26
+
+
+def _rng_block(sweeps: int, numbers_per_sweep: int, device: torch.device) -> int:
+    """Sweeps per block of random numbers (the memory bound of ``device``)."""
+    cap = _RNG_NUMBERS.get(device.type, _RNG_NUMBERS_OTHER)
+    return max(1, min(sweeps, cap // max(numbers_per_sweep, 1)))
+
+
+def _metropolis_thresholds(hc: torch.Tensor, koff: torch.Tensor, thalf: torch.Tensor, dt: torch.dtype) -> torch.Tensor:
+    """``(n, R, F)`` the thresholds ``(T/2) log u`` of ``n`` sweeps: ``u`` the hash of the keys
+    ``hc (R, F) + koff (n, 1, 1)`` (``hash_to_unit(mix32(.))``, bit for bit, in fewer ops and
+    in place), ``thalf (n, R)`` the halved temperatures."""
+    m = 0xFFFFFFFF
+    x = torch.add(hc[None], koff).bitwise_and_(m)                # mix32, in place
+    x.bitwise_xor_(x >> 16).mul_(0x7FEB352D).bitwise_and_(m)
+    x.bitwise_xor_(x >> 15).mul_(0x846CA68B).bitwise_and_(m)
+    x.bitwise_xor_(x >> 16)
+    # hash_to_unit: (h + 1/2) / 2**32 exactly in float64 (h < 2**32) as one op, then rounded
+    c = torch.full((), 2.0 ** -33, dtype=torch.float64, device=x.device)
+    u = torch.add(c, x, alpha=2.0 ** -32).to(dt)
+    u = u.clamp_max_(1.0 - torch.finfo(dt).eps / 2).log_()
+    return u.mul_(thalf[:, :, None])
+
+
+
 @functools.lru_cache(maxsize=32)
 def _temperatures(sweeps: int, t_start: float, t_end: float, warm_t_start: Optional[float], R: int,
                   dtype: torch.dtype, device: torch.device) -> torch.Tensor:
@@ -430,15 +491,19 @@ def anneal(mesh: MeshBatch, H: torch.Tensor, init: torch.Tensor, fixed: torch.Te
         # hash_keys(h0, key) = mix32(h0 * 0x9E3779B1 + key + 0x632BE5AB): its constant part once
         h0 = h0 * 0x9E3779B1 + 0x632BE5AB
         temps = _temperatures(sweeps, float(cfg.anneal_t_start), float(cfg.anneal_t_end), warm_t_start, R, dt, dev)
-        # the random numbers of a block of sweeps are hashed in one op; the block bounds the
-        # memory (on a CPU about 2**20 numbers at a time, which keeps the hashing in cache)
-        block = max(1, min(sweeps, (1 << (20 if dev.type == "cpu" else 23)) // max(F * R, 1)))
+        # the key of sweep k is h0 + (64 k + colour): the colour folded in once (int64 sums wrap,
+        # so the order of the additions does not change a bit), the sweep offsets made once
+        hc = h0 + cc[None, :]
+        koff = torch.arange(sweeps, device=dev)[:, None, None] * 64
+        # (T log u) / 2 as (T/2) log u: halving is exact, so the product's bits are the same
+        thalf = temps * 0.5
+        # the random numbers of a block of sweeps are hashed in one pass of ops; the block bounds
+        # the memory (_RNG_NUMBERS)
+        block = _rng_block(sweeps, F * R, dev)
         half = None
         for k in range(sweeps + greedy_sweeps):
             if k < sweeps and k % block == 0:
-                ks = torch.arange(k, min(k + block, sweeps), device=dev)[:, None, None] * 64
-                u = hash_to_unit(mix32(h0[None] + (ks + cc[None, None, :])), dt)
-                half = (-temps[k:k + ks.shape[0]][:, :, None] * torch.log(u)) * -0.5
+                half = _metropolis_thresholds(hc, koff[k:k + block], thalf[k:k + block], dt)
             hk = half[k % block] if k < sweeps else None
             for cl in classes:
                 cl.sweep(hk[:, cl.a:cl.a + cl.width] if k < sweeps else 0.0,

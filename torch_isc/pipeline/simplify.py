@@ -56,10 +56,12 @@ def cluster_flip_change(edges: torch.Tensor, H: torch.Tensor, signs: torch.Tenso
     label's cluster (alone), ``−2 Σ H_ij F_i F_j`` over the edges with one end in it."""
     with torch.no_grad():
         a, b = edges[:, 0], edges[:, 1]
-        cut = lab[a] != lab[b]
-        t = -2.0 * H[cut] * signs[a[cut]] * signs[b[cut]]
+        la, lb = lab[a], lab[b]
+        # every edge, the uncut ones adding +0 (the same sums, in the same order): no mask
+        # indexing, so no host read
+        t = torch.where(la != lb, -2.0 * H * signs[a] * signs[b], torch.zeros((), dtype=H.dtype, device=H.device))
         out = torch.zeros(signs.shape[0], dtype=H.dtype, device=H.device)
-        return out.index_add_(0, lab[a[cut]], t).index_add_(0, lab[b[cut]], t)
+        return out.index_add_(0, la, t).index_add_(0, lb, t)
 
 
 def descend_clusters(mesh: MeshBatch, H: torch.Tensor, signs: torch.Tensor, pinned: torch.Tensor,
@@ -82,7 +84,9 @@ def descend_clusters(mesh: MeshBatch, H: torch.Tensor, signs: torch.Tensor, pinn
                     join = mine[e[:, 0]] & mine[e[:, 1]]
                     lab = edge_components(V, e, join)
                     dE = cluster_flip_change(e, H, s, lab)
-                    blocked = torch.zeros(V, dtype=torch.bool, device=s.device).index_fill_(0, lab[pinned], True)
+                    # the labels of the pinned vertices (the others write a dummy slot V)
+                    blocked = torch.zeros(V + 1, dtype=torch.bool, device=s.device).index_fill_(
+                        0, torch.where(pinned, lab, V), True)
                     flip = mine & (dE[lab] < -tiny) & ~blocked[lab]
                     s = torch.where(flip, -s, s)
         return s

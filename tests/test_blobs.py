@@ -50,7 +50,14 @@ def blobs_by_brute_force(x, k, lo, hi, noise, gap_widths):
         others = [i for i in range(P) if lab[i] != root]
         gap = D[np.ix_(m, others)].min() if others else np.inf
         need = max(bl.GAP_RADII * rad, gap_widths * noise if noise is not None else 0.0)
-        if ev[0] >= bl.ROUNDNESS * ev[1] and gap >= need:
+        # one-sided: unit directions from the centroid to each point's nearest other point
+        dirs = []
+        for i in m:
+            j = min(others, key=lambda o: D[i, o]) if others else None
+            if j is not None:
+                dirs.append((x[j] - c) / np.linalg.norm(x[j] - c))
+        side = not dirs or np.linalg.norm(np.mean(dirs, 0)) >= bl.ONE_SIDED
+        if ev[0] >= bl.ROUNDNESS * ev[1] and gap >= need and side:
             for i in m:
                 out[i] = root
     return out
@@ -172,3 +179,16 @@ def test_satellites_get_their_loops_end_to_end():
     off = torch_isc.reconstruct_batch([pts], torch_isc.load_config(None, {"blob_min_points": 0}))[0]
     assert on.num_components == 7
     assert off.num_components < 7
+
+
+def test_an_item_without_blobs_does_not_depend_on_a_blob_item_in_its_batch():
+    import torch_isc
+    t = np.linspace(0, 2 * np.pi, 150, endpoint=False)
+    circle = torch.as_tensor(np.stack([np.cos(t), 0.6 * np.sin(t)], 1))
+    x, grp = scene(np.random.default_rng(5))
+    assert (bl.find_blobs(torch.as_tensor(x), torch.zeros(len(x), dtype=torch.long), 3, 6, 16) >= 0).any()
+    cfg = torch_isc.load_config(None, {})
+    alone = torch_isc.reconstruct_batch([circle], cfg)[0]
+    both = torch_isc.reconstruct_batch([torch.as_tensor(x), circle], cfg)
+    assert torch.equal(alone.curve.values, both[1].curve.values)
+    assert torch.equal(alone.curve.mesh.verts, both[1].curve.mesh.verts)

@@ -43,6 +43,8 @@ SNAP_MIN_QUALITY = 0.05
 GAP_RADII = 1.5
 #: a blob's smaller principal variance is at least this fraction of its larger
 ROUNDNESS = 0.2
+#: the mean direction to a blob's nearest outside points is at least this long (one-sided)
+ONE_SIDED = 0.5
 #: the Morton-order window of the neighbour search (each side, two orders)
 WINDOW = 16
 
@@ -55,7 +57,9 @@ def find_blobs(points: torch.Tensor, point_item: torch.Tensor, k: int, min_point
     is round and isolated: its smaller principal variance is at least :data:`ROUNDNESS` of its
     larger (a piece of a sparse curve between two gaps is elongated) and no other point of its
     item is nearer to it than :data:`GAP_RADII` of its mean radii (the mean distance of its points
-    to their centroid). With ``noise (B,)`` the graph also joins every two points of an item less
+    to their centroid), and the other points nearest it lie on one side of it (the mean of the
+    unit directions from its centroid to its points' nearest outside points is at least
+    :data:`ONE_SIDED` long: a piece of a curve has the curve's rest on both sides). With ``noise (B,)`` the graph also joins every two points of an item less
     than ``gap_noise_widths`` noise widths apart (a noisy curve's k-nearest-neighbour graph
     falls apart into small groups along its band), so a blob is that far from the rest too."""
     with torch.no_grad():
@@ -100,7 +104,19 @@ def find_blobs(points: torch.Tensor, point_item: torch.Tensor, k: int, min_point
             need = torch.maximum(need[lab], gap_noise_widths * noise.to(dt)[point_item])
         else:
             need = need[lab]
-        blob = cand & (gap >= need) & round_[lab]
+        # one-sided: a piece of a curve has the rest of the curve on both sides of it, a small
+        # closed curve beside another has its neighbour on one side. The mean of the unit
+        # directions from the centroid to each point's nearest outside point: near 1 when they
+        # are all on one side, near 0 when they are on opposite sides
+        jo = torch.where(out, d2, torch.full_like(d2, float("inf"))).argmin(1)
+        xo = x[nbr.gather(1, jo[:, None]).squeeze(1)]
+        u = xo - cen[lab]
+        u = u / u.norm(dim=1, keepdim=True).clamp_min(torch.finfo(dt).tiny)
+        has = torch.isfinite(dout) & cand
+        su = torch.zeros(P, 2, dtype=dt, device=dev).index_add_(0, lab, u * has[:, None].to(dt))
+        nh = torch.zeros(P, dtype=dt, device=dev).index_add_(0, lab, has.to(dt))
+        side = (nh == 0) | (su.norm(dim=1) >= ONE_SIDED * nh)
+        blob = cand & (gap >= need) & round_[lab] & side[lab]
         return torch.where(blob, lab, none)
 
 
@@ -186,6 +202,11 @@ def snap_blobs(ws: "WorkingSet") -> "WorkingSet":
         vn[best_v[go]] = c[go].to(v.dtype)
         new = mesh.with_verts(vn)
         f, bary = locate_walk(new, ws.points, ws.point_item, ws.face)
+        # the other items' points keep their barycentrics bit for bit (an item's result does
+        # not depend on its batch)
+        touched = torch.zeros(ws.num_items, dtype=torch.bool, device=dev).index_fill_(0, item[go], True)[ws.point_item]
+        f = torch.where(touched, f, ws.face)
+        bary = torch.where(touched[:, None], bary, ws.bary)
         return ws.replace(mesh=new, face=f, bary=bary)
 
 

@@ -29,6 +29,7 @@ from torch_isc.core.points import PointBatch, PointSetError, PointsLike, check_e
 from torch_isc.core.segments import segment_count, segment_sum
 from torch_isc.pipeline.config import ConfigError, MeshConfig, ReconstructConfig, from_dict, initial_triangles
 from torch_isc.pipeline.band import band_stage
+from torch_isc.pipeline.blobs import snap_blobs, start_blobs
 from torch_isc.pipeline.denoise import denoise_points
 from torch_isc.pipeline.evidence import gather_evidence
 from torch_isc.pipeline.noise import noise_and_frames
@@ -202,7 +203,7 @@ def _tolerance(batch: PointBatch, cfg: ReconstructConfig, dtype) -> torch.Tensor
     return tol64.clamp(floor, TOLERANCE_CEILING)
 
 
-def _start(batch: PointBatch, cfg: ReconstructConfig, rec: StatsRecorder) -> WorkingSet:
+def _start(batch: PointBatch, cfg: ReconstructConfig, rec: StatsRecorder, source_blobs: bool = False) -> WorkingSet:
     """The working set at level 0: priors (tolerance, noise) per item, the initial mesh, the
     points located in it."""
     B, dtype, device = batch.num_items, batch.points.dtype, batch.points.device
@@ -218,12 +219,18 @@ def _start(batch: PointBatch, cfg: ReconstructConfig, rec: StatsRecorder) -> Wor
         # what noise the loop's rules assume (tolerance floor, thin features, band size): the
         # denoised points' residual spread is below the raw estimate
         level = est.level if den is batch.points else est.level * cfg.noise.denoise_noise_scale
+        # small isolated clusters (pipeline/blobs.py), found on the raw points; denoising does
+        # not move them (a parabola through a ring of 8 points flattens it)
+        blob = start_blobs(batch.points, batch.point_item, cfg.topology.blob_neighbours,
+                           cfg.topology.blob_min_points, cfg.topology.blob_max_points, est.level) if source_blobs else None
+        if blob is not None and den is not batch.points:
+            den = torch.where((blob >= 0)[:, None], batch.points, den)
     rec.skip()                                   # the noise estimate is not a stage of the loop
     mesh = initial_mesh(cfg.mesh, B, device, dtype)
     face, bary = locate_grid(mesh, points, batch.point_item)
     rec.tick("locate")
     return WorkingSet.start(mesh, points, batch.point_item, face, bary, est.frames, batch.center,
-                            batch.scale, tol, level, batch.flat, sign_points=sign_points)
+                            batch.scale, tol, level, batch.flat, sign_points=sign_points, blob=blob)
 
 
 def run_loop(batch: PointBatch, cfg: ReconstructConfig, source: SignSource,
@@ -234,9 +241,10 @@ def run_loop(batch: PointBatch, cfg: ReconstructConfig, source: SignSource,
     rec = StatsRecorder(batch.points.device, B)
     results: List[Optional[ReconstructionResult]] = [None] * B
     t_start = time.perf_counter()
-    ws = _start(batch, cfg, rec)
+    ws = _start(batch, cfg, rec, isinstance(source, IsingSigns))
     finished: list = []                        # per finishing level: (working set, slack, marked, over)
     for level in range(cfg.limits.max_level + 1):
+        ws = snap_blobs(ws)                                            # a vertex inside each cluster
         ev = gather_evidence(ws, cfg.evidence)                         # EstimateTopology
         ws = ws.replace(signs=source.signs(ws, ev if ws.sign_points is None else _sign_evidence(ws, cfg), level))
         rec.tick("topology")

@@ -76,6 +76,13 @@ class TopologyConfig:
     enclose_rings: int = knob(2, ge=0)
     #: ...and at least this many points in the ring (a few scattered outliers are no curve)
     enclose_min_points: int = knob(6, ge=3)
+    #: small isolated clusters of points (pipeline/blobs.py): a connected component of the
+    #: graph of each point's blob_neighbours nearest neighbours with blob_min_points to
+    #: blob_max_points points gets a vertex at its centroid, which takes the other sign when no
+    #: curve explains the cluster (a small closed curve of a few samples); 0 disables
+    blob_min_points: int = knob(6, ge=0)
+    blob_max_points: int = knob(16, ge=1)
+    blob_neighbours: int = knob(3, ge=1)
     #: strength of the winding-number prior (pipeline/winding.py), a field term in the Ising
     #: energy; 0 disables (signs bit-identical to without it)
     winding_weight: float = knob(0.0, ge=0)
@@ -595,6 +602,10 @@ class IsingSigns:
                 # last: the island and speck rules would take a one-vertex loop back
                 from torch_isc.pipeline.simplify import enclose_stage
                 s = enclose_stage(ws, s, self.cfg)
+            if ws.blob is not None:
+                # last too: a vertex inside a cluster no curve explains (pipeline/blobs.py)
+                from torch_isc.pipeline.blobs import blob_stage
+                s = blob_stage(ws, s)
             return s
 
     def _winding_field(self, ws: "WorkingSet", level: int) -> torch.Tensor:

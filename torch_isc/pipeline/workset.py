@@ -57,6 +57,9 @@ class WorkingSet:
     #: ``(P, 2)`` or None: other positions of the points that the sign evidence reads instead
     #: (the denoised points when only the signs see them, or the raw ones when only the fit does)
     sign_points: Optional[torch.Tensor] = None
+    #: ``(P,)`` long or None: each point's blob label (pipeline/blobs.py; −1: in none), None
+    #: when the batch has no blob
+    blob: Optional[torch.Tensor] = None
 
     ITEM_FIELDS = ("items", "center", "scale", "tol", "noise", "flat")
     VERT_FIELDS = ("values", "signs")
@@ -101,6 +104,8 @@ class WorkingSet:
             out.update({k: getattr(self, k)[kp] for k in self.POINT_FIELDS})
             if self.sign_points is not None:
                 out["sign_points"] = self.sign_points[kp]
+            if self.blob is not None:
+                out["blob"] = self.blob[kp]
             f = out["face"]
             out["face"] = torch.where(f >= 0, remap_f[f.clamp_min(0)], f)
             out["point_item"] = new_item[self.point_item[kp]]
@@ -122,6 +127,8 @@ class WorkingSet:
                 items.append(w.point_item + b0)
                 f0, b0 = f0 + w.mesh.faces.shape[0], b0 + w.num_items
             out["face"], out["point_item"] = torch.cat(faces), torch.cat(items)
+            if all(w.blob is not None for w in sets):
+                out["blob"] = torch.cat([w.blob for w in sets])
         return WorkingSet(mesh=MeshBatch.cat([w.mesh for w in sets]), **out)
 
     def follow(self, sd: Subdivision) -> "WorkingSet":
@@ -143,7 +150,8 @@ class WorkingSet:
     def start(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor, face: torch.Tensor,
               bary: torch.Tensor, frames: torch.Tensor, center: torch.Tensor, scale: torch.Tensor,
               tol: torch.Tensor, noise: torch.Tensor, flat: torch.Tensor,
-              items: Optional[torch.Tensor] = None, sign_points: Optional[torch.Tensor] = None) -> "WorkingSet":
+              items: Optional[torch.Tensor] = None, sign_points: Optional[torch.Tensor] = None,
+              blob: Optional[torch.Tensor] = None) -> "WorkingSet":
         """The working set at level 0: all items, signs +1, values unset (+1)."""
         dev, dt = mesh.device, mesh.dtype
         B = mesh.num_items
@@ -152,4 +160,4 @@ class WorkingSet:
                           marked=torch.zeros(mesh.faces.shape[0], dtype=torch.bool, device=dev), points=points,
                           point_item=point_item, face=face, bary=bary, frames=frames,
                           items=torch.arange(B, device=dev) if items is None else items, center=center,
-                          scale=scale, tol=tol, noise=noise, flat=flat, sign_points=sign_points)
+                          scale=scale, tol=tol, noise=noise, flat=flat, sign_points=sign_points, blob=blob)

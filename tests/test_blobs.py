@@ -1,0 +1,194 @@
+"""Small isolated clusters of points (pipeline/blobs.py) against a brute-force reference and
+hand-built meshes, and end to end: satellites of 8 noisy points each get their own loop."""
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from torch_isc.core.locate import locate_grid
+from torch_isc.core.mesh import hexagon_mesh
+from torch_isc.pipeline import blobs as bl
+
+
+def blobs_by_brute_force(x, k, lo, hi, noise, gap_widths):
+    """find_blobs by plain loops: exact neighbours, breadth-first components, the criteria
+    written out point by point (one item)."""
+    x = np.asarray(x, dtype=float)
+    P = len(x)
+    D = np.sqrt(((x[:, None, :] - x[None, :, :]) ** 2).sum(-1))
+    np.fill_diagonal(D, np.inf)
+    nb = [set() for _ in range(P)]
+    for i in range(P):
+        for j in np.argsort(D[i])[:k]:
+            nb[i].add(int(j))
+            nb[int(j)].add(i)
+        for j in range(P):
+            if noise is not None and D[i, j] <= gap_widths * noise:
+                nb[i].add(j)
+                nb[j].add(i)
+    lab = [-1] * P
+    for v in range(P):
+        if lab[v] >= 0:
+            continue
+        todo, lab[v] = [v], v
+        while todo:
+            u = todo.pop()
+            for w in nb[u]:
+                if lab[w] < 0:
+                    lab[w] = v
+                    todo.append(w)
+    out = [-1] * P
+    for root in set(lab):
+        m = [i for i in range(P) if lab[i] == root]
+        if not lo <= len(m) <= hi:
+            continue
+        c = x[m].mean(0)
+        rad = np.linalg.norm(x[m] - c, axis=1).mean()
+        cov = np.cov((x[m] - c).T, bias=True)
+        ev = np.linalg.eigvalsh(cov)
+        others = [i for i in range(P) if lab[i] != root]
+        gap = D[np.ix_(m, others)].min() if others else np.inf
+        need = max(bl.GAP_RADII * rad, gap_widths * noise if noise is not None else 0.0)
+        # one-sided: unit directions from the centroid to each point's nearest other point
+        dirs = []
+        for i in m:
+            j = min(others, key=lambda o: D[i, o]) if others else None
+            if j is not None:
+                dirs.append((x[j] - c) / np.linalg.norm(x[j] - c))
+        side = not dirs or np.linalg.norm(np.mean(dirs, 0)) >= bl.ONE_SIDED
+        if ev[0] >= bl.ROUNDNESS * ev[1] and gap >= need and side:
+            for i in m:
+                out[i] = root
+    return out
+
+
+def scene(rng, noise=0.0, n_main=120, n_sat=8, outliers=5):
+    """A unit circle, two satellites of radius 0.15 at distance 1.5 and a few scattered outliers,
+    scaled to about unit diagonal; returns points and each point's group (0 main, 1-2
+    satellites, 3 outliers)."""
+    t = np.linspace(0, 2 * np.pi, n_main, endpoint=False)
+    parts = [np.stack([np.cos(t), np.sin(t)], 1)]
+    s = np.linspace(0, 2 * np.pi, n_sat, endpoint=False) + 0.3
+    for cx in (1.5, -1.5):
+        parts.append(np.stack([cx + 0.15 * np.cos(s), 0.15 * np.sin(s)], 1))
+    parts.append(rng.uniform(-1.2, 1.2, (outliers, 2)))
+    grp = np.concatenate([np.full(len(p), g) for g, p in enumerate(parts)])
+    x = np.concatenate(parts) / 3.4
+    x = x + rng.normal(0, noise, x.shape)
+    return x, grp
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_find_blobs_against_brute_force(seed):
+    rng = np.random.default_rng(seed)
+    x, _ = scene(rng, noise=0.002 * seed)
+    sig = 0.002 * seed if seed else None
+    pts = torch.as_tensor(x)
+    item = torch.zeros(len(x), dtype=torch.long)
+    got = bl.find_blobs(pts, item, 3, 6, 16, None if sig is None else torch.tensor([sig], dtype=torch.float64), 3.0)
+    ref = blobs_by_brute_force(x, 3, 6, 16, sig, 3.0)
+    assert got.tolist() == ref
+
+
+def test_find_blobs_finds_the_satellites_not_the_outliers():
+    rng = np.random.default_rng(5)
+    x, grp = scene(rng)
+    got = bl.find_blobs(torch.as_tensor(x), torch.zeros(len(x), dtype=torch.long), 3, 6, 16)
+    for g in (1, 2):                             # each satellite: one blob of its 8 points
+        assert len(set(got[grp == g].tolist())) == 1 and int(got[grp == g][0]) >= 0
+    assert int(got[grp == 1][0]) != int(got[grp == 2][0])
+    assert (got[(grp == 0) | (grp == 3)] == -1).all()
+    # too few points per blob (7 < 9): none; a two-item batch gives each item its own answer
+    assert (bl.find_blobs(torch.as_tensor(x), torch.zeros(len(x), dtype=torch.long), 3, 9, 16) == -1).all()
+    # (the loop's points are normalized per item: the second item is the same set, mirrored)
+    both = bl.find_blobs(torch.as_tensor(np.concatenate([x, -x])),
+                         torch.cat([torch.zeros(len(x)), torch.ones(len(x))]).long(), 3, 6, 16)
+    assert ((both[:len(x)] >= 0) == (got >= 0)).all() and ((both[len(x):] >= 0) == (got >= 0)).all()
+    # an elongated group (8 points on a short segment) is a piece of a curve, not a blob
+    seg = np.concatenate([x[grp == 0], np.stack([np.linspace(0.6, 0.7, 8), np.zeros(8)], 1)])
+    assert (bl.find_blobs(torch.as_tensor(seg), torch.zeros(len(seg), dtype=torch.long), 3, 6, 16) == -1).all()
+
+
+class _WS:
+    """The fields of a working set the blob stages read."""
+
+    def __init__(self, mesh, pts, blob, signs):
+        self.mesh, self.points, self.blob, self.signs = mesh, pts, blob, signs
+        self.point_item = torch.zeros(len(pts), dtype=torch.long)
+        self.face, self.bary = locate_grid(mesh, pts, self.point_item)
+        self.num_items = 1
+
+    def replace(self, **kw):
+        out = _WS.__new__(_WS)
+        out.__dict__.update(self.__dict__)
+        out.__dict__.update(kw)
+        return out
+
+
+def test_snap_moves_a_corner_onto_the_centroid_and_the_stage_flips_it():
+    mesh = hexagon_mesh(torch.zeros(1, 2, dtype=torch.float64), torch.ones(1, dtype=torch.float64), 4)
+    V = mesh.verts.shape[0]
+    cen = torch.tensor([0.31, 0.17], dtype=torch.float64)         # inside a triangle, off its corners
+    t = torch.arange(8, dtype=torch.float64) * (2 * math.pi / 8)
+    ring = cen + 0.06 * torch.stack([torch.cos(t), torch.sin(t)], 1)
+    blob = torch.zeros(8, dtype=torch.long)
+    assert not (mesh.verts - cen).norm(dim=1).lt(1e-9).any()
+    ws = _WS(mesh, ring, blob, torch.ones(V, dtype=torch.float64))
+    out = bl.snap_blobs(ws)
+    moved = (out.mesh.verts - mesh.verts).norm(dim=1) > 0
+    assert int(moved.sum()) == 1                                   # one vertex moved...
+    vc = int(moved.nonzero())
+    assert torch.allclose(out.mesh.verts[vc], cen)                 # ...onto the centroid
+    assert (out.mesh.signed_areas() > 0).all() and (out.mesh.quality() >= bl.SNAP_MIN_QUALITY).all()
+    f2, _ = locate_grid(out.mesh, ring, out.point_item)
+    assert out.face.tolist() == f2.tolist()                        # the points re-located
+    # no curve near: the vertex at the centroid takes the other sign
+    hit = bl.blob_vertices(out.mesh, out.signs, out.points, out.point_item, out.face, out.blob)
+    assert hit.nonzero().squeeze(1).tolist() == [vc]
+    # a curve through the blob's triangles already (vc negative): nothing to do
+    s = out.signs.clone()
+    s[vc] = -1
+    assert not bl.blob_vertices(out.mesh, s, out.points, out.point_item, out.face, out.blob).any()
+    # signs crossing elsewhere only: the snap still moves (the blob is unexplained); a blob the
+    # signs explain (a point in a crossed triangle) is left where it is
+    far = int((mesh.verts - torch.tensor([-0.5, -0.3], dtype=torch.float64)).norm(dim=1).argmin())
+    s = torch.ones(V, dtype=torch.float64)
+    s[far] = -1
+    assert (bl.snap_blobs(ws.replace(signs=s)).mesh.verts - mesh.verts).norm(dim=1).gt(0).sum() == 1
+    s = torch.ones(V, dtype=torch.float64)
+    s[mesh.faces[ws.face[0]][0]] = -1
+    assert bl.snap_blobs(ws.replace(signs=s)).mesh is mesh or torch.equal(bl.snap_blobs(ws.replace(signs=s)).mesh.verts, mesh.verts)
+
+
+def test_satellites_get_their_loops_end_to_end():
+    """A unit circle and six satellites of 8 points (radius 0.15) at 0.5% noise: 7 closed curves
+    with the blob rule, fewer without it (the line fits cannot describe 8 points)."""
+    import torch_isc
+    rng = np.random.default_rng(3)
+    t = np.linspace(0, 2 * np.pi, 200, endpoint=False)
+    parts = [np.stack([np.cos(t), np.sin(t)], 1)]
+    s = np.linspace(0, 2 * np.pi, 8, endpoint=False) + 0.2
+    for k in range(6):
+        a = k * np.pi / 3 + 0.1
+        parts.append(np.stack([1.5 * np.cos(a) + 0.15 * np.cos(s), 1.5 * np.sin(a) + 0.15 * np.sin(s)], 1))
+    x = np.concatenate(parts)
+    x = x + rng.normal(0, 0.005 * 4.7, x.shape)
+    pts = torch.as_tensor(x)
+    on = torch_isc.reconstruct_batch([pts], torch_isc.load_config(None, {}))[0]
+    off = torch_isc.reconstruct_batch([pts], torch_isc.load_config(None, {"blob_min_points": 0}))[0]
+    assert on.num_components == 7
+    assert off.num_components < 7
+
+
+def test_an_item_without_blobs_does_not_depend_on_a_blob_item_in_its_batch():
+    import torch_isc
+    t = np.linspace(0, 2 * np.pi, 150, endpoint=False)
+    circle = torch.as_tensor(np.stack([np.cos(t), 0.6 * np.sin(t)], 1))
+    x, grp = scene(np.random.default_rng(5))
+    assert (bl.find_blobs(torch.as_tensor(x), torch.zeros(len(x), dtype=torch.long), 3, 6, 16) >= 0).any()
+    cfg = torch_isc.load_config(None, {})
+    alone = torch_isc.reconstruct_batch([circle], cfg)[0]
+    both = torch_isc.reconstruct_batch([torch.as_tensor(x), circle], cfg)
+    assert torch.equal(alone.curve.values, both[1].curve.values)
+    assert torch.equal(alone.curve.mesh.verts, both[1].curve.mesh.verts)

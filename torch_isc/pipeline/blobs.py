@@ -1,0 +1,260 @@
+"""Small isolated clusters of points (blobs): small closed curves of a few samples.
+
+A satellite of 7-9 noisy points is no curve the line fits can describe (a triangle of three
+points says nothing about which side is inside), and the enclosure rule
+(:func:`simplify.enclosed_vertices`) needs a mesh vertex inside the ring, well off the data,
+which a coarse mesh seldom has and a ring of radius a few noise widths never has. Here the
+clusters are found from the points alone, independent of the mesh:
+
+* :func:`find_blobs`: the connected components of the symmetric graph of each point's
+  ``k`` nearest neighbours. A curve sampled densely enough is one component (every point's
+  nearest neighbours are on both sides of it); a cluster whose points' nearest neighbours are
+  all inside it is a component of its own. A component of ``min_points`` to ``max_points``
+  points is a blob: a small closed curve of its own (an isolated outlier joins the curve its
+  neighbours lie on, so scattered outliers make no blob).
+* :func:`snap_blobs`: before each level, one corner of the triangle that holds a blob's
+  centroid moves onto the centroid (the corner whose star keeps the best quality, never below a
+  floor), so a vertex sits inside every blob.
+* :func:`blob_stage`: after the sign rules, the vertex at the centroid of a blob that no curve
+  explains (none of its points lies in a triangle the signs cross, and the vertex's star is not
+  crossed) takes the other sign: the fit then closes a loop around it through the blob's points.
+
+Everything is a few tensor ops over the packed batch; the labels are per point (the working
+set carries them like the points).
+"""
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Optional, Tuple
+
+import torch
+
+from torch_isc.core.locate import locate_grid, locate_walk
+from torch_isc.core.segments import edge_components, sym2_eigvals
+
+if TYPE_CHECKING:
+    from torch_isc.pipeline.workset import WorkingSet
+
+__all__ = ["find_blobs", "blob_centroids", "snap_blobs", "blob_vertices", "blob_stage"]
+
+#: the smallest star quality a snap may leave (the relaxation's floor is 0.15; a snap is one
+#: vertex per blob, and a sliver there costs less than a missed component)
+SNAP_MIN_QUALITY = 0.05
+#: a blob's nearest other point is at least this many of its mean radii away
+GAP_RADII = 1.5
+#: a blob's smaller principal variance is at least this fraction of its larger
+ROUNDNESS = 0.2
+#: the mean direction to a blob's nearest outside points is at least this long (one-sided)
+ONE_SIDED = 0.5
+#: the Morton-order window of the neighbour search (each side, two orders)
+WINDOW = 16
+
+
+def find_blobs(points: torch.Tensor, point_item: torch.Tensor, k: int, min_points: int,
+               max_points: int, noise: Optional[torch.Tensor] = None, gap_noise_widths: float = 3.0) -> torch.Tensor:
+    """``(P,)`` long: each point's blob label (the smallest point index of its blob), −1 for a
+    point in no blob. A blob is a connected component of ``min_points`` to ``max_points``
+    points of the graph joining every point to its ``k`` nearest neighbours (of its item) that
+    is round and isolated: its smaller principal variance is at least :data:`ROUNDNESS` of its
+    larger (a piece of a sparse curve between two gaps is elongated) and no other point of its
+    item is nearer to it than :data:`GAP_RADII` of its mean radii (the mean distance of its points
+    to their centroid), and the other points nearest it lie on one side of it (the mean of the
+    unit directions from its centroid to its points' nearest outside points is at least
+    :data:`ONE_SIDED` long: a piece of a curve has the curve's rest on both sides). With ``noise (B,)`` the graph also joins every two points of an item less
+    than ``gap_noise_widths`` noise widths apart (a noisy curve's k-nearest-neighbour graph
+    falls apart into small groups along its band), so a blob is that far from the rest too."""
+    with torch.no_grad():
+        from torch_isc.pipeline.noise import approximate_knn
+        P = points.shape[0]
+        dev, dt = points.device, points.dtype
+        none = torch.full((P,), -1, dtype=torch.long, device=dev)
+        if P == 0 or min_points <= 0 or k <= 0:
+            return none
+        kk = max(k, max_points + 8)
+        x = points.detach()
+        nbr, d2 = approximate_knn(x, point_item, kk, max(WINDOW, (kk + 1) // 2))
+        fin = torch.isfinite(d2)
+        src = torch.arange(P, device=dev)[:, None].expand_as(nbr)
+        join = fin.clone()
+        join[:, k:] = False
+        if noise is not None:
+            # and to every point within a few noise widths: a noisy band's k-nearest-neighbour
+            # graph falls apart into small groups along it, whose gaps are about the noise
+            join |= fin & (d2 <= (gap_noise_widths * noise.to(dt)[point_item, None]) ** 2)
+        # only the joining edges go to the label propagation (a quarter of the candidates or
+        # less: it runs tens of rounds); one host read, once per solve
+        edges = torch.stack([src[join], nbr[join]], 1)
+        lab = edge_components(P, edges, torch.ones(edges.shape[0], dtype=torch.bool, device=dev))
+        size = torch.zeros(P, dtype=torch.long, device=dev).index_add_(0, lab, torch.ones_like(lab))[lab]
+        cand = (size >= min_points) & (size <= max_points)
+        # the gap: the nearest point of another component, over the component
+        out = fin & (lab[nbr] != lab[:, None])
+        dout = torch.where(out, d2, torch.full_like(d2, float("inf"))).amin(1).sqrt()
+        gap = torch.full((P,), float("inf"), dtype=dt, device=dev).scatter_reduce(0, lab, dout, "amin")[lab]
+        w = cand.to(dt)
+        cnt = torch.zeros(P, dtype=dt, device=dev).index_add_(0, lab, w).clamp_min(1)
+        cen = torch.zeros(P, 2, dtype=dt, device=dev).index_add_(0, lab, x * w[:, None]) / cnt[:, None]
+        d = x - cen[lab]
+        rad = torch.zeros(P, dtype=dt, device=dev).index_add_(0, lab, d.norm(dim=1) * w) / cnt
+        # round: the smaller principal variance at least ROUNDNESS of the larger (a ring, or a
+        # blob at high noise; a piece of a sparse curve between two gaps is elongated)
+        cov = torch.zeros(P, 3, dtype=dt, device=dev).index_add_(
+            0, lab, torch.stack([d[:, 0] ** 2, d[:, 0] * d[:, 1], d[:, 1] ** 2], 1) * w[:, None]) / cnt[:, None]
+        lo, hi = sym2_eigvals(cov[:, 0], cov[:, 1], cov[:, 2])
+        round_ = lo >= ROUNDNESS * hi
+        need = GAP_RADII * rad
+        if noise is not None:
+            need = torch.maximum(need[lab], gap_noise_widths * noise.to(dt)[point_item])
+        else:
+            need = need[lab]
+        # one-sided: a piece of a curve has the rest of the curve on both sides of it, a small
+        # closed curve beside another has its neighbour on one side. The mean of the unit
+        # directions from the centroid to each point's nearest outside point: near 1 when they
+        # are all on one side, near 0 when they are on opposite sides
+        jo = torch.where(out, d2, torch.full_like(d2, float("inf"))).argmin(1)
+        xo = x[nbr.gather(1, jo[:, None]).squeeze(1)]
+        u = xo - cen[lab]
+        u = u / u.norm(dim=1, keepdim=True).clamp_min(torch.finfo(dt).tiny)
+        has = torch.isfinite(dout) & cand
+        su = torch.zeros(P, 2, dtype=dt, device=dev).index_add_(0, lab, u * has[:, None].to(dt))
+        nh = torch.zeros(P, dtype=dt, device=dev).index_add_(0, lab, has.to(dt))
+        side = (nh == 0) | (su.norm(dim=1) >= ONE_SIDED * nh)
+        blob = cand & (gap >= need) & round_[lab] & side[lab]
+        return torch.where(blob, lab, none)
+
+
+def blob_centroids(points: torch.Tensor, point_item: torch.Tensor, blob: torch.Tensor
+                   ) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The blobs of the labels ``blob (P,)``: centroids ``(K, 2)``, items ``(K,)``, mean radii
+    ``(K,)`` (mean distance of the points to the centroid) and each point's blob ``(P,)``
+    (0..K−1, −1 for none). One host read (the number of blobs)."""
+    with torch.no_grad():
+        dev, dt = points.device, points.dtype
+        m = blob >= 0
+        uniq, inv = torch.unique(blob[m], return_inverse=True)
+        K = uniq.shape[0]
+        row = torch.full_like(blob, -1)
+        row[m] = inv
+        x = points.detach()[m]
+        cnt = torch.zeros(K, dtype=dt, device=dev).index_add_(0, inv, torch.ones_like(x[:, 0]))
+        c = torch.zeros(K, 2, dtype=dt, device=dev).index_add_(0, inv, x) / cnt.clamp_min(1)[:, None]
+        rad = torch.zeros(K, dtype=dt, device=dev).index_add_(0, inv, (x - c[inv]).norm(dim=1)) / cnt.clamp_min(1)
+        item = torch.zeros(K, dtype=torch.long, device=dev).index_copy_(0, inv, point_item[m])
+        return c, item, rad, row
+
+
+def _explained(mesh, signs: torch.Tensor, face: torch.Tensor, row: torch.Tensor, K: int) -> torch.Tensor:
+    """``(K,)`` bool: the blobs (``row (P,)`` each point's, −1 for none) with a point in a
+    triangle (``face (P,)``) that the ``signs`` cross: a curve passes there."""
+    neg = signs < 0
+    fn = neg[mesh.faces]
+    face_cut = fn.any(1) & ~fn.all(1)
+    inb = (row >= 0) & (face >= 0)
+    return torch.zeros(K, dtype=torch.long, device=signs.device).scatter_reduce(
+        0, row[inb], face_cut[face[inb]].long(), "amax") > 0
+
+
+def snap_blobs(ws: "WorkingSet") -> "WorkingSet":
+    """The working set with one vertex moved onto the centroid of each blob (``ws.blob``), where
+    one of the corners of the centroid's triangle can move there keeping every triangle of its
+    star above :data:`SNAP_MIN_QUALITY` (of those, the one leaving the best worst quality);
+    boundary vertices stay. Once the signs of an item cross somewhere (after level 0), only the
+    blobs they leave unexplained (no point in a crossed triangle): a blob on a curve the signs
+    follow is a piece of that curve (a noisy band falls apart into round groups now and then),
+    and a vertex moved onto it would sit on the data. The points are re-located."""
+    if ws.blob is None:
+        return ws
+    with torch.no_grad():
+        mesh = ws.mesh
+        c, item, _, row = blob_centroids(ws.points, ws.point_item, ws.blob)
+        K = c.shape[0]
+        if K == 0:
+            return ws
+        v = mesh.verts.detach()
+        V, dev = v.shape[0], v.device
+        neg = ws.signs < 0
+        e = mesh.edges
+        any_cut = torch.zeros(ws.num_items, dtype=torch.bool, device=dev).index_fill_(
+            0, mesh.edge_item[neg[e[:, 0]] != neg[e[:, 1]]], True)
+        want = ~any_cut[item] | ~_explained(mesh, ws.signs, ws.face, row, K)
+        face, _ = locate_grid(mesh, c.to(v.dtype), item)
+        ok = (face >= 0) & want
+        tri = mesh.faces[face.clamp_min(0)]                                 # (K,3)
+        F = mesh.faces
+        best_q = torch.full((K,), -float("inf"), dtype=v.dtype, device=dev)
+        best_v = torch.full((K,), -1, dtype=torch.long, device=dev)
+        for j in range(3):
+            cand = tri[:, j]
+            # one blob per vertex (two blobs in one triangle: neither moves this corner)
+            n = torch.zeros(V, dtype=torch.long, device=dev).index_add_(0, cand, ok.long())
+            use = ok & (n[cand] == 1) & ~mesh.is_boundary_vert[cand]
+            vt = v.clone()
+            vt[cand[use]] = c[use].to(v.dtype)
+            q = mesh.kernel.quality(vt[F])                                   # (T,)
+            # the worst quality of each moved vertex's star
+            qs = torch.full((V,), float("inf"), dtype=v.dtype, device=dev)
+            qs = qs.scatter_reduce(0, F.reshape(-1), q.repeat_interleave(3), "amin")
+            qk = torch.where(use, qs[cand], torch.full_like(best_q, -float("inf")))
+            better = use & (qk >= SNAP_MIN_QUALITY) & (qk > best_q)
+            best_q = torch.where(better, qk, best_q)
+            best_v = torch.where(better, cand, best_v)
+        go = best_v >= 0
+        if not bool(go.any()):
+            return ws
+        vn = v.clone()
+        vn[best_v[go]] = c[go].to(v.dtype)
+        new = mesh.with_verts(vn)
+        f, bary = locate_walk(new, ws.points, ws.point_item, ws.face)
+        # the other items' points keep their barycentrics bit for bit (an item's result does
+        # not depend on its batch)
+        touched = torch.zeros(ws.num_items, dtype=torch.bool, device=dev).index_fill_(0, item[go], True)[ws.point_item]
+        f = torch.where(touched, f, ws.face)
+        bary = torch.where(touched[:, None], bary, ws.bary)
+        return ws.replace(mesh=new, face=f, bary=bary)
+
+
+def blob_vertices(mesh, signs: torch.Tensor, points: torch.Tensor, point_item: torch.Tensor,
+                  face: torch.Tensor, blob: torch.Tensor) -> torch.Tensor:
+    """``(V,)`` bool: the vertices that sit inside a blob no curve explains. Such a vertex is
+    the corner nearest the blob's centroid of the triangle holding it, at most a quarter of the
+    blob's mean radius from it; it is no boundary vertex, its star is not crossed by the signs,
+    and no point of the blob lies in a crossed triangle."""
+    with torch.no_grad():
+        V = signs.shape[0]
+        dev = signs.device
+        hit = torch.zeros(V, dtype=torch.bool, device=dev)
+        c, item, rad, row = blob_centroids(points, point_item, blob)
+        K = c.shape[0]
+        if K == 0:
+            return hit
+        v = mesh.verts.detach()
+        neg = signs < 0
+        # a blob with a point in a crossed triangle is explained by a curve
+        expl = _explained(mesh, signs, face, row, K)
+        e = mesh.edges
+        cut = neg[e[:, 0]] != neg[e[:, 1]]
+        crossed = torch.zeros(V, dtype=torch.bool, device=dev)
+        crossed.index_fill_(0, e[:, 0][cut], True).index_fill_(0, e[:, 1][cut], True)
+        f, _ = locate_grid(mesh, c.to(v.dtype), item)
+        tri = mesh.faces[f.clamp_min(0)]                                     # (K,3)
+        d = (v[tri] - c.to(v.dtype)[:, None, :]).norm(dim=2)
+        dmin, j = d.min(1)
+        vc = tri.gather(1, j[:, None]).squeeze(1)
+        good = (f >= 0) & ~expl & (dmin <= 0.25 * rad.to(v.dtype)) & ~crossed[vc] & ~mesh.is_boundary_vert[vc]
+        return hit.index_fill_(0, vc[good], True)
+
+
+def blob_stage(ws: "WorkingSet", signs: torch.Tensor) -> torch.Tensor:
+    """``signs`` with :func:`blob_vertices` flipped (unchanged when ``ws.blob`` is None)."""
+    if ws.blob is None:
+        return signs
+    hit = blob_vertices(ws.mesh, signs, ws.points, ws.point_item, ws.face, ws.blob)
+    return torch.where(hit, -signs, signs)
+
+
+def start_blobs(points: torch.Tensor, point_item: torch.Tensor, k: int, min_points: int,
+                max_points: int, noise: Optional[torch.Tensor] = None) -> Optional[torch.Tensor]:
+    """:func:`find_blobs`, or None when the batch has no blob (then no stage pays for them)."""
+    if min_points <= 0:
+        return None
+    blob = find_blobs(points, point_item, k, min_points, max_points, noise)
+    return blob if bool((blob >= 0).any()) else None

@@ -211,7 +211,10 @@ def _start(batch: PointBatch, cfg: ReconstructConfig, rec: StatsRecorder) -> Wor
         est = noise_and_frames(batch.points, batch.point_item, B, cfg.noise, batch.source)
         # the loop sees the points averaged at their noise scale (identity when disabled); with
         # denoise_use evidence (geometry) only the sign evidence (the fit and the test) does
-        den = denoise_points(batch.points, batch.point_item, est.level, est.frames, cfg.noise)
+        den, tang = denoise_points(batch.points, batch.point_item, est.level, est.frames, cfg.noise, return_tangents=True)
+        # frames columns 3-4: the denoising fit's tangents (over its radius of several noise
+        # widths; the noise estimate's come from 8 neighbours, a blob under dense noise)
+        frames = torch.cat([est.frames, tang.to(est.frames.dtype)], 1)
         use = cfg.noise.denoise_use
         points = batch.points if use == "evidence" else den
         sign_points = None if den is batch.points or use == "all" else (den if use == "evidence" else batch.points)
@@ -222,7 +225,7 @@ def _start(batch: PointBatch, cfg: ReconstructConfig, rec: StatsRecorder) -> Wor
     mesh = initial_mesh(cfg.mesh, B, device, dtype)
     face, bary = locate_grid(mesh, points, batch.point_item)
     rec.tick("locate")
-    return WorkingSet.start(mesh, points, batch.point_item, face, bary, est.frames, batch.center,
+    return WorkingSet.start(mesh, points, batch.point_item, face, bary, frames, batch.center,
                             batch.scale, tol, level, batch.flat, sign_points=sign_points)
 
 

@@ -114,7 +114,7 @@ def denoise_points(points: torch.Tensor, point_item: torch.Tensor, noise: torch.
     with torch.no_grad():
         dev, dt = points.device, points.dtype
         k = cfg.denoise_neighbours
-        nbr, d2 = approximate_knn(points, point_item, k, max(cfg.noise_window, (k + 1) // 2))
+        nbr, d2 = approximate_knn(points, point_item, k, max(cfg.noise_window, (k + 1) // 2, cfg.denoise_window))
         if cfg.denoise_refine_hops > 0:
             nbr, d2 = refine_knn(points, nbr, d2, cfg.denoise_refine_hops)
         valid = torch.isfinite(d2)

@@ -138,3 +138,40 @@ def test_refine_knn_against_brute_force():
     # hops 0 is the identity
     n0, dd0 = refine_knn(p, nbr, d2, 0)
     assert torch.equal(n0, nbr) and torch.equal(dd0, d2)
+
+
+def _face_of(mesh, p):
+    """Brute-force point location (barycentric signs), an independent route to the triangle."""
+    v = mesh.verts[mesh.faces]                                        # (T, 3, 2)
+    out = []
+    for q in p:
+        a, b, c = v[:, 0], v[:, 1], v[:, 2]
+
+        def cross(u, w):
+            return u[:, 0] * w[:, 1] - u[:, 1] * w[:, 0]
+        d1, d2, d3 = cross(b - a, q - a), cross(c - b, q - b), cross(a - c, q - c)
+        inside = ((d1 >= 0) & (d2 >= 0) & (d3 >= 0)) | ((d1 <= 0) & (d2 <= 0) & (d3 <= 0))
+        out.append(int(inside.nonzero()[0, 0]))
+    return torch.tensor(out)
+
+
+def test_between_walls_by_hand():
+    from torch_isc.pipeline.notches import SIDE_SEPARATION, between_walls
+    mesh = _mesh()
+    V = mesh.verts.shape[0]
+    d = torch.tensor([[1.0, 0.0]], dtype=torch.float64).expand(V, 2)
+    centre = _vid(3, 3)                                               # at (0, 0)
+    xs = torch.tensor([-0.2, -0.1, 0.1, 0.2], dtype=torch.float64)
+    two = torch.cat([torch.stack([xs, torch.full_like(xs, 0.1)], 1), torch.stack([xs, torch.full_like(xs, -0.1)], 1)])
+    one = torch.stack([xs, torch.full_like(xs, 0.1)], 1)
+    noise = torch.full((V,), 0.05, dtype=torch.float64)
+    # two walls 0.2 apart = 4 noise widths >= 2: between
+    assert bool(between_walls(mesh, d, two, _face_of(mesh, two), noise)[centre])
+    # one wall: all points on one side
+    assert not bool(between_walls(mesh, d, one, _face_of(mesh, one), noise)[centre])
+    # walls 0.2 apart with noise 0.11: 1.8 noise widths < SIDE_SEPARATION
+    assert 0.2 / 0.11 < SIDE_SEPARATION
+    assert not bool(between_walls(mesh, d, two, _face_of(mesh, two), torch.full((V,), 0.11, dtype=torch.float64))[centre])
+    # the same walls seen along y (direction rotated): the offsets are along x, both sides again
+    d_y = torch.tensor([[0.0, 1.0]], dtype=torch.float64).expand(V, 2)
+    assert bool(between_walls(mesh, d_y, two, _face_of(mesh, two), noise)[centre])

@@ -29,7 +29,7 @@ from torch_isc.core.segments import segment_sum
 if TYPE_CHECKING:
     from torch_isc.pipeline.workset import WorkingSet
 
-__all__ = ["vertex_orientation", "tangent_notches", "notch_stage"]
+__all__ = ["vertex_orientation", "between_walls", "tangent_notches", "notch_stage"]
 
 
 def vertex_orientation(mesh: MeshBatch, tangent: torch.Tensor, face: torch.Tensor):
@@ -55,6 +55,39 @@ def vertex_orientation(mesh: MeshBatch, tangent: torch.Tensor, face: torch.Tenso
     coh = torch.where(n > 0, diff / (a + d).clamp_min(torch.finfo(dt).tiny), torch.zeros_like(n))
     theta = 0.5 * torch.atan2(2 * b, a - d)
     return torch.stack([torch.cos(theta), torch.sin(theta)], 1), coh, n
+
+
+#: the two sides' mean offsets must lie this many noise widths apart (a vertex near one noisy
+#: wall has points on both sides of it too, about 1.6 noise widths apart)
+SIDE_SEPARATION = 2.0
+#: the rule acts on items whose noise estimate is at least this fraction of their diagonal (and
+#: above their tolerance): the sampling of noise-free curves reads as noise of about 1e-4
+MIN_NOISE = 1e-3
+
+
+def between_walls(mesh: MeshBatch, direction: torch.Tensor, points: torch.Tensor, face: torch.Tensor,
+                  noise: torch.Tensor) -> torch.Tensor:
+    """``(V,)`` bool: the points of the vertex's star lie on both sides of the line through it
+    along ``direction``, the sides' mean offsets at least :data:`SIDE_SEPARATION` noise widths
+    apart (``noise (V,)``): the vertex sits between two walls (in a stroke or a gap), not beside
+    one curve. A vertex just inside a convex curve sees all its points on one side, and its
+    neighbours along the tangent lie outside the curve as it bends away: no notch."""
+    V = mesh.verts.shape[0]
+    dt = direction.dtype
+    ok = face >= 0
+    corners = mesh.faces[face.clamp_min(0)]                              # (P, 3)
+    v = mesh.verts.detach().to(dt)[corners]                              # (P, 3, 2)
+    nrm = torch.stack([-direction[:, 1], direction[:, 0]], 1)[corners]   # (P, 3, 2)
+    y = ((points.to(dt)[:, None, :] - v) * nrm).sum(-1)                  # (P, 3)
+    w = ok.to(dt)[:, None].expand(-1, 3)
+    pos = (y > 0).to(dt) * w
+    neg = (y < 0).to(dt) * w
+    c = corners.reshape(-1)
+    z = torch.zeros(V, dtype=dt, device=direction.device)
+    npos, nneg = z.index_add(0, c, pos.reshape(-1)), z.index_add(0, c, neg.reshape(-1))
+    spos, sneg = z.index_add(0, c, (pos * y).reshape(-1)), z.index_add(0, c, (neg * y).reshape(-1))
+    sep = spos / npos.clamp_min(1) - sneg / nneg.clamp_min(1)
+    return (npos > 0) & (nneg > 0) & (sep >= SIDE_SEPARATION * noise.to(dt))
 
 
 def tangent_notches(mesh: MeshBatch, signs: torch.Tensor, direction: torch.Tensor, coherence: torch.Tensor,
@@ -90,6 +123,11 @@ def notch_stage(ws: "WorkingSet", signs: torch.Tensor, pinned: torch.Tensor, rou
         return signs
     with torch.no_grad():
         direction, coh, n = vertex_orientation(ws.mesh, ws.frames[:, 3:5] if ws.frames.shape[1] >= 5 else ws.frames[:, :2], ws.face)
+        between = between_walls(ws.mesh, direction, ws.points, ws.face, ws.noise[ws.mesh.vert_item])
+        # a rule about noise: items whose noise is below their tolerance (noise-free data, where
+        # a vertex inside a tightly curved stretch also sees points on both sides) are left alone
+        noisy = ((ws.noise > ws.tol) & (ws.noise >= MIN_NOISE))[ws.mesh.vert_item]
+        pinned = pinned | ~between | ~noisy
         for _ in range(int(rounds)):
             flip = tangent_notches(ws.mesh, signs, direction, coh, n, pinned, min_coherence, cone_deg, min_points)
             signs = torch.where(flip, -signs, signs)

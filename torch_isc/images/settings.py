@@ -12,7 +12,12 @@ __all__ = ["MASK_CONFIG", "EDGE_CONFIG", "IMAGE_CONFIG", "image_config"]
 #: noise-based widening of it (``noise_factor: 0``): a mask's boundary has no noise beyond the
 #: quantization, and the noise estimate (line fits at each point's neighbours) would read the
 #: two sides of a stroke a few pixels wide as noise and stop refining before the stroke is resolved.
-MASK_CONFIG: Dict[str, Any] = {"tolerance": 0.5, "tolerance_mode": "absolute", "noise_factor": 0.0}
+#: The denoising keeps the neighbour search it was measured with on masks (window 12, no
+#: neighbour descent): a mask's boundary points sit on the pixel lattice, and the wider search
+#: made for noisy point sets is not judged there (with both, a 3 px ring crossed by a line lost a
+#: curve, tests/test_images.py).
+MASK_CONFIG: Dict[str, Any] = {"tolerance": 0.5, "tolerance_mode": "absolute", "noise_factor": 0.0,
+                               "denoise_refine_hops": 0, "denoise_window": 12}
 #: Settings for Canny edge points: half a pixel, absolute; the noise estimate stays on (edge
 #: points do jitter).
 EDGE_CONFIG: Dict[str, Any] = {"tolerance": 0.5, "tolerance_mode": "absolute"}

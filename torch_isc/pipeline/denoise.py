@@ -37,6 +37,41 @@ MIN_WEIGHT = 3.0
 ROUNDS = 3
 
 
+def refine_knn(points: torch.Tensor, nbr: torch.Tensor, d2: torch.Tensor, hops: int = 6,
+               budget: int = KNN_BUDGET):
+    """One round of neighbour descent on an approximate kNN (``nbr (P, k)``, ``d2 (P, k)``
+    ascending, ``inf`` where missing): each point's candidates are its neighbours and the
+    neighbours of its ``hops`` nearest, of which the ``k`` nearest are kept. The Morton
+    candidates of :func:`approximate_knn` come from the quadtree cells a point sits in, so its
+    neighbourhood is cut off at cell walls; a fit over such a one-sided neighbourhood moves the
+    points of a cell together, and a noisy band denoises into axis-aligned dashes and parallel
+    strands (a stroke's wall becomes two or three curves). Neighbours of neighbours reach across
+    the walls. Items never mix (a neighbour is in the point's item)."""
+    P, k = nbr.shape
+    h = min(int(hops), k)
+    if P == 0 or h <= 0:
+        return nbr, d2
+    dev = points.device
+    C = k + h * k
+    block = max(1, budget // C)
+    out_n = torch.empty_like(nbr)
+    out_d = torch.empty_like(d2)
+    for b0 in range(0, P, block):
+        idx = torch.arange(b0, min(P, b0 + block), device=dev)
+        own = nbr[idx]
+        c = torch.cat([own, nbr[own[:, :h]].reshape(idx.shape[0], -1)], 1)
+        # a missing neighbour is the point itself (approximate_knn's convention): masked below
+        c, _ = torch.sort(c, 1)
+        bad = c == idx[:, None]
+        bad[:, 1:] |= c[:, 1:] == c[:, :-1]
+        dd = ((points[c] - points[idx][:, None, :]) ** 2).sum(-1)
+        dd = torch.where(bad, torch.full_like(dd, float("inf")), dd)
+        nd, ni = torch.topk(dd, k, dim=1, largest=False)
+        out_n[idx] = torch.where(torch.isfinite(nd), c.gather(1, ni), idx[:, None])
+        out_d[idx] = nd
+    return out_n, out_d
+
+
 def _tangents(x: torch.Tensor, nbr: torch.Tensor, valid: torch.Tensor, R: torch.Tensor, fallback: torch.Tensor,
               block: int) -> torch.Tensor:
     """``(P, 2)`` each point's unit tangent: the major axis of its neighbourhood's covariance,
@@ -64,21 +99,24 @@ def _tangents(x: torch.Tensor, nbr: torch.Tensor, valid: torch.Tensor, R: torch.
 
 
 def denoise_points(points: torch.Tensor, point_item: torch.Tensor, noise: torch.Tensor, frames: torch.Tensor,
-                   cfg: NoiseConfig) -> torch.Tensor:
+                   cfg: NoiseConfig, return_tangents: bool = False):
     """``(P, 2)`` the points moved onto their local weighted parabolas (see the module).
 
     ``points (P, 2)`` normalized per item, ``point_item (P,)``, ``noise (B,)`` each item's noise
     level (a standard deviation, normalized units), ``frames (P, 3)`` each point's unit tangent
     (first two columns; :func:`noise.noise_and_frames`). ``cfg.denoise_iterations == 0``
-    returns ``points`` itself."""
+    returns ``points`` itself. With ``return_tangents``, ``(points, tangents (P, 2))``: each
+    point's unit tangent of its last fit (the frames' own where nothing was fitted)."""
     iters = cfg.denoise_iterations
     P = points.shape[0]
     if iters <= 0 or P < 3:
-        return points
+        return (points, frames[:, :2].to(points.dtype)) if return_tangents else points
     with torch.no_grad():
         dev, dt = points.device, points.dtype
         k = cfg.denoise_neighbours
-        nbr, d2 = approximate_knn(points, point_item, k, max(cfg.noise_window, (k + 1) // 2))
+        nbr, d2 = approximate_knn(points, point_item, k, max(cfg.noise_window, (k + 1) // 2, cfg.denoise_window))
+        if cfg.denoise_refine_hops > 0:
+            nbr, d2 = refine_knn(points, nbr, d2, cfg.denoise_refine_hops)
         valid = torch.isfinite(d2)
         kk = nbr.shape[1]
         sigma = noise.to(dt)[point_item]                                  # (P,)
@@ -139,4 +177,4 @@ def denoise_points(points: torch.Tensor, point_item: torch.Tensor, noise: torch.
         d = x - points.detach()
         dn = d.norm(dim=1)
         x = points.detach() + d * (cap / dn.clamp_min(torch.finfo(dt).tiny)).clamp(max=1.0)[:, None]
-        return x.to(points.dtype)
+        return (x.to(points.dtype), t.to(points.dtype)) if return_tangents else x.to(points.dtype)

@@ -45,6 +45,13 @@ class NoiseConfig:
     denoise_use: str = knob("all", choices=("all", "evidence", "geometry"))
     #: the noise level the loop assumes after denoising, as a fraction of the raw estimate
     denoise_noise_scale: float = knob(1.0, gt=0, le=1)
+    #: one round of neighbour descent on the denoising's approximate neighbours: the neighbours
+    #: of this many nearest neighbours join the candidates (Morton candidates stop at quadtree
+    #: cell walls, and the fits then cut a noisy band into dashes and strands); 0 disables
+    denoise_refine_hops: int = knob(4, ge=0)
+    #: Morton candidates on each side of a point for the denoising's neighbours (at least
+    #: noise_window and half of denoise_neighbours)
+    denoise_window: int = knob(24, ge=1)
 
     def __post_init__(self):
         check_section(self)

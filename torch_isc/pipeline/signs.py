@@ -92,6 +92,15 @@ class TopologyConfig:
     winding_sync_iterations: int = knob(30, ge=0)
     #: the winding number's smoothing length, in noise widths (or sample spacings, the larger)
     winding_smoothing: float = knob(2.0, gt=0)
+    #: rounds of the tangent-notch rule (pipeline/notches.py): a vertex whose neighbours along
+    #: the data's direction, on both sides, all have the other sign takes theirs; 0 disables
+    notch_rounds: int = knob(1, ge=0)
+    #: ...where the tangents of its star's points agree at least this much ((l1 - l2)/(l1 + l2))
+    notch_coherence: float = knob(0.6, ge=0, le=1)
+    #: ...its neighbours within this many degrees of that direction
+    notch_cone: float = knob(35.0, gt=0, lt=90)
+    #: ...and its star holds at least this many points
+    notch_min_points: int = knob(3, ge=1)
 
     def __post_init__(self):
         check_section(self)
@@ -597,6 +606,10 @@ class IsingSigns:
             if self.cfg.open_noise_widths > 0 or self.cfg.open_tolerances > 0:
                 from torch_isc.pipeline.simplify import open_stage
                 s = open_stage(ws, s, fixed, self.cfg)
+            if self.cfg.notch_rounds > 0:
+                from torch_isc.pipeline.notches import notch_stage
+                c = self.cfg
+                s = notch_stage(ws, s, fixed, c.notch_rounds, c.notch_coherence, c.notch_cone, c.notch_min_points)
             s = remove_small_islands(mesh, s, fixed, self.cfg.min_island_vertices)
             if self.cfg.enclose_chord > 0:
                 # last: the island and speck rules would take a one-vertex loop back

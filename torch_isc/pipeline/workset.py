@@ -33,7 +33,8 @@ class WorkingSet:
         marked: ``(T,)`` bool, the triangles the last test marked.
         points: ``(P, 2)`` normalized points. point_item: ``(P,)`` their working item.
         face: ``(P,)`` their triangle. bary: ``(P, 3)`` their barycentric coordinates.
-        frames: ``(P, 3)`` their local tangent and neighbourhood reach (noise estimate).
+        frames: ``(P, 5)`` their local tangent and neighbourhood reach (noise estimate), then the
+            denoising fit's tangent.
         items: ``(B,)`` the caller's index of each working item.
         center: ``(B, 2)`` float64, scale: ``(B,)`` float64: the frame (caller = normalized *
             scale + center). tol: ``(B,)`` tolerance, noise: ``(B,)`` noise (normalized units).

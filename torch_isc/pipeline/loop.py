@@ -216,18 +216,17 @@ def _start(batch: PointBatch, cfg: ReconstructConfig, rec: StatsRecorder, source
         # frames columns 3-4: the denoising fit's tangents (over its radius of several noise
         # widths; the noise estimate's come from 8 neighbours, a blob under dense noise)
         frames = torch.cat([est.frames, tang.to(est.frames.dtype)], 1)
-        # small isolated clusters (pipeline/blobs.py), found on the raw points; denoising does
-        # not move them (a parabola through a ring of 8 points flattens it)
-        blob = start_blobs(batch.points, batch.point_item, cfg.topology.blob_neighbours,
-                           cfg.topology.blob_min_points, cfg.topology.blob_max_points, est.level) if source_blobs else None
-        if blob is not None and den is not batch.points:
-            den = torch.where((blob >= 0)[:, None], batch.points, den)
         use = cfg.noise.denoise_use
         points = batch.points if use == "evidence" else den
         sign_points = None if den is batch.points or use == "all" else (den if use == "evidence" else batch.points)
         # what noise the loop's rules assume (tolerance floor, thin features, band size): the
         # denoised points' residual spread is below the raw estimate
         level = est.level if den is batch.points else est.level * cfg.noise.denoise_noise_scale
+        # small isolated clusters (pipeline/blobs.py), found on the raw points (a parabola
+        # through a ring of 8 points flattens it); the loop sees them denoised like the rest:
+        # with blob points kept raw, glyph_B at 1% noise (public cases) lost its counter
+        blob = start_blobs(batch.points, batch.point_item, cfg.topology.blob_neighbours,
+                           cfg.topology.blob_min_points, cfg.topology.blob_max_points, est.level) if source_blobs else None
     rec.skip()                                   # the noise estimate is not a stage of the loop
     mesh = initial_mesh(cfg.mesh, B, device, dtype)
     face, bary = locate_grid(mesh, points, batch.point_item)

@@ -25,7 +25,7 @@ from __future__ import annotations
 import torch
 
 from torch_isc.core.segments import sym2_eigvals, sym2_eigvec
-from torch_isc.pipeline.noise import KNN_BUDGET, NoiseConfig, approximate_knn
+from torch_isc.pipeline.noise import KNN_BUDGET, NoiseConfig, approximate_knn, nearest_candidates
 
 __all__ = ["denoise_points"]
 
@@ -62,13 +62,7 @@ def refine_knn(points: torch.Tensor, nbr: torch.Tensor, d2: torch.Tensor, hops: 
         c = torch.cat([own, nbr[own[:, :h]].reshape(idx.shape[0], -1)], 1)
         # a missing neighbour is the point itself (approximate_knn's convention): masked below
         c, _ = torch.sort(c, 1)
-        bad = c == idx[:, None]
-        bad[:, 1:] |= c[:, 1:] == c[:, :-1]
-        dd = ((points[c] - points[idx][:, None, :]) ** 2).sum(-1)
-        dd = torch.where(bad, torch.full_like(dd, float("inf")), dd)
-        nd, ni = torch.topk(dd, k, dim=1, largest=False)
-        out_n[idx] = torch.where(torch.isfinite(nd), c.gather(1, ni), idx[:, None])
-        out_d[idx] = nd
+        out_n[idx], out_d[idx] = nearest_candidates(points, idx, c, c == idx[:, None], k)
     return out_n, out_d
 
 

@@ -156,6 +156,19 @@ def morton_orders(points: torch.Tensor, item: torch.Tensor) -> List[Tuple[torch.
 KNN_BUDGET = 1 << 22
 
 
+def nearest_candidates(points: torch.Tensor, idx: torch.Tensor, c: torch.Tensor, bad: torch.Tensor,
+                       k: int) -> Tuple[torch.Tensor, torch.Tensor]:
+    """The ``k`` nearest of each row's candidates. ``c: (R, C)`` point indices sorted along each
+    row (repeats are masked here), ``bad: (R, C)`` candidates to leave out (modified in place),
+    ``idx: (R,)`` the rows' own points. Returns ``(R, k)`` indices (a missing neighbour is the row's
+    own point) and their squared distances (``inf`` where missing)."""
+    bad[:, 1:] |= c[:, 1:] == c[:, :-1]
+    dd = ((points[c] - points[idx][:, None, :]) ** 2).sum(-1)
+    dd = torch.where(bad, torch.full_like(dd, float("inf")), dd)
+    nd, ni = torch.topk(dd, k, dim=1, largest=False)
+    return torch.where(torch.isfinite(nd), c.gather(1, ni), idx[:, None]), nd
+
+
 def approximate_knn(points: torch.Tensor, item: torch.Tensor, k: int, window: int) -> Tuple[torch.Tensor, torch.Tensor]:
     """Approximate ``k`` nearest neighbours of every point within its item, among its
     ``window`` neighbours on each side along the two :func:`morton_orders` (points normalized
@@ -175,12 +188,7 @@ def approximate_knn(points: torch.Tensor, item: torch.Tensor, k: int, window: in
         c = torch.cat([o[(p[idx][:, None] + offs[None, :]).clamp(0, P - 1)] for o, p in orders], 1)
         c, _ = torch.sort(c, 1)
         bad = (c == idx[:, None]) | (item[c] != item[idx][:, None])
-        bad[:, 1:] |= c[:, 1:] == c[:, :-1]
-        dd = ((points[c] - points[idx][:, None, :]) ** 2).sum(-1)
-        dd = torch.where(bad, torch.full_like(dd, float("inf")), dd)
-        nd, ni = torch.topk(dd, kk, dim=1, largest=False)
-        nbr[idx] = torch.where(torch.isfinite(nd), c.gather(1, ni), idx[:, None])
-        d2[idx] = nd
+        nbr[idx], d2[idx] = nearest_candidates(points, idx, c, bad, kk)
     return nbr, d2
 
 

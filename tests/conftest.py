@@ -183,3 +183,27 @@ def find_intersections(polylines: Sequence[Tuple[torch.Tensor, bool]]) -> List[t
             if segments_intersect(a, b, c, d):
                 bad.append((k1, i1, k2, i2))
     return bad
+
+
+def components_by_bfs(V, edges, join):
+    """Connected components of the graph on ``V`` vertices whose edges ``(E, 2)`` have ``join``
+    set, by plain breadth-first search: each vertex's label is its component's smallest index."""
+    nb = [[] for _ in range(V)]
+    for (a, b), j in zip(edges.tolist(), join.tolist()):
+        if j:
+            nb[a].append(b)
+            nb[b].append(a)
+    lab = [-1] * V
+    for v in range(V):
+        if lab[v] >= 0:
+            continue
+        comp, todo = [v], [v]
+        lab[v] = v
+        while todo:
+            u = todo.pop()
+            for w in nb[u]:
+                if lab[w] < 0:
+                    lab[w] = v
+                    comp.append(w)
+                    todo.append(w)
+    return lab                                   # v is the smallest index of its component

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from conftest import components_by_bfs
 from torch_isc.core.locate import locate_grid
 from torch_isc.core.mesh import hexagon_mesh
 from torch_isc.pipeline import blobs as bl
@@ -18,26 +19,15 @@ def blobs_by_brute_force(x, k, lo, hi, noise, gap_widths):
     P = len(x)
     D = np.sqrt(((x[:, None, :] - x[None, :, :]) ** 2).sum(-1))
     np.fill_diagonal(D, np.inf)
-    nb = [set() for _ in range(P)]
+    pairs = set()
     for i in range(P):
         for j in np.argsort(D[i])[:k]:
-            nb[i].add(int(j))
-            nb[int(j)].add(i)
+            pairs.add((i, int(j)))
         for j in range(P):
             if noise is not None and D[i, j] <= gap_widths * noise:
-                nb[i].add(j)
-                nb[j].add(i)
-    lab = [-1] * P
-    for v in range(P):
-        if lab[v] >= 0:
-            continue
-        todo, lab[v] = [v], v
-        while todo:
-            u = todo.pop()
-            for w in nb[u]:
-                if lab[w] < 0:
-                    lab[w] = v
-                    todo.append(w)
+                pairs.add((i, j))
+    edges = torch.tensor(sorted(pairs), dtype=torch.long).reshape(-1, 2)
+    lab = components_by_bfs(P, edges, torch.ones(len(edges), dtype=torch.bool))
     out = [-1] * P
     for root in set(lab):
         m = [i for i in range(P) if lab[i] == root]

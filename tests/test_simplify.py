@@ -5,6 +5,7 @@ import math
 import pytest
 import torch
 
+from conftest import components_by_bfs
 from torch_isc.core.mesh import hexagon_mesh
 from torch_isc.core.segments import edge_components
 from torch_isc.pipeline.simplify import cluster_flip_change, descend_clusters
@@ -15,28 +16,6 @@ def mesh_of(r=5, B=1):
     c = torch.zeros(B, 2, dtype=torch.float64)
     c[:, 0] = torch.arange(B, dtype=torch.float64) * 3.0
     return hexagon_mesh(c, torch.ones(B, dtype=torch.float64), r)
-
-
-def components_by_bfs(V, edges, join):
-    nb = [[] for _ in range(V)]
-    for (a, b), j in zip(edges.tolist(), join.tolist()):
-        if j:
-            nb[a].append(b)
-            nb[b].append(a)
-    lab = [-1] * V
-    for v in range(V):
-        if lab[v] >= 0:
-            continue
-        comp, todo = [v], [v]
-        lab[v] = v
-        while todo:
-            u = todo.pop()
-            for w in nb[u]:
-                if lab[w] < 0:
-                    lab[w] = v
-                    comp.append(w)
-                    todo.append(w)
-    return lab                                   # v is the smallest index of its component
 
 
 def energy(edges, H, s):

@@ -118,6 +118,21 @@ def test_accuracy_smooth_shapes(name):
     assert P.min() >= 0 and (P[:, 0] <= W).all() and (P[:, 1] <= H).all()
 
 
+@pytest.mark.parametrize("seed, name, bound", [(-1, "disc r=1.6 (3 px)", 0.52), (2, "square 3 px rot 293", 0.8)])
+def test_tiny_loops_smoothed_lightly(seed, name, bound):
+    """Loops under about 30 crossings (shapes of 2-4 px) get 2-7 smoothing iterations, not 6-12:
+    on a 3-px square the filter rounded the corners inward beyond the crack-midpoint polygon
+    (mean 0.200 px against skimage's 0.196, maximum 0.82), on the 3-px disc the maximum was
+    0.55 px. Now the mean is below skimage's on both and the maximum below ``bound``."""
+    from skimage import measure
+    from torch_isc.images.shapes import corner_shapes, shape_mask_of
+    m, _, truth = shape_mask(name) if seed < 0 else shape_mask_of(corner_shapes(seed)[name])
+    d = _dist([p.numpy() for p in images.trace_masks([torch.from_numpy(m)]).polylines.polyline_list()], truth)
+    ds = _dist([c[:, ::-1] + 0.5 for c in measure.find_contours(m.astype(float), 0.5)], truth)
+    assert d["a_to_b_mean"] < ds["a_to_b_mean"]
+    assert d["hausdorff"] <= bound
+
+
 @pytest.mark.parametrize("name", [n for n in SHAPES if "square" in n or "triangle" in n or "star" in n])
 def test_accuracy_corners_mean(name):
     """Sharp corners: the mean is below both peers'; the maximum stays within a pixel of
@@ -341,14 +356,34 @@ def test_dropin_input_forms_and_errors():
 
 @pytest.mark.parametrize("seed, name, k, cut, ext", [(1, "wedge 120 deg rot 330", 1, 2.0, 0.0),
                                                      (0, "wedge 20 deg rot 10", 0, 1.2, 0.3),
-                                                     (0, "wedge 120 deg rot 112", 2, 1.9, 0.0)])
+                                                     (0, "wedge 120 deg rot 112", 2, 1.9, 0.0),
+                                                     # the out-of-reach misses of seeds 2-5
+                                                     (2, "square 6 px rot 262", 3, 1.15, 0.1),
+                                                     (2, "square 12 px rot 99", 3, 1.1, 0.1),
+                                                     (2, "wedge 20 deg rot 125", 0, 1.65, 0.0),
+                                                     (2, "wedge 150 deg rot 310", 1, 3.7, 0.05),
+                                                     (3, "square 6 px rot 156", 0, 1.0, 0.15),
+                                                     (3, "wedge 150 deg rot 260", 1, 3.9, 0.1),
+                                                     (3, "wedge 60 deg small rot 173", 2, 1.1, 0.2),
+                                                     (4, "square 6 px rot 136", 1, 1.35, 0.1),
+                                                     (4, "wedge 20 deg rot 254", 0, 1.7, 0.0),
+                                                     (4, "wedge 30 deg rot 48", 0, 1.9, 0.0),
+                                                     (4, "wedge 120 deg rot 335", 1, 2.2, 0.0),
+                                                     (4, "wedge 60 deg small rot 266", 1, 1.25, 0.0),
+                                                     (4, "L 10 px rot 155", 5, 1.15, 0.0),
+                                                     (5, "square 3 px rot 186", 0, 1.1, 0.2),
+                                                     (5, "square 6 px rot 138", 0, 1.0, 0.3),
+                                                     (5, "wedge 90 deg rot 181", 1, 1.2, 0.0),
+                                                     (5, "wedge 150 deg rot 54", 1, 2.85, 0.1),
+                                                     (5, "wedge 60 deg small rot 31", 1, 1.15, 0.3)])
 def test_thin_tips_out_of_reach(seed, name, k, cut, ext):
     """A documented limit: the 0.55 px bound cannot hold on every shape. Corner ``k`` of these
     polygons can be cut ``cut`` px short (chamfered across its bisector) or extended ``ext`` px
     (the vertex moved out along its bisector, its sides pivoting on their other ends) and the
     thresholded mask stays the same; the two shapes are more than 2 x 0.55 px apart at the tip,
     so any curve drawn from that mask is more than 0.55 px from one of them
-    (``scripts/evaluate_masks.py --shapes --tips`` lists 10 of the 18 misses of seeds 0, 1 so)."""
+    (``scripts/evaluate_masks.py --shapes --tips`` lists 6 of the 9 misses of seeds 0, 1 so, and
+    18 of the 29 of seeds 2-5: squares of 3-12 px, acute and 15-degree tips, 9-px wedges, a 10-px L)."""
     import math
     from torch_isc.images.shapes import _polys, corner_shapes, shape_mask_of
     H, W, inside, truth = corner_shapes(seed)[name]
@@ -363,7 +398,7 @@ def test_thin_tips_out_of_reach(seed, name, k, cut, ext):
     m = shape_mask_of((H, W, inside, truth))[0]
     assert (shape_mask_of((H, W, *_polys([short])))[0] == m).all()
     assert (shape_mask_of((H, W, *_polys([long_])))[0] == m).all()
-    assert metrics.hausdorff([(short, True)], [(long_, True)], 0.02) > 2 * 0.55 + 0.3
+    assert metrics.hausdorff([(short, True)], [(long_, True)], 0.02) > 2 * 0.55
 
 
 @pytest.mark.parametrize("name, seed", [("5-gon r=20 rot 307", 1), ("5-gon r=20 rot 116", 0), ("L 50 px rot 232", 1),

@@ -24,7 +24,7 @@ if TYPE_CHECKING:
     from torch_isc.pipeline.evidence import Evidence
     from torch_isc.pipeline.workset import WorkingSet
 
-__all__ = ["GeometryConfig", "GeometryObjective", "delta1_per_triangle", "vertex_data_distance", "vertex_data_distance_near", "fit_geometry", "estimate_values",
+__all__ = ["GeometryConfig", "GeometryObjective", "delta1_per_triangle", "vertex_data_distance", "vertex_data_distance_near", "fit_geometry", "run_fit", "estimate_values",
            "point_residuals"]
 
 

@@ -24,7 +24,7 @@ if TYPE_CHECKING:
     from torch_isc.pipeline.evidence import Evidence
     from torch_isc.pipeline.workset import WorkingSet
 
-__all__ = ["GeometryConfig", "GeometryObjective", "delta1_per_triangle", "vertex_data_distance", "vertex_data_distance_near", "fit_geometry", "estimate_values",
+__all__ = ["GeometryConfig", "GeometryObjective", "delta1_per_triangle", "vertex_data_distance", "vertex_data_distance_near", "fit_geometry", "run_fit", "estimate_values",
            "point_residuals"]
 
 
@@ -45,14 +45,24 @@ class GeometryConfig:
     smoothness: float = knob(1e-2, ge=0)
     #: weight of the dead-zoned curve-to-data term at the zero set's edge crossings; 0 disables
     crossing_weight: float = knob(1.0, ge=0)
+    #: L-BFGS runs in ``x = s / c``, ``c`` per vertex the inverse square root of the Gauss-Newton
+    #: diagonal of the objective at the start (Δ1's numerator and the smoothness term), i.e. a
+    #: diagonal initial inverse Hessian: small triangles (fine levels) and many-point ones weigh
+    #: alike; 0 disables; the value is the share of the item's mean diagonal added to every
+    #: vertex's (vertices with no data and no band term keep a finite scale)
+    precondition: float = knob(0.0, ge=0)
 
     def __post_init__(self):
         check_section(self)
 
 
 def _grad_norm2(mesh: MeshBatch, values: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
+    return _grad_norm2_g(G, values[mesh.faces])
+
+
+def _grad_norm2_g(G: torch.Tensor, Ft: torch.Tensor) -> torch.Tensor:
     # |G_tᵀ F_t|² computed directly: as a quadratic form it can round below zero
-    grad = (G * values[mesh.faces][..., None]).sum(1)
+    grad = (G * Ft[..., None]).sum(1)
     return (grad * grad).sum(1), grad
 
 
@@ -212,6 +222,13 @@ class GeometryObjective:
                 per_item = segment_count(c_item, B).to(dt)
                 self.c_w = (crossing_weight / per_item.clamp_min(1)[c_item]) * self.inv_tol2[c_item]
             self._constants()
+            # the variable scale of the preconditioned fit (None: L-BFGS runs in s itself)
+            self.pc = None
+            if cfg.precondition > 0:
+                h = self.gauss_newton_diagonal(self.s0)
+                mean_h = segment_sum(h, vi, B) / nv.clamp_min(1)
+                h = h + cfg.precondition * mean_h[vi]
+                self.pc = torch.where(h > 0, h.clamp_min(torch.finfo(dt).tiny).rsqrt(), torch.ones_like(h))
 
     def _constants(self) -> None:
         """What every evaluation would otherwise recompute (exact rewrites: products by ±1 and 2,
@@ -224,6 +241,41 @@ class GeometryObjective:
             self.ce4 = torch.cat([self.ce, self.ce.flip(1)], 1)   # both ends, then swapped
             self.cw2 = 2.0 * self.c_w
             self.sgn_c = torch.stack([self.signs[self.ce[:, 0]], -self.signs[self.ce[:, 1]]], -1)
+
+    def gauss_newton_diagonal(self, s: torch.Tensor) -> torch.Tensor:
+        """``(V,)`` the diagonal of the objective's Gauss-Newton Hessian in ``s`` at ``s (V,)``:
+        per triangle ``2 w M_t / |∇f_t|²`` (the numerator's curvature, the denominator frozen)
+        and per interior band edge ``2 λ ℓ D_eᵀD_e / S`` (``D_e F`` the jump of ``∇f`` across it,
+        ``S`` frozen), in ``F``, times ``(dF/ds)² = exp(2s)``. The crossing term is left out
+        (a dead zone: zero at most starts)."""
+        with torch.no_grad():
+            e = torch.exp(s.clamp(-60.0, 60.0))
+            F = torch.addcmul(self.sfloor, self.signs, e)
+            g2, _ = _grad_norm2_g(self.G, F[self.faces])
+            Mii = torch.diagonal(self.M, dim1=1, dim2=2)                       # (T,3)
+            h = torch.zeros_like(F).index_add_(0, self.faces.reshape(-1),
+                                               (Mii * (self.wt2 / (g2 + self.guard))[:, None]).reshape(-1))
+            if self.smoothness > 0 and self.ef.shape[0]:
+                a, b = self.ef[:, 0], self.ef[:, 1]
+                fa, fb = self.faces[a], self.faces[b]
+                Ga, Gb = self.G[a], self.G[b]                                  # (E,3,2)
+                eq = (fa[:, :, None] == fb[:, None, :]).to(F.dtype)          # shared vertices
+                Da = Ga - eq @ Gb                                              # columns of D_e at a's vertices
+                Db = Gb * (1.0 - eq.sum(1))[..., None]                         # at b's own vertex
+                S = self._segsum((self.el * (g2[a] + g2[b]))[None], self.eitem)[0] * 0.5
+                w = (2.0 * self.smoothness) * self.el / S.clamp_min(torch.finfo(F.dtype).tiny)[self.eitem]
+                h = h.index_add_(0, torch.cat([fa, fb], 1).reshape(-1),
+                                 (torch.cat([(Da * Da).sum(-1), (Db * Db).sum(-1)], 1) * w[:, None]).reshape(-1))
+            return h * e * e
+
+    def _evaluate_pre(self, x: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+        """The objective and gradient in the scaled variable ``x = s / pc``."""
+        f, g = self._evaluate(x * self.pc)
+        return f, g * self.pc
+
+    def _restricted_pre(self, items: torch.Tensor):
+        sub = self.restrict(items)
+        return sub._evaluate_pre, sub._restricted_pre
 
     def _evaluate(self, s: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
         if self.compiled:
@@ -259,6 +311,7 @@ class GeometryObjective:
             sub.item_zero = self.item_zero[b]
             sub.vi, sub.signs, sub.floor = renum[self.vi[v]], self.signs[v], self.floor[v]
             sub.s0, sub.wt_raw, sub.inv_tol2 = self.s0[v], self.wt_raw[f], self.inv_tol2[b]
+            sub.pc = None if self.pc is None else self.pc[v]
             sub.faces, sub.fi = vmap[self.faces[f]], renum[self.fi[f]]
             sub.G, sub.M, sub.wt, sub.guard = self.G[f], self.M[f], self.wt[f], self.guard[f]
             sub.ef, sub.el, sub.eitem = fmap[self.ef[e]], self.el[e], renum[self.eitem[e]]
@@ -408,14 +461,23 @@ def fit_geometry(mesh: MeshBatch, mom: TriangleMoments, signs: torch.Tensor, ini
         values ``(V,)`` and Δ1 per item ``(B,)``.
     """
     obj = GeometryObjective(mesh, mom, signs, init_mag, tol, cfg, data_dist, slack)
-    s, _, _ = batched_lbfgs(obj._evaluate, obj.s0, mesh.vert_item, mesh.num_items,
-                            iterations=cfg.lbfgs_iterations, history=cfg.lbfgs_history, with_grad=True,
-                            stacked=True, trials=cfg.lbfgs_trials or (1 if mesh.device.type == "cpu" else 3),
-                            restrict=obj._restricted)
+    s = run_fit(obj, cfg)[0]
     with torch.no_grad():
         F = obj.values(s)
         d1 = segment_sum(obj.wt_raw * delta1_per_triangle(mesh, mom.M, F, obj.G, obj.guard), obj.fi, mesh.num_items)
     return F, d1
+
+
+def run_fit(obj: GeometryObjective, cfg: GeometryConfig, iterations: Optional[int] = None, rel_tol: float = 1e-7):
+    """The batched L-BFGS of ``obj`` from its start (in the scaled variable where ``obj.pc`` is
+    set): ``s (V,)``, the objectives ``(B,)`` and the iterations each item ran ``(B,)``."""
+    pre = obj.pc is not None
+    x, f, it = batched_lbfgs(obj._evaluate_pre if pre else obj._evaluate, obj.s0 / obj.pc if pre else obj.s0,
+                             obj.vi, obj.B, iterations=cfg.lbfgs_iterations if iterations is None else iterations,
+                             history=cfg.lbfgs_history, with_grad=True, rel_tol=rel_tol, stacked=True,
+                             trials=cfg.lbfgs_trials or (1 if obj.dev.type == "cpu" else 3),
+                             restrict=obj._restricted_pre if pre else obj._restricted)
+    return (x * obj.pc if pre else x), f, it
 
 
 def estimate_values(ws: "WorkingSet", ev: "Evidence", cfg: GeometryConfig, slack: torch.Tensor

@@ -11,6 +11,10 @@ an animated GIF / WebP (first frame would be read      test_animated_gif_and_web
 silently)
 an interrupt cleared by native code during the         test_interrupt_cleared_by_native_code_is_seen
 imports (rare: status 0, the run went on)
+find_contours: mode/method/connectivity/batch_pixels   test_find_contours_odd_arguments
+raised builtin errors, epsilon=1e308 cv2.error, an
+offset of 1e308 inf contours
+blob_max_points=1e6 (over 40 s, gigabytes)             test_blob_max_points_is_bounded
 =====================================================  ==========================================
 """
 from __future__ import annotations
@@ -126,3 +130,41 @@ def test_interrupt_cleared_by_native_code_is_seen(monkeypatch, capsys):
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler      # restored
     monkeypatch.setattr(tc, "main", lambda: 0)
     assert entry.main() == 0                                                   # the flag was reset
+
+
+def test_find_contours_odd_arguments():
+    """A fresh round on ``find_contours``: bad modes, methods, connectivities and batch sizes raised
+    builtin ValueError/TypeError (now :class:`ImageError`, still a ValueError, naming the
+    argument); ``epsilon=1e308`` raised OpenCV's "Epsilon not valid" (now: the same polygon as any
+    epsilon beyond the contour, here 1e6); an offset of 1e308 gave inf float32 contours (now
+    refused)."""
+    from torch_isc.images.contours import find_contours, find_contours_batch
+    m = np.zeros((20, 30), np.uint8)
+    m[5:15, 5:20] = 1
+    for kw, what in (({"mode": -1}, "retrieval mode -1"), ({"mode": "x"}, "retrieval mode 'x'"),
+                     ({"method": 0}, "approximation method 0"), ({"connectivity": 6}, "connectivity must be 8 or 4"),
+                     ({"connectivity": "8"}, "connectivity must be 8 or 4"),
+                     ({"offset": (1e308, 0.0)}, r"offset \(1e\+308, 0.0\): contour coordinates beyond what float32"),
+                     ({"offset": (3e9, 0), "dtype": np.int32}, "beyond what int32")):
+        with pytest.raises(ImageError, match=what):
+            find_contours(m, **kw)
+    for bp in ("a", float("nan"), -1, True):
+        with pytest.raises(ImageError, match="batch_pixels must be an integer >= 0"):
+            find_contours_batch([m, m], batch_pixels=bp)
+    assert len(find_contours_batch([m, m], batch_pixels=0)) == 2          # one mask per solve
+    huge = find_contours(m, 3, 2, epsilon=1e308)[0]
+    ref = find_contours(m, 3, 2, epsilon=1e6)[0]
+    assert len(huge) == 1 and np.array_equal(huge[0], ref[0])
+    # the contour of a 10x15 rectangle collapses to 2 points (Douglas-Peucker's end points)
+    assert 1 <= len(huge[0]) <= 2
+
+
+def test_blob_max_points_is_bounded():
+    """``blob_max_points=1000000`` built a nearest-neighbour table of a million columns per point
+    (over 40 s and gigabytes on a 320-point set); the blob rule is for small clusters: at most
+    1000 points."""
+    from torch_isc import ReconstructConfig
+    from torch_isc.pipeline.config import ConfigError
+    with pytest.raises(ConfigError, match="config key 'blob_max_points'"):
+        ReconstructConfig().replace(blob_max_points=1_000_000)
+    ReconstructConfig().replace(blob_max_points=1000)

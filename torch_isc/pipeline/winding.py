@@ -33,8 +33,8 @@ import torch
 from torch_isc.pipeline.noise import approximate_knn
 
 from torch_isc.core.segments import (edge_components, expand_in_chunks, first_index, hash_uniform, segment_count,
-from torch_isc.pipeline import budget
                                      segment_median, sym2_eigvals, sym2_eigvec)
+from torch_isc.pipeline import budget
 
 __all__ = ["WindingPrior", "knn", "point_normals", "orient_normals", "winding_prior", "winding_at", "winding_on_grid",
            "winding_field"]

@@ -11,7 +11,9 @@ and 1% of the bounding-box diagonal. Perturbations, each fed in the original coo
 
 - round: the 17-digit text round trip of ``x * 1e-6 + 1e7`` mapped back (the rounding of the
   shifted coordinates: up to about 0.03% of the diagonal for these sizes);
-- jitter: a random relative jitter of 1e-9 of the diagonal.
+- jitter: a random relative jitter of 1e-9 of the diagonal (``--jitters``: several sizes, e.g.
+  ``1e-6,1e-5,1e-4,1e-3``, each its own perturbation ``jitter<size>``; the summary then also gives
+  the curve's move over the perturbation's size, median and max).
 
 For each set and perturbation: the Hausdorff distance (dense, :func:`torch_isc.metrics.hausdorff`)
 between the two curves in units of the diagonal, and whether the refinement differs (triangles per
@@ -136,26 +138,33 @@ def main(argv=None) -> Dict:
     ap.add_argument("--verbose", action="store_true")
     ap.add_argument("--diagnose", action="store_true",
                     help="for every case moved by more than --bound, the first decision that differs (reruns it)")
+    ap.add_argument("--jitters", default="1e-9",
+                    help="comma-separated jitter sizes (units of the diagonal), one perturbation each")
     ap.add_argument("--json", help="write every case's numbers here")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     cfg = torch_isc.load_config(None, parse_overrides(args.set))
     cases, sets = [], []
+    sizes = [float(x) for x in args.jitters.split(",") if x.strip()]
+    names = ["round"] + (["jitter"] if sizes == [1e-9] else [f"jitter{x:g}" for x in sizes])
+    K = 1 + len(names)                                   # sets per case: the base and each perturbation
     for kind in args.shapes.split(","):
         for noise in (float(x) for x in args.noises.split(",")):
             for seed in range(args.seed0, args.seed0 + args.seeds):
                 p = shape_points(kind, noise, seed)
                 cases.append((kind, noise, seed))
-                sets += [p, round_trip(p), jitter(p, seed)]
+                sets += [p, round_trip(p)] + [jitter(p, seed, x) for x in sizes]
     res = torch_isc.reconstruct_batch(sets, cfg)
     rows = []
     for i, (kind, noise, seed) in enumerate(cases):
-        base, *pert = res[3 * i:3 * i + 3]
-        diag = metrics.bbox_diagonal(torch.as_tensor(sets[3 * i]))
+        base, *pert = res[K * i:K * i + K]
+        diag = metrics.bbox_diagonal(torch.as_tensor(sets[K * i]))
         row = {"shape": kind, "noise": noise, "seed": seed, "levels": [s.triangles for s in base.stats]}
-        for name, r in zip(("round", "jitter"), pert):
+        for j, (name, r) in enumerate(zip(names, pert)):
             d = metrics.hausdorff(curves(r), curves(base)) / diag if base.polylines and r.polylines else float("inf")
             row[name] = d
+            # the perturbation's size: its largest point move, units of the diagonal
+            row[name + "_size"] = float(np.abs(sets[K * i + 1 + j] - sets[K * i]).max()) / diag
             row[name + "_refined_same"] = [s.triangles for s in r.stats] == row["levels"]
             row[name + "_levels"] = [s.triangles for s in r.stats]
             if args.verbose and d > args.bound:
@@ -167,31 +176,34 @@ def main(argv=None) -> Dict:
                 if len(a.__dict__) and len(base.stats) != len(r.stats):
                     print(f"   levels {len(base.stats)}/{len(r.stats)}")
         if args.diagnose:
-            for name, j in (("round", 1), ("jitter", 2)):
+            for j, name in enumerate(names, 1):
                 if row[name] > args.bound:
-                    row[name + "_first"] = first_divergence(sets[3 * i], sets[3 * i + j], cfg)
+                    row[name + "_first"] = first_divergence(sets[K * i], sets[K * i + j], cfg)
                     print(f"{kind:7s} noise={noise:<6} seed={seed:<3d} {name:6s} {row[name]:.2e}  "
                           f"first: {row[name + '_first']}")
         rows.append(row)
     if args.diagnose:
         from collections import Counter
-        for name in ("round", "jitter"):
+        for name in names:
             c = Counter(r[name + "_first"].split(" ")[0].split("@")[0] + "@" + (r[name + "_first"].split("@")[1][:1]
                         if "@" in r[name + "_first"] else "-") for r in rows if name + "_first" in r)
             print(f"first decision that differs ({name}):", dict(sorted(c.items())))
     summary = {}
-    print(f"{'shape':8s} {'noise':>6s} {'pert':>7s} {'median':>9s} {'max':>9s} {'>bound':>7s} {'refine differs':>15s}")
+    print(f"{'shape':8s} {'noise':>6s} {'pert':>11s} {'median':>9s} {'max':>9s} {'>bound':>7s} {'refine differs':>15s}"
+          f" {'move/size med':>13s} {'max':>9s}")
     groups = [(k, n) for k in args.shapes.split(",") for n in (float(x) for x in args.noises.split(","))]
-    for name in ("round", "jitter"):
+    for name in names:
         for k, n in groups + [("all", None)]:
             sel = [r for r in rows if (k == "all" or (r["shape"] == k and r["noise"] == n))]
             d = [r[name] for r in sel]
             diff = sum(not r[name + "_refined_same"] for r in sel)
             over = sum(x > args.bound for x in d)
+            gain = [r[name] / max(r[name + "_size"], 1e-300) for r in sel]
             summary[f"{name}/{k}/{n}"] = {"median": statistics.median(d), "max": max(d), "over": over, "n": len(d),
-                                          "refine_differs": diff}
-            print(f"{k:8s} {'' if n is None else n:>6} {name:>7s} {statistics.median(d):9.2e} {max(d):9.2e} "
-                  f"{over:4d}/{len(d):<3d} {diff:6d}")
+                                          "refine_differs": diff, "gain_median": statistics.median(gain),
+                                          "gain_max": max(gain)}
+            print(f"{k:8s} {'' if n is None else n:>6} {name:>11s} {statistics.median(d):9.2e} {max(d):9.2e} "
+                  f"{over:4d}/{len(d):<3d} {diff:6d}          {statistics.median(gain):13.3g} {max(gain):9.3g}")
     if args.json:
         Path(args.json).write_text(json.dumps({"rows": rows, "summary": summary}, indent=1))
     return summary

@@ -23,7 +23,7 @@ warning), complex / bool / masked (silently cast)
 numpy scalars as config values (refused)               test_config_numpy_scalars
 UTF-16 text, quoted CSV fields (refused), 1_0 (read    test_text_encodings_quotes_and_underscores
 as 10 on the slow path only)
-.npz / .gif given by name ("byte 16 is not UTF-8")     test_binary_file_of_another_suffix
+.npz / .bin given by name ("byte 16 is not UTF-8")     test_binary_file_of_another_suffix
 a 250-character input name (the whole run lost)        test_long_input_name
 an output folder that is a file (FileExistsError)      test_out_dir_is_a_file
 spike_rounds / snap_rounds unbounded (minutes)         test_every_numeric_key_is_bounded
@@ -308,11 +308,15 @@ def test_binary_file_of_another_suffix(tmp_path, capsys):
     before); a text file of any suffix is still read as text."""
     from torch_isc.io import PointFileError, read_points
     np.savez(tmp_path / "p.npz", points=_circle(10))
-    (tmp_path / "a.gif").write_bytes(b"GIF89a\x01\x00\x01\x00\x00\x00\x00;")
+    (tmp_path / "a.bin").write_bytes(b"GIF89a\x01\x00\x01\x00\x00\x00\x00;")
     (tmp_path / "pts.dat").write_text("1 2\n3 4\n5 7\n")
-    for name, what in (("p.npz", "a .npz archive"), ("a.gif", "a binary .gif file")):
+    for name, what in (("p.npz", "a .npz archive"), ("a.bin", "a binary .bin file")):
         with pytest.raises(PointFileError, match=rf"^{tmp_path / name}: {what}, neither a point file"):
             read_points(tmp_path / name)
+    # .gif and .webp are images now (tests/test_fuzz_third.py): read_points says so
+    (tmp_path / "a.gif").write_bytes(b"GIF89a\x01\x00\x01\x00\x00\x00\x00;")
+    with pytest.raises(PointFileError, match=r"a\.gif: an image \(\.gif\), not a point file"):
+        read_points(tmp_path / "a.gif")
     assert read_points(tmp_path / "pts.dat").shape == (3, 2)
 
 

@@ -8,7 +8,7 @@ per-level stats), ``.npz`` (the implicit curve, lossless), ``.svg`` (the curve) 
 
 (the time is the reconstruction's wall time; inputs reconstructed in one batch share it evenly).
 
-Image inputs (png, jpg, tif, bmp) are read as masks (``--mode mask``, default: boundary points
+Image inputs (png, jpg, tif, bmp, gif, webp) are read as masks (``--mode mask``, default: boundary points
 on the pixel cracks, vertex signs from the mask) or as grayscale images whose Canny edges are
 the points (``--mode edges``, topology estimated); their coordinates are pixels (x right, y
 down, pixel (0, 0) covering [0,1]x[0,1]), the settings are those of
@@ -85,12 +85,12 @@ def build_parser() -> argparse.ArgumentParser:
     rec = sub.add_parser(
         "reconstruct", help="reconstruct curves from point files or images",
         description="Reconstruct one curve set per input: a point file (text rows 'x y', 'x,y' or 'x;y', '#' comments, "
-                    "an optional header line; or a .npy array of shape (N, 2)), an image (png, jpg, tif, bmp: a "
+                    "an optional header line; or a .npy array of shape (N, 2)), an image (png, jpg, tif, bmp, gif, webp: a "
                     "mask, or a grayscale image with --mode edges), or a folder of such files. Image coordinates "
                     "are pixels: x right, y down, pixel (0, 0) covering [0,1]x[0,1].",
         epilog="exit status: 0 all done, 1 some inputs failed (or an internal error), 2 usage or configuration error")
     rec.add_argument("inputs", nargs="*", metavar="INPUT",
-                     help="point files (.xy/.txt/.csv text, or .npy), images (.png/.jpg/.tif/.bmp), or folders of them")
+                     help="point files (.xy/.txt/.csv text, or .npy), images (.png/.jpg/.tif/.bmp/.gif/.webp), or folders of them")
     rec.add_argument("--config", metavar="FILE", help="YAML file of ReconstructConfig keys (see configs/default.yaml)")
     rec.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                      help="override one config key, e.g. --set max_level=6 (repeatable; applied after --config)")

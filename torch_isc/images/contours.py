@@ -180,6 +180,10 @@ def _as_cv(poly: np.ndarray, method: str, epsilon: float, integer: bool, offset,
     q = np.roll(q, -s, 0)
     if offset is not None:
         q = q + np.asarray(offset, np.float64).reshape(1, 2)
+        lim = 2.0 ** 31 - 1 if integer else float(np.finfo(np.float32).max)
+        if not (np.abs(q) <= lim).all():        # 1e308 became inf in float32, wrapped in int32
+            raise ImageError(f"offset {tuple(float(v) for v in np.asarray(offset).ravel())}: contour coordinates "
+                             f"beyond what {'int32' if integer else 'float32'} holds")
     if integer:
         q = np.rint(q)             # the foreground pixel centres (integers already)
         keep = np.r_[True, (q[1:] != q[:-1]).any(1)]
@@ -199,7 +203,8 @@ def cv2_approx(q: np.ndarray, epsilon: float) -> np.ndarray:
     collinear runs are merged (as CHAIN_APPROX_SIMPLE does on pixel chains)."""
     from torch_isc._helpers import import_cv2
     cv2 = import_cv2()
-    out = cv2.approxPolyDP(q.reshape(-1, 1, 2), float(epsilon), True).reshape(-1, 2)
+    # OpenCV refuses epsilon >= 1e30; any epsilon beyond the contour's extent gives the same polygon
+    out = cv2.approxPolyDP(q.reshape(-1, 1, 2), min(float(epsilon), 1e29), True).reshape(-1, 2)
     return out if len(out) >= 1 else q
 
 
@@ -238,8 +243,15 @@ def find_contours_batch(masks, mode=3, method=1, offset=None, *, connectivity: i
     from torch_isc.images.arrays import binarize, image_list
     from torch_isc.images.grid import retr_mode, trace_masks
 
-    mode = retr_mode(mode)
-    method = _chain_method(method)
+    try:                                   # the library's own error type (a ValueError too)
+        mode = retr_mode(mode)
+        method = _chain_method(method)
+    except ValueError as e:
+        raise ImageError(str(e)) from None
+    if connectivity not in (4, 8) or isinstance(connectivity, bool):
+        raise ImageError(f"connectivity must be 8 or 4 (of the foreground), got {connectivity!r:.30}")
+    if not (isinstance(batch_pixels, (int, np.integer)) and not isinstance(batch_pixels, bool) and batch_pixels >= 0):
+        raise ImageError(f"batch_pixels must be an integer >= 0, got {batch_pixels!r:.30}")
     _check_contour_options(offset, min_area, epsilon, smooth, dtype)
     integer = np.issubdtype(np.dtype(dtype), np.integer)
     ts = [binarize(t, threshold) for t in image_list(masks, "mask")]

@@ -28,7 +28,7 @@ from torch_isc.images.arrays import ImageError
 __all__ = ["IMAGE_SUFFIXES", "DEFAULT_MAX_PIXELS", "ImageHeader", "image_header", "read_image", "decode_image"]
 
 #: File suffixes read as images (lower case).
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".gif", ".webp")
 #: The largest image read, in pixels (width x height), unless the caller sets another limit.
 DEFAULT_MAX_PIXELS = 100_000_000
 
@@ -138,8 +138,56 @@ def _bmp_header(b: bytes) -> Optional[ImageHeader]:
     return ImageHeader("bmp", abs(w), abs(h))
 
 
+def _gif_header(b: bytes) -> Optional[ImageHeader]:
+    """The logical screen's size and the number of frames (image descriptors; the walk stops at
+    the second: an animation is refused whatever its length)."""
+    w, h = struct.unpack("<HH", b[6:10])
+    pos = 13 + (3 << ((b[10] & 7) + 1) if b[10] & 0x80 else 0)      # the global colour table
+    frames = 0
+    while pos < len(b) and frames < 2:
+        tag = b[pos]
+        if tag == 0x3B:                               # trailer
+            break
+        if tag == 0x21:                               # extension: label, then data sub-blocks
+            pos += 2
+        elif tag == 0x2C:                             # image descriptor (+ local colour table, LZW size)
+            frames += 1
+            flags = b[pos + 9]
+            pos += 10 + (3 << ((flags & 7) + 1) if flags & 0x80 else 0) + 1
+        else:
+            return None
+        while pos < len(b) and b[pos]:                # sub-blocks up to the empty one
+            pos += 1 + b[pos]
+        pos += 1
+    return ImageHeader("gif", w, h, max(frames, 1))
+
+
+def _webp_header(b: bytes) -> Optional[ImageHeader]:
+    """A WebP's canvas size (``VP8 `` lossy, ``VP8L`` lossless, ``VP8X`` extended) and, for an
+    animation, its number of ``ANMF`` frames."""
+    kind = b[12:16]
+    if kind == b"VP8 " and b[23:26] == b"\x9d\x01\x2a":
+        w, h = struct.unpack("<HH", b[26:30])
+        return ImageHeader("webp", w & 0x3FFF, h & 0x3FFF)
+    if kind == b"VP8L" and b[20] == 0x2F:
+        v = struct.unpack("<I", b[21:25])[0]
+        return ImageHeader("webp", (v & 0x3FFF) + 1, ((v >> 14) & 0x3FFF) + 1)
+    if kind == b"VP8X":
+        w = int.from_bytes(b[24:27], "little") + 1
+        h = int.from_bytes(b[27:30], "little") + 1
+        frames, pos = 1, 12
+        if b[20] & 0x02:                              # the animation flag: count the frames
+            frames = 0
+            while pos + 8 <= len(b):
+                ln = struct.unpack("<I", b[pos + 4:pos + 8])[0]
+                frames += b[pos:pos + 4] == b"ANMF"
+                pos += 8 + ln + (ln & 1)
+        return ImageHeader("webp", w, h, max(frames, 1))
+    return None
+
+
 def image_header(data: bytes) -> Optional[ImageHeader]:
-    """The :class:`ImageHeader` of a PNG, JPEG, BMP or TIFF file's bytes, read without decoding;
+    """The :class:`ImageHeader` of a PNG, JPEG, BMP, TIFF, GIF or WebP file's bytes, read without decoding;
     None for other formats or a header that cannot be parsed.
 
     >>> import cv2
@@ -156,6 +204,10 @@ def image_header(data: bytes) -> Optional[ImageHeader]:
             return _bmp_header(b)
         if b[:2] in (b"II", b"MM"):
             return _tiff_header(bytes(data))          # page offsets may lie anywhere in the file
+        if b[:6] in (b"GIF87a", b"GIF89a") and len(b) >= 13:
+            return _gif_header(bytes(data))           # frames may follow a large first one
+        if b[:4] == b"RIFF" and b[8:12] == b"WEBP":
+            return _webp_header(bytes(data))
     except (struct.error, IndexError, KeyError):
         return None
     return None
@@ -200,6 +252,16 @@ def _native_stderr() -> Iterator[Dict[str, str]]:
                     box["text"] = tmp.read(1 << 16).decode("utf-8", "replace")
         finally:
             os.close(saved)
+
+
+def _decodes(cv2, fmt: str) -> bool:
+    """Whether this OpenCV build decodes ``fmt`` ("gif", "webp"): a 1x1 image of it."""
+    tiny = {"gif": b'GIF87a\x01\x00\x01\x00\x81\x00\x00\xff\xff\xff\x00\x00\x00\x00\x00\x00\x00\x00\x00,\x00\x00\x00\x00\x01\x00\x01\x00\x00\x08\x04\x00\x01\x04\x04\x00;',
+            "webp": b'RIFF\x1e\x00\x00\x00WEBPVP8L\x11\x00\x00\x00/\x00\x00\x00\x00\x07\xd0\xff\xfe\xf7\xbf\xff\x81\x88\xe8\x7f\x00\x00'}
+    try:
+        return cv2.imdecode(np.frombuffer(tiny[fmt], np.uint8), cv2.IMREAD_UNCHANGED) is not None
+    except cv2.error:
+        return False
 
 
 def _check_size(p: object, w: int, h: int, max_pixels: Optional[int]) -> None:
@@ -280,7 +342,8 @@ def decode_image(data: bytes, name: object = "image", max_pixels: Optional[int] 
     if head is not None:
         _check_size(p, head.width, head.height, max_pixels)
         if head.pages > 1:
-            kind, unit = ("animated PNG", "frames") if head.format == "png" else ("multi-page TIFF", "pages")
+            kind, unit = ((f"animated {head.format.upper().replace('WEBP', 'WebP')}", "frames")
+                          if head.format != "tiff" else ("multi-page TIFF", "pages"))
             raise ImageError(f"{p}: {kind} ({head.pages} {unit}): only single images are read "
                              f"(split the {unit} first)")
     img = None
@@ -296,6 +359,9 @@ def decode_image(data: bytes, name: object = "image", max_pixels: Optional[int] 
     finally:
         log.setLogLevel(level)
     if img is None or img.size == 0:
+        if head is not None and head.format in ("gif", "webp") and not _decodes(cv2, head.format):
+            raise ImageError(f"{p}: this OpenCV ({cv2.__version__}) cannot decode {head.format.upper()} images "
+                             f"(GIF needs OpenCV 4.11 or later); convert it to PNG")
         raise ImageError(f"{p}: not a readable image (unknown format, truncated or corrupt)")
     damage = [ln.strip() for ln in said["text"].splitlines() if ln.strip().startswith(_JPEG_DAMAGE)]
     if damage:

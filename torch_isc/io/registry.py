@@ -67,6 +67,8 @@ def read_points(path: PathLike) -> np.ndarray:
             raw.startswith(b"PK\x03\x04") or (b"\x00" in raw[:4096] and raw[:2] not in (b"\xff\xfe", b"\xfe\xff"))):
         # a binary file of another suffix (an .npz archive, a .gif): say what is read, not "byte 16 is not UTF-8"
         what = "a .npz archive" if raw.startswith(b"PK\x03\x04") else f"a binary {suffix or 'suffix-less'} file"
+        if suffix in IMAGE_SUFFIXES:
+            raise PointFileError(f"{p}: an image ({suffix}), not a point file: read it with read_image or the CLI")
         raise PointFileError(f"{p}: {what}, neither a point file (.xy/.txt/.csv text rows, a .npy array) nor an "
                              f"image read here ({'/'.join(IMAGE_SUFFIXES)})")
     pts, rows = (npy.decode_points if as_npy else points_text.decode_points)(p, raw)

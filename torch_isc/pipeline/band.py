@@ -35,6 +35,7 @@ from torch_isc.pipeline.evidence import triangle_moments
 from torch_isc.pipeline.knobs import check_section, knob
 from torch_isc.pipeline.refit import RefitProblem
 from torch_isc.pipeline.values import GeometryConfig, fit_geometry, vertex_data_distance, vertex_data_distance_near
+from torch_isc.pipeline import budget
 
 if TYPE_CHECKING:
     from torch_isc.pipeline.workset import WorkingSet
@@ -221,7 +222,7 @@ def _refit(ws: "WorkingSet", cfg: BandConfig, gcfg: GeometryConfig, slack: torch
         init = vertex_data_distance(m, ws.points, ws.face)
     # the loop's curve already has its spikes: flip first, then fit (each later round flips
     # what the refit left and fits again)
-    for r in range(max(cfg.spike_rounds, 1)):
+    for r in budget.rounds(max(cfg.spike_rounds, 1)):
         if cfg.spike_rounds > 0:
             values = _flip_spikes(ws, values, cfg)
         signs = torch.where(values < 0, -1.0, 1.0).to(values.dtype)
@@ -323,7 +324,7 @@ def snap_crossings(ws: "WorkingSet", values: torch.Tensor, cfg: BandConfig, bise
             mid = 0.5 * (verts[i] + verts[j])
             cand = mls_candidates(ws.points, ws.point_item, mid, vi[i])
             return i, j, cand, verts[j] - verts[i], width[vi[i]]
-        for _ in range(cfg.snap_rounds):
+        for _ in budget.rounds(cfg.snap_rounds):
             i, j, cand, ref, w = edge_data(vals)
             gi = mls_distance(verts[i], cand, ws.points, w, ref)
             gj = mls_distance(verts[j], cand, ws.points, w, ref)
@@ -374,7 +375,7 @@ def snap_crossings(ws: "WorkingSet", values: torch.Tensor, cfg: BandConfig, bise
         z = r / diag
         pdir = z.clone()
         rz = segment_sum(r * z, vi, B)
-        for _ in range(cg_iterations):
+        for _ in budget.rounds(cg_iterations):
             ap = op(pdir)
             pap = segment_sum(pdir * ap, vi, B)
             alpha = torch.where(pap > 0, rz / pap.clamp_min(tiny), torch.zeros_like(rz))

@@ -58,7 +58,8 @@ class LimitsConfig:
     max_level: int = knob(10, gt=0)
     #: per item, every mesh included the initial one (checked when the config is built)
     max_triangles: int = knob(200_000, gt=0)
-    #: wall-clock seconds per batch call; items still refining then stop with limit "max_seconds" (0: none)
+    #: wall-clock seconds per batch call (0: none); the inner loops stop at it and the items still
+    #: working end their level with limit "max_seconds" (pipeline/budget.py)
     max_seconds: float = knob(0.0, ge=0)
 
     def __post_init__(self):
@@ -104,6 +105,10 @@ class ReconstructConfig:
             for k in fields(sec):
                 if k.name in UPPER_BOUNDS:
                     check_bounds(k.name, getattr(sec, k.name), le=UPPER_BOUNDS[k.name])
+        if self.geometry.compile and self.limits.max_seconds > 0:
+            # torch.compile's first compilation cannot be interrupted (a minute or more on a CPU)
+            raise ConfigError("config key 'compile': compiling the objective cannot be stopped at a deadline "
+                              "(it can take minutes), so it cannot be combined with max_seconds > 0")
         n0 = initial_triangles(self.mesh)
         if n0 > self.limits.max_triangles:
             raise ConfigError(
@@ -147,7 +152,7 @@ UPPER_BOUNDS: Dict[str, float] = {
     "empty_weight": 1e6, "anneal_sweeps": 1_000_000, "anneal_t_start": 1e6, "anneal_t_end": 1e6,
     "anneal_warm_t_start": 1e6, "anneal_replicas": 1_024, "anneal_greedy_sweeps": 1_000_000,
     "min_island_vertices": 2 ** 31 - 1, "unsupported_weight": 1e6, "unsupported_noise_widths": 1e6, "cluster_rounds": 1_000,
-    "open_noise_widths": 1e6, "open_tolerances": 1e6, "open_rounds": 100_000, "enclose_noise_widths": 1e6, "enclose_rings": 16, "enclose_min_points": 2 ** 31 - 1, "blob_min_points": 2 ** 31 - 1, "blob_max_points": 2 ** 31 - 1, "blob_neighbours": 64,
+    "open_noise_widths": 1e6, "open_tolerances": 1e6, "open_rounds": 100_000, "enclose_noise_widths": 1e6, "enclose_rings": 16, "enclose_min_points": 2 ** 31 - 1, "blob_min_points": 2 ** 31 - 1, "blob_max_points": 1_000, "blob_neighbours": 64,
     "winding_weight": 1e6, "winding_neighbours": 64, "winding_sync_iterations": 100_000, "winding_smoothing": 1e6, "notch_rounds": 1_000, "notch_min_points": 2 ** 31 - 1,
     "noise_factor": 1e6, "min_points_split": 2 ** 31 - 1, "thin_feature_factor": 1e6, "min_split_size": 1e6,
     "transverse_split_size": 1e6, "far_cluster_points": 1_000, "far_cluster_factor": 1e6, "far_cluster_ratio": 1e6,

@@ -26,6 +26,7 @@ import torch
 
 from torch_isc.core.segments import sym2_eigvals, sym2_eigvec
 from torch_isc.pipeline.noise import KNN_BUDGET, NoiseConfig, approximate_knn, nearest_candidates
+from torch_isc.pipeline import budget
 
 __all__ = ["denoise_points"]
 
@@ -127,7 +128,7 @@ def denoise_points(points: torch.Tensor, point_item: torch.Tensor, noise: torch.
         t = _tangents(x, nbr, valid, R, frames[:, :2].to(dt), block)
         ridge = torch.tensor([0.0, 1e-3, 1e-3], dtype=dt, device=dev)
         sel = torch.tensor([[0, 1, 2], [1, 2, 3], [2, 3, 4]], device=dev)   # the Hankel matrix of the moments
-        for _ in range(iters):
+        for _ in budget.rounds(iters):
             xn = torch.empty_like(x)
             tn = torch.empty_like(t)
             for b0 in range(0, P, block):

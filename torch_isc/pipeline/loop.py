@@ -28,6 +28,7 @@ from torch_isc.core.mesh import MeshBatch, hexagon_mesh, square_mesh
 from torch_isc.core.points import PointBatch, PointSetError, PointsLike, check_extent, prepare_points
 from torch_isc.core.segments import segment_count, segment_sum
 from torch_isc.pipeline.config import ConfigError, MeshConfig, ReconstructConfig, from_dict, initial_triangles
+from torch_isc.pipeline import budget
 from torch_isc.pipeline.band import band_stage
 from torch_isc.pipeline.blobs import snap_blobs, start_blobs
 from torch_isc.pipeline.denoise import denoise_points
@@ -237,12 +238,20 @@ def _start(batch: PointBatch, cfg: ReconstructConfig, rec: StatsRecorder, source
 
 def run_loop(batch: PointBatch, cfg: ReconstructConfig, source: SignSource,
              names: Optional[Sequence[Optional[str]]] = None) -> List[ReconstructionResult]:
-    """The loop of Fig. 3 over a prepared batch, signs from ``source``."""
+    """The loop of Fig. 3 over a prepared batch, signs from ``source``. ``limits.max_seconds``
+    holds within a level too: the inner loops stop at the deadline (:mod:`budget`)."""
+    t_start = time.perf_counter()
+    with budget.deadline(cfg.limits.max_seconds, t_start):
+        return _run_loop(batch, cfg, source, names, t_start)
+
+
+def _run_loop(batch: PointBatch, cfg: ReconstructConfig, source: SignSource,
+              names: Optional[Sequence[Optional[str]]], t_start: float) -> List[ReconstructionResult]:
     B = batch.num_items
     names = list(names) if names is not None else [None] * B
     rec = StatsRecorder(batch.points.device, B)
     results: List[Optional[ReconstructionResult]] = [None] * B
-    t_start = time.perf_counter()
+    cuts = 0                                   # inner loops the deadline has cut short so far
     ws = _start(batch, cfg, rec, isinstance(source, IsingSigns))
     finished: list = []                        # per finishing level: (working set, slack, marked, over)
     for level in range(cfg.limits.max_level + 1):
@@ -260,7 +269,12 @@ def run_loop(batch: PointBatch, cfg: ReconstructConfig, source: SignSource,
         ws = ws.replace(marked=marked)
         done, n_marked, over = _decide(ws, verdict, cfg, level)
         timed: set = set()
-        if cfg.limits.max_seconds > 0 and time.perf_counter() - t_start > cfg.limits.max_seconds:
+        if budget.cuts() > cuts:
+            # a loop of this level was cut short: every item of the level is not what it would be
+            cuts = budget.cuts()
+            timed = set(ws.items.tolist())
+            done = torch.ones_like(done)
+        elif cfg.limits.max_seconds > 0 and time.perf_counter() - t_start > cfg.limits.max_seconds:
             timed = set(ws.items[~done].tolist())          # stopped by the clock alone
             done = torch.ones_like(done)
         rec.tick("test")
@@ -278,10 +292,11 @@ def run_loop(batch: PointBatch, cfg: ReconstructConfig, source: SignSource,
             sub = band_stage(WorkingSet.cat([f[0] for f in finished]), cfg.band, cfg.geometry,
                              torch.cat([f[1] for f in finished]))
             rec.tick("geometry")
+            band_cut = budget.cuts() > cuts              # the deadline cut the band stage short
             local = torch.arange(sub.num_items, device=sub.device)
             n_mk, ovr = torch.cat([f[2] for f in finished]), torch.cat([f[3] for f in finished])
             for b, res in finish_items(sub, local, n_mk, ovr, batch, cfg, rec.per_item, names):
-                if b in timed:
+                if b in timed or band_cut:
                     res.converged, res.limit = False, "max_seconds"
                 results[b] = res
             rec.close_level()

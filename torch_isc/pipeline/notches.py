@@ -25,6 +25,7 @@ import torch
 
 from torch_isc.core.mesh import MeshBatch
 from torch_isc.core.segments import segment_sum
+from torch_isc.pipeline import budget
 
 if TYPE_CHECKING:
     from torch_isc.pipeline.workset import WorkingSet
@@ -128,7 +129,7 @@ def notch_stage(ws: "WorkingSet", signs: torch.Tensor, pinned: torch.Tensor, rou
         # a vertex inside a tightly curved stretch also sees points on both sides) are left alone
         noisy = ((ws.noise > ws.tol) & (ws.noise >= MIN_NOISE))[ws.mesh.vert_item]
         pinned = pinned | ~between | ~noisy
-        for _ in range(int(rounds)):
+        for _ in budget.rounds(rounds):
             flip = tangent_notches(ws.mesh, signs, direction, coh, n, pinned, min_coherence, cone_deg, min_points)
             signs = torch.where(flip, -signs, signs)
         return signs

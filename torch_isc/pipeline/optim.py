@@ -27,6 +27,7 @@ from typing import Callable, Optional, Tuple
 import torch
 
 from torch_isc.core.segments import segment_sum
+from torch_isc.pipeline import budget
 
 __all__ = ["batched_lbfgs", "true_indices"]
 
@@ -237,7 +238,7 @@ def batched_lbfgs(fun: Callable[..., torch.Tensor], x0: torch.Tensor, seg: torch
     # the history fills: lockstep rounds, a host read per block of trials; each block after the
     # first tries twice as many steps (a few segments backtrack far: fewer blocks, fewer reads)
     r = 0
-    while r < min(m, iterations):
+    while r < min(m, iterations) and not budget.stop(r):
         d, gd = descent(XG[1], H, Q, gamma, seg, B)
         XGn, f_new = XG, f
         moved = torch.zeros_like(active)
@@ -278,7 +279,7 @@ def batched_lbfgs(fun: Callable[..., torch.Tensor], x0: torch.Tensor, seg: torch
     x_out, f_out, it_out = XG[0], f, iters                  # the whole batch, once compacted
     ent = item = None                                        # the working set's entries and segments
     Bw = B
-    for r in range((iterations - m) * -(-mb // Kc)):
+    for r in budget.rounds((iterations - m) * -(-mb // Kc)):
         if r % check_every == 0:
             alive = left > 0
             if restrict is None:

@@ -64,6 +64,7 @@ import torch
 from torch_isc.core.curve import ImplicitCurve
 from torch_isc.core.locate import barycentric, locate_grid
 from torch_isc.pipeline.evidence import triangle_moments
+from torch_isc.pipeline import budget
 
 __all__ = ["refit", "attach_point_gradients", "RefitProblem"]
 
@@ -512,7 +513,7 @@ class RefitProblem:
         E0 = E.abs().clone() if state is None else state[2].clone()
         self.iterations = 0
         item_iters = torch.zeros(B, dtype=torch.long, device=dev)
-        for it in range(max_iter):
+        for it in budget.rounds(max_iter):
             done = done | (gn <= 256 * eps * E.abs())
             n_left = int((~done).sum())                        # the iteration's one host read
             if n_left == 0:

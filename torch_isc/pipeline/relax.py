@@ -20,6 +20,7 @@ from torch_isc.core.segments import segment_any, segment_max, segment_sum
 from torch_isc.core.locate import barycentric, locate_walk
 from torch_isc.core.mesh import MeshBatch
 from torch_isc.pipeline.knobs import check_section, knob
+from torch_isc.pipeline import budget
 
 if TYPE_CHECKING:
     from torch_isc.pipeline.workset import WorkingSet
@@ -133,7 +134,7 @@ def relax_mesh(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor, 
         vrow = torch.arange(V, device=dev)
         active = torch.ones(B, dtype=torch.bool, device=dev)
     rounds: list = []       # (positions, energy with its graph, accepted) of the last step's trials
-    for _ in range(int(iterations)):
+    for _ in budget.rounds(iterations):
         if not rounds:
             vv = v.clone().requires_grad_(True)
             with torch.enable_grad():

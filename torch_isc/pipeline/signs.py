@@ -20,6 +20,7 @@ from torch_isc.core.mesh import MeshBatch
 from torch_isc.core.points import PointSetError
 from torch_isc.core.segments import edge_components, first_index, hash_keys, hash_to_unit, mix32, segment_count, segment_max, segment_min
 from torch_isc.pipeline.knobs import check_section, knob
+from torch_isc.pipeline import budget
 
 if TYPE_CHECKING:
     from torch_isc.pipeline.evidence import Evidence, EvidenceConfig
@@ -433,11 +434,22 @@ def _temperatures(sweeps: int, t_start: float, t_end: float, warm_t_start: Optio
                   dtype: torch.dtype, device: torch.device) -> torch.Tensor:
     """``(sweeps, R)`` the geometric schedule of each replica (the same at every level: cached;
     callers must not write to it)."""
+    return _temperature_rows(sweeps, t_start, t_end, warm_t_start, R, dtype, device, 0, int(sweeps))
+
+
+#: schedules up to this many sweeps are made whole and cached; longer ones a block at a time
+#: inside the sweeps (a million rows took 21 s before the first sweep, past any max_seconds)
+_CACHED_SWEEPS = 4096
+
+
+def _temperature_rows(sweeps: int, t_start: float, t_end: float, warm_t_start: Optional[float], R: int,
+                      dtype: torch.dtype, device: torch.device, k0: int, k1: int) -> torch.Tensor:
+    """Rows ``k0:k1`` of :func:`_temperatures` (the same bits)."""
     t0 = torch.full((R,), float(t_start), dtype=dtype, device=device)
     if warm_t_start is not None:
         t0[0] = min(float(warm_t_start), float(t_start))
     ratio = (t_end / t0) ** (1.0 / max(int(sweeps) - 1, 1))
-    return torch.stack([t0 * ratio ** k for k in range(int(sweeps))])
+    return torch.stack([t0 * ratio ** k for k in range(int(k0), int(k1))])
 
 
 def ising_energy(mesh: MeshBatch, H: torch.Tensor, signs: torch.Tensor, field: Optional[torch.Tensor] = None) -> torch.Tensor:
@@ -506,20 +518,22 @@ def anneal(mesh: MeshBatch, H: torch.Tensor, init: torch.Tensor, fixed: torch.Te
                        lc[None, :].expand(R, -1), rep.expand(-1, F))
         # hash_keys(h0, key) = mix32(h0 * 0x9E3779B1 + key + 0x632BE5AB): its constant part once
         h0 = h0 * 0x9E3779B1 + 0x632BE5AB
-        temps = _temperatures(sweeps, float(cfg.anneal_t_start), float(cfg.anneal_t_end), warm_t_start, R, dt, dev)
+        sched = (sweeps, float(cfg.anneal_t_start), float(cfg.anneal_t_end), warm_t_start, R, dt, dev)
+        temps = _temperatures(*sched) if sweeps <= _CACHED_SWEEPS else None
         # the key of sweep k is h0 + (64 k + colour): the colour folded in once (int64 sums wrap,
         # so the order of the additions does not change a bit), the sweep offsets made once
         hc = h0 + cc[None, :]
         koff = torch.arange(sweeps, device=dev)[:, None, None] * 64
         # (T log u) / 2 as (T/2) log u: halving is exact, so the product's bits are the same
-        thalf = temps * 0.5
+        thalf = None if temps is None else temps * 0.5
         # the random numbers of a block of sweeps are hashed in one pass of ops; the block bounds
         # the memory (_RNG_NUMBERS)
         block = _rng_block(sweeps, F * R, dev)
         half = None
-        for k in range(sweeps + greedy_sweeps):
+        for k in budget.rounds(sweeps + greedy_sweeps):
             if k < sweeps and k % block == 0:
-                half = _metropolis_thresholds(hc, koff[k:k + block], thalf[k:k + block], dt)
+                th = thalf[k:k + block] if thalf is not None else _temperature_rows(*sched, k, k + block) * 0.5
+                half = _metropolis_thresholds(hc, koff[k:k + block], th, dt)
             hk = half[k % block] if k < sweeps else None
             for cl in classes:
                 cl.sweep(hk[:, cl.a:cl.a + cl.width] if k < sweeps else 0.0,

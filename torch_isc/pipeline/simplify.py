@@ -42,6 +42,7 @@ import torch
 
 from torch_isc.core.mesh import MeshBatch
 from torch_isc.core.segments import edge_components
+from torch_isc.pipeline import budget
 
 if TYPE_CHECKING:
     from torch_isc.pipeline.signs import TopologyConfig
@@ -75,7 +76,7 @@ def descend_clusters(mesh: MeshBatch, H: torch.Tensor, signs: torch.Tensor, pinn
         V = signs.shape[0]
         s = signs.clone()
         tiny = 1e-9 * H.abs().amax().clamp_min(torch.finfo(H.dtype).tiny) if H.numel() else 0.0
-        for _ in range(int(rounds)):
+        for _ in budget.rounds(rounds):
             for use_far in (False, True):
                 for sgn in (-1.0, 1.0):
                     mine = s == sgn
@@ -109,7 +110,7 @@ def zero_set_distance(mesh: MeshBatch, signs: torch.Tensor, cap: torch.Tensor, r
         d = cap.clone()
         d = d.scatter_reduce(0, a, half, "amin").scatter_reduce(0, b, half, "amin")
         w = torch.where(same, ell, torch.full_like(ell, float("inf")))
-        for _ in range(int(rounds)):
+        for _ in budget.rounds(rounds):
             d = d.scatter_reduce(0, a, d[b] + w, "amin").scatter_reduce(0, b, d[a] + w, "amin")
         return torch.minimum(d, cap)
 
@@ -128,7 +129,7 @@ def ball_cover(mesh: MeshBatch, signs: torch.Tensor, depth: torch.Tensor, radius
         ell = (v[a] - v[b]).norm(dim=1).to(depth.dtype)
         w = torch.where(signs[a] == signs[b], ell, torch.full_like(ell, float("inf")))
         q = torch.where(depth >= radius, depth, torch.full_like(depth, -float("inf")))
-        for _ in range(int(rounds)):
+        for _ in budget.rounds(rounds):
             q = q.scatter_reduce(0, a, q[b] - w, "amax").scatter_reduce(0, b, q[a] - w, "amax")
         return q >= 0
 

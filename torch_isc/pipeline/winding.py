@@ -34,6 +34,7 @@ from torch_isc.pipeline.noise import approximate_knn
 
 from torch_isc.core.segments import (edge_components, expand_in_chunks, first_index, hash_uniform, segment_count,
                                      segment_median, sym2_eigvals, sym2_eigvec)
+from torch_isc.pipeline import budget
 
 __all__ = ["WindingPrior", "knn", "point_normals", "orient_normals", "winding_prior", "winding_at", "winding_on_grid",
            "winding_field"]
@@ -173,7 +174,7 @@ def orient_normals(points: torch.Tensor, item: torch.Tensor, num_items: int, noi
     same = piece[a_] == piece[b_]
     c = torch.where(same, kap * dot, torch.zeros_like(kap))
     deg = torch.zeros(P, dtype=dt, device=dev).index_add_(0, a_, c.abs()).index_add_(0, b_, c.abs()).clamp_min(1e-30)
-    for _ in range(int(sync_iterations)):
+    for _ in budget.rounds(sync_iterations):
         y = torch.zeros_like(x).index_add_(0, a_, c * x[b_]).index_add_(0, b_, c * x[a_])
         x = x + y / deg
         x = x / segment_max_abs(x, piece, P)[piece]

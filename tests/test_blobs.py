@@ -50,6 +50,8 @@ def blobs_by_brute_force(x, k, lo, hi, noise, gap_widths):
             rms2 = (np.linalg.norm(x[m] - c, axis=1) ** 2).mean()
             r_eff = min(rad, np.sqrt(max(rms2 - 2 * noise ** 2, 0.0)))
             need = max(bl.GAP_RADII * r_eff - 2 * bl.GAP_NOISE * noise, gap_widths * noise)
+            if r_eff < bl.MIN_RADIUS * noise:          # no ring the noise would not explain
+                continue
         # one-sided: unit directions from the centroid to each point's nearest other point
         dirs = []
         for i in m:
@@ -212,6 +214,14 @@ def test_a_ring_beside_a_line_is_a_blob_only_under_noise():
     noisy = bl.find_blobs(torch.as_tensor(x), item, 3, 6, 16, torch.tensor([sig], dtype=torch.float64), 3.0)
     assert (noisy[:8] == noisy[0]).all() and int(noisy[0]) >= 0 and (noisy[8:] == -1).all()
     assert noisy.tolist() == blobs_by_brute_force(x, 3, 6, 16, sig, 3.0)
+    # the line 2.0 away: a ring of radius under MIN_RADIUS noise widths once the noise's part
+    # is taken off is no blob: noise 0.45 leaves sqrt(1 - 2 * 0.45²) = 0.77 < 0.9; noise 0.3
+    # leaves 0.91 >= 0.6 (and 3 noise widths stay below the gap: the ring stays apart)
+    far = np.concatenate([ring, line + [0.8, 0.0]]) / 7
+    for sig, want in ((0.45, False), (0.3, True)):
+        got = bl.find_blobs(torch.as_tensor(far), item, 3, 6, 16, torch.tensor([sig / 7], dtype=torch.float64), 3.0)
+        assert bool((got[:8] >= 0).all()) == want and (got[8:] == -1).all()
+        assert got.tolist() == blobs_by_brute_force(far, 3, 6, 16, sig / 7, 3.0)
     # the point's third neighbour joining as before (any of the k nearest): one component
     D = np.sqrt(((x[:, None] - x[None]) ** 2).sum(-1))
     np.fill_diagonal(D, np.inf)

@@ -47,6 +47,10 @@ ROUNDNESS = 0.2
 ONE_SIDED = 0.5
 #: noise widths the noise of one side takes off the gap between two noisy bands
 GAP_NOISE = 2.0
+#: under noise, a blob's radius less the noise's part is at least this many noise widths
+MIN_RADIUS = 2.0
+#: a neighbour beyond the nearest joins when the point is among its MUTUAL·k nearest
+MUTUAL = 2
 #: hops of neighbour descent on the Morton neighbours (denoise.refine_knn)
 REFINE_HOPS = 4
 #: the Morton-order window of the neighbour search (each side, two orders)
@@ -89,7 +93,7 @@ def find_blobs(points: torch.Tensor, point_item: torch.Tensor, k: int, min_point
         # another curve can be on that curve (second neighbours on a ring of 8 points are 1.4
         # radii apart), while that curve's points have their 2k nearest along it. The nearest
         # always joins (an outlier joins the curve it lies by)
-        k2 = min(2 * k, nbr.shape[1])
+        k2 = min(MUTUAL * k, nbr.shape[1]) if MUTUAL > 0 else nbr.shape[1]
         mine = torch.arange(P, device=dev)[:, None, None]
         back = ((nbr[nbr[:, :k]][:, :, :k2] == mine) & fin[nbr[:, :k]][:, :, :k2]).any(2)
         back[:, 0] = True
@@ -128,8 +132,11 @@ def find_blobs(points: torch.Tensor, point_item: torch.Tensor, k: int, min_point
             rms2 = torch.zeros(P, dtype=dt, device=dev).index_add_(0, lab, (d * d).sum(1) * w) / cnt
             # and the gap between two noisy bands is their nearest pair: the noise of each side
             # takes up to about GAP_NOISE noise widths off it
-            need = GAP_RADII * torch.minimum(rad, (rms2 - 2 * sg ** 2).clamp_min(0).sqrt())
-            need = torch.maximum(need[lab] - 2 * GAP_NOISE * sg, gap_noise_widths * sg)
+            r_eff = torch.minimum(rad, (rms2 - 2 * sg ** 2).clamp_min(0).sqrt())
+            need = torch.maximum((GAP_RADII * r_eff)[lab] - 2 * GAP_NOISE * sg, gap_noise_widths * sg)
+            # a ring whose radius the noise leaves is below MIN_RADIUS noise widths cannot be told
+            # from a clump of a noisy band cut off by the graph (its loop would fit the noise)
+            round_ = round_ & (r_eff >= MIN_RADIUS * sg)
         else:
             need = need[lab]
         # one-sided: a piece of a curve has the rest of the curve on both sides of it, a small

@@ -38,6 +38,9 @@ ROUNDS = 3
 #: a neighbourhood whose spread across its fit is this many times the item's median spread
 #: holds two strands (one wall: the noise's variance; two strands g apart: that plus about g²/4)
 SPLIT_SPREAD = 2.0
+#: the median spread counts at least this fraction of the noise's variance (the fit's own
+#: residual spread over one wall is about half of it; data with no spread flag nothing)
+SPREAD_FLOOR = 0.1
 #: offsets beyond this many bands from the fit are another curve, not this one's spread
 SPREAD_CLIP = 3.0
 
@@ -201,7 +204,7 @@ def denoise_points(points: torch.Tensor, point_item: torch.Tensor, noise: torch.
                 # weight across narrows to denoise_split_band so each point keeps to its own
                 # strand; elsewhere the wide band averages the noise
                 med = segment_median(var, point_item, noise.shape[0])[point_item]
-                two = var > SPLIT_SPREAD * torch.maximum(med, sigma * sigma)
+                two = var > SPLIT_SPREAD * torch.maximum(med, SPREAD_FLOOR * sigma * sigma)
                 bands = torch.where(two, cfg.denoise_split_band * sigma, sband).clamp_min(torch.finfo(dt).tiny)
                 rows = two.nonzero().squeeze(1)                                 # one host read per solve
                 for b0 in range(0, rows.shape[0], block):

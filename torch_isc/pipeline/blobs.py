@@ -69,7 +69,13 @@ def find_blobs(points: torch.Tensor, point_item: torch.Tensor, k: int, min_point
     unit directions from its centroid to its points' nearest outside points is at least
     :data:`ONE_SIDED` long: a piece of a curve has the curve's rest on both sides). With ``noise (B,)`` the graph also joins every two points of an item less
     than ``gap_noise_widths`` noise widths apart (a noisy curve's k-nearest-neighbour graph
-    falls apart into small groups along its band), so a blob is that far from the rest too."""
+    falls apart into small groups along its band), so a blob is that far from the rest too.
+
+    Beyond its nearest, a point's neighbour joins only when the point is among that neighbour's
+    2k nearest too (a satellite beside a curve is not tied to it by its third neighbour). Under
+    noise the radius is taken less the noise's part (``sqrt(rms² − 2σ²)``), the gap may be
+    ``2 GAP_NOISE σ`` short of ``GAP_RADII`` radii (the noise of its two sides), and a ring whose
+    radius less the noise is under ``MIN_RADIUS σ`` is none (a clump of a noisy band)."""
     with torch.no_grad():
         from torch_isc.pipeline.denoise import refine_knn
         from torch_isc.pipeline.noise import approximate_knn

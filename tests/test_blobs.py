@@ -20,9 +20,12 @@ def blobs_by_brute_force(x, k, lo, hi, noise, gap_widths):
     D = np.sqrt(((x[:, None, :] - x[None, :, :]) ** 2).sum(-1))
     np.fill_diagonal(D, np.inf)
     pairs = set()
+    order = np.argsort(D, axis=1)
     for i in range(P):
-        for j in np.argsort(D[i])[:k]:
-            pairs.add((i, int(j)))
+        for r, j in enumerate(order[i, :k]):
+            # the nearest always; a farther one only when i is among j's 2k nearest
+            if r == 0 or i in order[j, :2 * k]:
+                pairs.add((i, int(j)))
         for j in range(P):
             if noise is not None and D[i, j] <= gap_widths * noise:
                 pairs.add((i, j))
@@ -39,7 +42,16 @@ def blobs_by_brute_force(x, k, lo, hi, noise, gap_widths):
         ev = np.linalg.eigvalsh(cov)
         others = [i for i in range(P) if lab[i] != root]
         gap = D[np.ix_(m, others)].min() if others else np.inf
-        need = max(bl.GAP_RADII * rad, gap_widths * noise if noise is not None else 0.0)
+        if noise is None:
+            need = bl.GAP_RADII * rad
+        else:
+            # the radius less the noise's part (mean squared distance r² + 2σ²), the gap less
+            # the noise of its two sides
+            rms2 = (np.linalg.norm(x[m] - c, axis=1) ** 2).mean()
+            r_eff = min(rad, np.sqrt(max(rms2 - 2 * noise ** 2, 0.0)))
+            need = max(bl.GAP_RADII * r_eff - 2 * bl.GAP_NOISE * noise, gap_widths * noise)
+            if r_eff < bl.MIN_RADIUS * noise:          # no ring the noise would not explain
+                continue
         # one-sided: unit directions from the centroid to each point's nearest other point
         dirs = []
         for i in m:
@@ -182,3 +194,35 @@ def test_an_item_without_blobs_does_not_depend_on_a_blob_item_in_its_batch():
     both = torch_isc.reconstruct_batch([torch.as_tensor(x), circle], cfg)
     assert torch.equal(alone.curve.values, both[1].curve.values)
     assert torch.equal(alone.curve.mesh.verts, both[1].curve.mesh.verts)
+
+
+def test_a_ring_beside_a_line_is_a_blob_only_under_noise():
+    """An exact octagon of radius 1 and a dense line 1.2 from its nearest vertex. That vertex's
+    third nearest neighbour is on the line (1.2 < 2 sin(pi/4) = 1.414) but the line's points
+    have their 6 nearest along the line: the ring is a component of its own. Its gap 1.2 is
+    below 1.5 radii, so noise-free it is no blob; under noise 0.1 the radius the noise leaves is
+    sqrt(1 - 2 * 0.01) = 0.99 and the gap needed 1.5 * 0.99 - 4 * 0.1 = 1.08 < 1.2: a blob."""
+    a = np.arange(8) * np.pi / 4
+    ring = np.stack([np.cos(a), np.sin(a)], 1)
+    y = np.arange(-60, 61) * 0.05
+    line = np.stack([np.full_like(y, 2.2), y], 1)
+    x = np.concatenate([ring, line]) / 7          # the loop's points are normalized (unit diagonal)
+    item = torch.zeros(len(x), dtype=torch.long)
+    quiet = bl.find_blobs(torch.as_tensor(x), item, 3, 6, 16)
+    assert (quiet == -1).all()
+    sig = 0.1 / 7
+    noisy = bl.find_blobs(torch.as_tensor(x), item, 3, 6, 16, torch.tensor([sig], dtype=torch.float64), 3.0)
+    assert (noisy[:8] == noisy[0]).all() and int(noisy[0]) >= 0 and (noisy[8:] == -1).all()
+    assert noisy.tolist() == blobs_by_brute_force(x, 3, 6, 16, sig, 3.0)
+    # the line 2.0 away: a ring of radius under MIN_RADIUS noise widths once the noise's part
+    # is taken off is no blob: noise 0.45 leaves sqrt(1 - 2 * 0.45²) = 0.77 < 0.9; noise 0.3
+    # leaves 0.91 >= 0.6 (and 3 noise widths stay below the gap: the ring stays apart)
+    far = np.concatenate([ring, line + [0.8, 0.0]]) / 7
+    for sig, want in ((0.45, False), (0.3, True)):
+        got = bl.find_blobs(torch.as_tensor(far), item, 3, 6, 16, torch.tensor([sig / 7], dtype=torch.float64), 3.0)
+        assert bool((got[:8] >= 0).all()) == want and (got[8:] == -1).all()
+        assert got.tolist() == blobs_by_brute_force(far, 3, 6, 16, sig / 7, 3.0)
+    # the point's third neighbour joining as before (any of the k nearest): one component
+    D = np.sqrt(((x[:, None] - x[None]) ** 2).sum(-1))
+    np.fill_diagonal(D, np.inf)
+    assert np.argsort(D[0])[2] >= 8

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from torch_isc.pipeline.config import ReconstructConfig
-from torch_isc.pipeline.denoise import MIN_NEIGHBOURS, MIN_WEIGHT, ROUNDS, denoise_points
+from torch_isc.pipeline.denoise import MIN_NEIGHBOURS, MIN_WEIGHT, ROUNDS, SPLIT_SPREAD, SPREAD_CLIP, SPREAD_FLOOR, denoise_points
 from torch_isc.pipeline.noise import NoiseConfig, noise_and_frames
 
 CFG = NoiseConfig(denoise_iterations=3, denoise_radius=8.0, denoise_band=1.5)
@@ -94,25 +94,40 @@ def _reference(pts, sigma, cfg):
         ev, V = np.linalg.eigh(C)
         t[i] = V[:, 1]
     x = x0.copy()
-    for _ in range(cfg.denoise_iterations):
+    band = np.full(P, cfg.denoise_band * sigma)
+
+    def fit_point(i, x, t, b):
+        n = np.array([-t[i, 1], t[i, 0]])
+        q = np.vstack([np.zeros(2), x[nbr[i]] - x[i]])
+        u, s = q @ t[i] / R[i], q @ n
+        wsp = np.clip(1 - u ** 2 - (s / R[i]) ** 2, 0, None) ** 2
+        B = np.stack([np.ones_like(u), u, u * u], 1)
+        fit = np.zeros_like(s)
+        for _ in range(ROUNDS):
+            w = wsp * np.exp(-0.5 * ((s - fit) / b) ** 2)
+            A = B.T @ (w[:, None] * B) + np.diag([0, 1e-3, 1e-3]) * wsp.sum()
+            c = np.linalg.solve(A, B.T @ (w * s))
+            fit = B @ c
+        r = s - fit
+        near = np.abs(r) <= SPREAD_CLIP * b
+        var = (wsp[near] * r[near] ** 2).sum() / wsp[near].sum()
+        if w.sum() < MIN_WEIGHT:
+            return x[i], t[i], 0.0
+        mv = np.clip(c[0], -cfg.denoise_max_move * sigma, cfg.denoise_max_move * sigma)
+        tt = t[i] + c[1] / R[i] * n
+        return x[i] + mv * n, tt / np.linalg.norm(tt), var
+
+    for it in range(cfg.denoise_iterations):
         xn, tn = x.copy(), t.copy()
+        var = np.zeros(P)
         for i in range(P):
-            n = np.array([-t[i, 1], t[i, 0]])
-            q = np.vstack([np.zeros(2), x[nbr[i]] - x[i]])
-            u, s = q @ t[i] / R[i], q @ n
-            wsp = np.clip(1 - u ** 2 - (s / R[i]) ** 2, 0, None) ** 2
-            B = np.stack([np.ones_like(u), u, u * u], 1)
-            fit = np.zeros_like(s)
-            for _ in range(ROUNDS):
-                w = wsp * np.exp(-0.5 * ((s - fit) / (cfg.denoise_band * sigma)) ** 2)
-                A = B.T @ (w[:, None] * B) + np.diag([0, 1e-3, 1e-3]) * wsp.sum()
-                c = np.linalg.solve(A, B.T @ (w * s))
-                fit = B @ c
-            if w.sum() >= MIN_WEIGHT:
-                mv = np.clip(c[0], -cfg.denoise_max_move * sigma, cfg.denoise_max_move * sigma)
-                xn[i] = x[i] + mv * n
-                tt = t[i] + c[1] / R[i] * n
-                tn[i] = tt / np.linalg.norm(tt)
+            xn[i], tn[i], var[i] = fit_point(i, x, t, band[i])
+        if it == 0 and cfg.denoise_split_band > 0:
+            med = np.sort(var)[(P - 1) // 2]                    # the lower median
+            two = var > SPLIT_SPREAD * max(med, SPREAD_FLOOR * sigma ** 2)
+            band = np.where(two, cfg.denoise_split_band * sigma, band)
+            for i in np.nonzero(two)[0]:
+                xn[i], tn[i], _ = fit_point(i, x, t, band[i])
         x, t = xn, tn
     dd = x - x0
     nrm = np.linalg.norm(dd, axis=1)
@@ -130,6 +145,45 @@ def test_matches_a_per_point_reference_on_a_tiny_set():
     # the tangent's sign is arbitrary: compare positions only
     assert np.allclose(out.numpy(), ref, atol=1e-9 * 1 + 1e-10)
     assert float((out - pts).norm(dim=1).max()) > 0.2 * sig              # it did move
+
+
+def test_split_band_matches_the_reference_on_two_close_strands():
+    # 13 points along a line (tiny: exact neighbours), the left six alternating between two
+    # strands 4 noise widths apart: those see a spread across well above twice the noise's
+    # variance and take the narrow band, the right ones (one strand) do not
+    sig = 0.02
+    g = torch.Generator().manual_seed(7)
+    x = torch.linspace(-0.3, 0.3, 13, dtype=torch.float64)
+    two = (torch.arange(13) < 6) & (torch.arange(13) % 2 == 1)
+    y = torch.where(two, 4.0 * sig, 0.0) + torch.randn(13, generator=g, dtype=torch.float64) * 0.2 * sig
+    pts = torch.stack([x, y.double()], 1)
+    cfg = NoiseConfig(denoise_iterations=3, denoise_radius=8.0, denoise_band=1.5, denoise_split_band=1.0)
+    out = _run(pts, cfg, noise=sig)
+    ref = _reference(pts, sig, cfg)
+    assert np.allclose(out.numpy(), ref, atol=1e-9)
+    assert not np.allclose(ref, _reference(pts, sig, CFG), atol=1e-6)       # the split changed something
+
+
+def test_split_band_keeps_two_strands_three_noise_widths_apart():
+    """Two noisy lines 3 noise widths apart: the default band (1.5) pulls them together (their
+    means move toward the middle); with denoise_split_band 1.0 their points see twice the
+    median spread and each keeps nearer to its own line."""
+    sig, gap, n = 0.01, 3.0, 300
+    g = torch.Generator().manual_seed(2)
+    x = torch.rand(5 * n, generator=g, dtype=torch.float64) - 0.5
+    # a single noisy line far away, with most of the points, sets the item's median spread (one wall)
+    y = torch.cat([torch.zeros(n), torch.full((n,), gap * sig), torch.full((3 * n,), 0.3)]).double()
+    y = y + torch.randn(5 * n, generator=g, dtype=torch.float64) * sig
+    pts = torch.stack([x, y], 1)
+    inner = (x.abs() < 0.4)[:2 * n]
+
+    def sep(cfg):
+        out = _run(pts, cfg, noise=sig)
+        return float(out[n:2 * n][inner[n:], 1].mean() - out[:n][inner[:n], 1].mean()) / sig
+
+    wide = sep(CFG)
+    split = sep(NoiseConfig(denoise_iterations=3, denoise_radius=8.0, denoise_band=1.5, denoise_split_band=1.0))
+    assert split > wide + 0.3, (wide, split)
 
 
 def test_translation_scale_batch_and_dtype():

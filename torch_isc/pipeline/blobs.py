@@ -45,6 +45,14 @@ GAP_RADII = 1.5
 ROUNDNESS = 0.2
 #: the mean direction to a blob's nearest outside points is at least this long (one-sided)
 ONE_SIDED = 0.5
+#: noise widths the noise of one side takes off the gap between two noisy bands
+GAP_NOISE = 2.0
+#: under noise, a blob's radius less the noise's part is at least this many noise widths
+MIN_RADIUS = 2.0
+#: a neighbour beyond the nearest joins when the point is among its MUTUAL·k nearest
+MUTUAL = 2
+#: hops of neighbour descent on the Morton neighbours (denoise.refine_knn)
+REFINE_HOPS = 4
 #: the Morton-order window of the neighbour search (each side, two orders)
 WINDOW = 16
 
@@ -61,8 +69,15 @@ def find_blobs(points: torch.Tensor, point_item: torch.Tensor, k: int, min_point
     unit directions from its centroid to its points' nearest outside points is at least
     :data:`ONE_SIDED` long: a piece of a curve has the curve's rest on both sides). With ``noise (B,)`` the graph also joins every two points of an item less
     than ``gap_noise_widths`` noise widths apart (a noisy curve's k-nearest-neighbour graph
-    falls apart into small groups along its band), so a blob is that far from the rest too."""
+    falls apart into small groups along its band), so a blob is that far from the rest too.
+
+    Beyond its nearest, a point's neighbour joins only when the point is among that neighbour's
+    2k nearest too (a satellite beside a curve is not tied to it by its third neighbour). Under
+    noise the radius is taken less the noise's part (``sqrt(rms² − 2σ²)``), the gap may be
+    ``2 GAP_NOISE σ`` short of ``GAP_RADII`` radii (the noise of its two sides), and a ring whose
+    radius less the noise is under ``MIN_RADIUS σ`` is none (a clump of a noisy band)."""
     with torch.no_grad():
+        from torch_isc.pipeline.denoise import refine_knn
         from torch_isc.pipeline.noise import approximate_knn
         P = points.shape[0]
         dev, dt = points.device, points.dtype
@@ -72,10 +87,23 @@ def find_blobs(points: torch.Tensor, point_item: torch.Tensor, k: int, min_point
         kk = max(k, max_points + 8)
         x = points.detach()
         nbr, d2 = approximate_knn(x, point_item, kk, max(WINDOW, (kk + 1) // 2))
+        # Morton candidates stop at quadtree cell walls: a few points of a dense noisy curve
+        # beside such a wall lose their neighbours across it and fall off as a "blob"
+        nbr, d2 = refine_knn(x, nbr, d2, REFINE_HOPS)
         fin = torch.isfinite(d2)
         src = torch.arange(P, device=dev)[:, None].expand_as(nbr)
         join = fin.clone()
         join[:, k:] = False
+        # beyond the nearest, a neighbour joins only when the point is among that neighbour's
+        # 2k nearest too: the third nearest neighbour of a satellite's point on the side facing
+        # another curve can be on that curve (second neighbours on a ring of 8 points are 1.4
+        # radii apart), while that curve's points have their 2k nearest along it. The nearest
+        # always joins (an outlier joins the curve it lies by)
+        k2 = min(MUTUAL * k, nbr.shape[1]) if MUTUAL > 0 else nbr.shape[1]
+        mine = torch.arange(P, device=dev)[:, None, None]
+        back = ((nbr[nbr[:, :k]][:, :, :k2] == mine) & fin[nbr[:, :k]][:, :, :k2]).any(2)
+        back[:, 0] = True
+        join[:, :k] &= back
         if noise is not None:
             # and to every point within a few noise widths: a noisy band's k-nearest-neighbour
             # graph falls apart into small groups along it, whose gaps are about the noise
@@ -103,7 +131,18 @@ def find_blobs(points: torch.Tensor, point_item: torch.Tensor, k: int, min_point
         round_ = lo >= ROUNDNESS * hi
         need = GAP_RADII * rad
         if noise is not None:
-            need = torch.maximum(need[lab], gap_noise_widths * noise.to(dt)[point_item])
+            # the radius the noise leaves: a ring of radius r under noise σ (per coordinate) has
+            # mean squared distance r² + 2σ² to its centre, so a small satellite's measured radius
+            # is mostly noise and the gap it needs is inflated with it
+            sg = noise.to(dt)[point_item]
+            rms2 = torch.zeros(P, dtype=dt, device=dev).index_add_(0, lab, (d * d).sum(1) * w) / cnt
+            # and the gap between two noisy bands is their nearest pair: the noise of each side
+            # takes up to about GAP_NOISE noise widths off it
+            r_eff = torch.minimum(rad, (rms2 - 2 * sg ** 2).clamp_min(0).sqrt())
+            need = torch.maximum((GAP_RADII * r_eff)[lab] - 2 * GAP_NOISE * sg, gap_noise_widths * sg)
+            # a ring whose radius the noise leaves is below MIN_RADIUS noise widths cannot be told
+            # from a clump of a noisy band cut off by the graph (its loop would fit the noise)
+            round_ = round_ & (r_eff >= MIN_RADIUS * sg)
         else:
             need = need[lab]
         # one-sided: a piece of a curve has the rest of the curve on both sides of it, a small

@@ -147,7 +147,7 @@ UPPER_BOUNDS: Dict[str, float] = {
     "evidence_line_widths": 1e6, "two_line_separation": 1e6, "two_line_spread": 1e6,
     "noise_neighbours": 1_000, "noise_window": 10_000, "noise_blob_aspect": 1e6, "noise_line_aspect": 1e6,
     "noise_min_subset": 2 ** 31 - 1, "denoise_iterations": 100, "denoise_neighbours": 1_000, "denoise_radius": 1e6,
-    "denoise_band": 1e6, "denoise_refine_hops": 1_000, "denoise_window": 10_000, "denoise_max_move": 1e6,
+    "denoise_band": 1e6, "denoise_split_band": 1e6, "denoise_refine_hops": 1_000, "denoise_window": 10_000, "denoise_max_move": 1e6,
     "relax_iterations": 100_000, "kappa_data": 1e6, "kappa_edge": 1e6, "relax_max_backtracks": 64,
     "empty_weight": 1e6, "anneal_sweeps": 1_000_000, "anneal_t_start": 1e6, "anneal_t_end": 1e6,
     "anneal_warm_t_start": 1e6, "anneal_replicas": 1_024, "anneal_greedy_sweeps": 1_000_000,

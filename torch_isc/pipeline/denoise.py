@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import torch
 
-from torch_isc.core.segments import sym2_eigvals, sym2_eigvec
+from torch_isc.core.segments import segment_median, sym2_eigvals, sym2_eigvec
 from torch_isc.pipeline.noise import KNN_BUDGET, NoiseConfig, approximate_knn, nearest_candidates
 from torch_isc.pipeline import budget
 
@@ -36,6 +36,14 @@ MIN_NEIGHBOURS = 8
 MIN_WEIGHT = 3.0
 #: rounds of the reweighted fit per pass
 ROUNDS = 3
+#: a neighbourhood whose spread across its fit is this many times the item's median spread
+#: holds two strands (one wall: the noise's variance; two strands g apart: that plus about g²/4)
+SPLIT_SPREAD = 2.0
+#: the median spread counts at least this fraction of the noise's variance (the fit's own
+#: residual spread over one wall is about half of it; data with no spread flag nothing)
+SPREAD_FLOOR = 0.1
+#: offsets beyond this many bands from the fit are another curve, not this one's spread
+SPREAD_CLIP = 3.0
 
 
 def refine_knn(points: torch.Tensor, nbr: torch.Tensor, d2: torch.Tensor, hops: int = 6,
@@ -93,6 +101,57 @@ def _tangents(x: torch.Tensor, nbr: torch.Tensor, valid: torch.Tensor, R: torch.
     return t
 
 
+def _fit_rows(x, t, nbr, valid, R, bands, cap, idx, ridge, sel, spread: bool):
+    """One pass of the weighted parabola fit for the points ``idx``: their new positions
+    ``(n, 2)``, tangents ``(n, 2)`` and, with ``spread``, the spatially weighted mean squared
+    offset of their neighbours from the fitted parabola (within :data:`SPREAD_CLIP` bands;
+    else None)."""
+    dt = x.dtype
+    xi, ti = x[idx], t[idx]
+    ni = torch.stack([-ti[:, 1], ti[:, 0]], 1)
+    q = x[nbr[idx]] - xi[:, None, :]                          # (n, kk, 2)
+    q = torch.cat([torch.zeros_like(q[:, :1]), q], 1)          # the point itself first
+    ok = torch.cat([torch.ones_like(valid[idx, :1]), valid[idx]], 1)
+    Ri = R[idx, None]
+    sb = bands[idx, None]
+    u = (q * ti[:, None, :]).sum(-1) / Ri                      # along the tangent, in radii
+    s = (q * ni[:, None, :]).sum(-1)                           # across it
+    r2 = u * u + (s / Ri) ** 2
+    wsp = (1.0 - r2).clamp_min(0) ** 2
+    wsp = torch.where(ok, wsp, torch.zeros_like(wsp))
+    # the normal equations of the parabola need the moments of u up to the fourth
+    upow = torch.stack([torch.ones_like(u), u, u * u, u * u * u, (u * u) ** 2], -1)    # (n, kk+1, 5)
+    W = wsp.sum(1)
+    reg = torch.diag_embed(ridge.expand(idx.shape[0], 3) * W[:, None])
+    fit = torch.zeros_like(s)                                  # round 0: about the point itself
+    for _ in range(ROUNDS):
+        # the weight across is centred on the last fit: a mean shift across the curve
+        # within the parabola model, which settles on the nearest ridge of the data
+        w = wsp * torch.exp(-0.5 * ((s - fit) / sb) ** 2)
+        mom = torch.einsum("pk,pkj->pj", w, upow)                  # (n, 5)
+        A = mom[:, sel] + reg
+        rhs = torch.einsum("pk,pkj->pj", w * s, upow[..., :3])
+        coef = torch.linalg.solve_ex(A, rhs[..., None])[0][..., 0]      # singular: not finite, no move
+        fit = coef[:, None, 0] + u * (coef[:, None, 1] + u * coef[:, None, 2])
+    W = w.sum(1)
+    move = coef[:, 0].clamp(-cap[idx], cap[idx])
+    good = (W >= MIN_WEIGHT) & torch.isfinite(coef).all(1)
+    move = torch.where(good, move, torch.zeros_like(move))
+    xn = xi + move[:, None] * ni
+    # the parabola's slope at the point turns the tangent (slope per radius)
+    slope = torch.where(good, coef[:, 1] / Ri[:, 0], torch.zeros_like(move))
+    tt = ti + slope[:, None] * ni
+    tn = tt / tt.norm(dim=1, keepdim=True).clamp_min(torch.finfo(dt).tiny)
+    var = None
+    if spread:
+        r = s - fit
+        near = (r.abs() <= SPREAD_CLIP * sb) & torch.isfinite(r)
+        wv = torch.where(near, wsp, torch.zeros_like(wsp))
+        var = (wv * torch.where(near, r * r, torch.zeros_like(r))).sum(1) / wv.sum(1).clamp_min(torch.finfo(dt).tiny)
+        var = torch.where(good, var, torch.zeros_like(var))
+    return xn, tn, var
+
+
 def denoise_points(points: torch.Tensor, point_item: torch.Tensor, noise: torch.Tensor, frames: torch.Tensor,
                    cfg: NoiseConfig, return_tangents: bool = False):
     """``(P, 2)`` the points moved onto their local weighted parabolas (see the module).
@@ -128,45 +187,30 @@ def denoise_points(points: torch.Tensor, point_item: torch.Tensor, noise: torch.
         t = _tangents(x, nbr, valid, R, frames[:, :2].to(dt), block)
         ridge = torch.tensor([0.0, 1e-3, 1e-3], dtype=dt, device=dev)
         sel = torch.tensor([[0, 1, 2], [1, 2, 3], [2, 3, 4]], device=dev)   # the Hankel matrix of the moments
-        for _ in budget.rounds(iters):
+        split = cfg.denoise_split_band > 0
+        bands = sband.clone()
+        for it in budget.rounds(iters):
             xn = torch.empty_like(x)
             tn = torch.empty_like(t)
+            var = torch.empty_like(sigma) if split and it == 0 else None
             for b0 in range(0, P, block):
                 idx = torch.arange(b0, min(P, b0 + block), device=dev)
-                xi, ti = x[idx], t[idx]
-                ni = torch.stack([-ti[:, 1], ti[:, 0]], 1)
-                q = x[nbr[idx]] - xi[:, None, :]                          # (n, kk, 2)
-                q = torch.cat([torch.zeros_like(q[:, :1]), q], 1)          # the point itself first
-                ok = torch.cat([torch.ones_like(valid[idx, :1]), valid[idx]], 1)
-                Ri = R[idx, None]
-                u = (q * ti[:, None, :]).sum(-1) / Ri                      # along the tangent, in radii
-                s = (q * ni[:, None, :]).sum(-1)                           # across it
-                r2 = u * u + (s / Ri) ** 2
-                wsp = (1.0 - r2).clamp_min(0) ** 2
-                wsp = torch.where(ok, wsp, torch.zeros_like(wsp))
-                # the normal equations of the parabola need the moments of u up to the fourth
-                upow = torch.stack([torch.ones_like(u), u, u * u, u * u * u, (u * u) ** 2], -1)    # (n, kk+1, 5)
-                W = wsp.sum(1)
-                reg = torch.diag_embed(ridge.expand(idx.shape[0], 3) * W[:, None])
-                fit = torch.zeros_like(s)                                  # round 0: about the point itself
-                for _ in range(ROUNDS):
-                    # the weight across is centred on the last fit: a mean shift across the curve
-                    # within the parabola model, which settles on the nearest ridge of the data
-                    w = wsp * torch.exp(-0.5 * ((s - fit) / sband[idx, None]) ** 2)
-                    mom = torch.einsum("pk,pkj->pj", w, upow)                  # (n, 5)
-                    A = mom[:, sel] + reg
-                    rhs = torch.einsum("pk,pkj->pj", w * s, upow[..., :3])
-                    coef = torch.linalg.solve_ex(A, rhs[..., None])[0][..., 0]      # singular: not finite, no move
-                    fit = coef[:, None, 0] + u * (coef[:, None, 1] + u * coef[:, None, 2])
-                W = w.sum(1)
-                move = coef[:, 0].clamp(-cap[idx], cap[idx])
-                good = (W >= MIN_WEIGHT) & torch.isfinite(coef).all(1)
-                move = torch.where(good, move, torch.zeros_like(move))
-                xn[idx] = xi + move[:, None] * ni
-                # the parabola's slope at the point turns the tangent (slope per radius)
-                slope = torch.where(good, coef[:, 1] / Ri[:, 0], torch.zeros_like(move))
-                tt = ti + slope[:, None] * ni
-                tn[idx] = tt / tt.norm(dim=1, keepdim=True).clamp_min(torch.finfo(dt).tiny)
+                xn[idx], tn[idx], v = _fit_rows(x, t, nbr, valid, R, bands, cap, idx, ridge, sel, var is not None)
+                if var is not None:
+                    var[idx] = v
+            if var is not None:
+                # two strands: the spread across the fit, relative to the item's median spread
+                # (one wall), says the neighbourhood holds a second strand a couple of noise
+                # widths away (two close curves, a thin gap, the arms of a corner). There the
+                # weight across narrows to denoise_split_band so each point keeps to its own
+                # strand; elsewhere the wide band averages the noise
+                med = segment_median(var, point_item, noise.shape[0])[point_item]
+                two = var > SPLIT_SPREAD * torch.maximum(med, SPREAD_FLOOR * sigma * sigma)
+                bands = torch.where(two, cfg.denoise_split_band * sigma, sband).clamp_min(torch.finfo(dt).tiny)
+                rows = two.nonzero().squeeze(1)                                 # one host read per solve
+                for b0 in range(0, rows.shape[0], block):
+                    idx = rows[b0:b0 + block]
+                    xn[idx], tn[idx], _ = _fit_rows(x, t, nbr, valid, R, bands, cap, idx, ridge, sel, False)
             x, t = xn, tn
         # the total move is bounded too (a point is never carried off by its neighbours' drift)
         d = x - points.detach()

@@ -40,6 +40,10 @@ class NoiseConfig:
     denoise_band: float = knob(1.5, gt=0)
     #: the largest move of a point, in noise widths (outliers stay)
     denoise_max_move: float = knob(3.0, ge=0)
+    #: the band across, in noise widths, for points whose neighbourhood holds two strands (its
+    #: spread across the first fit at least twice the item's median): two close curves or a
+    #: thin gap are not averaged into one; 0 disables (denoise_band everywhere)
+    denoise_split_band: float = knob(0.0, ge=0)
     #: what sees the denoised points: all (the whole loop), evidence (only the sign evidence),
     #: geometry (the fit, the test and the band; the signs read the raw points)
     denoise_use: str = knob("all", choices=("all", "evidence", "geometry"))

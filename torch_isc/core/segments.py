@@ -160,16 +160,17 @@ def expand_in_chunks(counts: torch.Tensor, budget: int) -> Iterator[Tuple[int, i
     dev = counts.device
     csum = torch.cumsum(counts, 0)
     P = counts.shape[0]
-    i0 = 0
+    i0, base = 0, 0
     while i0 < P:
-        base = int(csum[i0 - 1]) if i0 > 0 else 0
-        i1 = int(torch.searchsorted(csum, torch.tensor(base + budget, device=dev), right=True))
-        i1 = min(max(i1, i0 + 1), P)
+        # the range's end and its last pair's running total in one host read (a range's sizes
+        # are then known: no read in the expansion)
+        i1 = torch.searchsorted(csum, base + budget, right=True).clamp(i0 + 1, P).view(1)
+        i1, end = torch.cat([i1, csum.index_select(0, i1 - 1)]).tolist()
         n = counts[i0:i1]
-        row = torch.repeat_interleave(torch.arange(i0, i1, device=dev), n)
-        slot = torch.arange(row.shape[0], device=dev) - torch.repeat_interleave(torch.cumsum(n, 0) - n, n)
+        row = torch.repeat_interleave(torch.arange(i0, i1, device=dev), n, output_size=end - base)
+        slot = torch.arange(end - base, device=dev) - (torch.cumsum(n, 0) - n)[row - i0]
         yield i0, i1, row, slot
-        i0 = i1
+        i0, base = i1, end
 
 
 def edge_components(num_verts: int, edges: torch.Tensor, join: torch.Tensor) -> torch.Tensor:

@@ -39,6 +39,17 @@ def test_edge_components_on_long_random_paths(n, seed):
     assert got.tolist() == _union_find(n, e, join)
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_edge_components_on_random_graphs(seed):
+    """Random sparse graphs (many components, trees and cycles, repeated edges and loops, half
+    the edges not joining): the labels of union-find."""
+    g = torch.Generator().manual_seed(seed)
+    n = int(torch.randint(1, 600, (1,), generator=g))
+    e = torch.randint(0, n, (int(torch.randint(0, 2 * n, (1,), generator=g)), 2), generator=g)
+    join = torch.rand(e.shape[0], generator=g) > 0.5
+    assert edge_components(n, e, join).tolist() == _union_find(n, e, join)
+
+
 def _chunks_by_loops(counts, budget):
     """expand_in_chunks by plain loops: greedy row ranges of at most ``budget`` pairs (a row
     alone when it has more), each row's pairs numbered 0..count-1."""

@@ -12,7 +12,8 @@ per stage its calls, kernels, syncs, the time floor they imply, its top sync sit
 seconds (from a second run, not counted). ``--trials`` sets ``geometry.lbfgs_trials`` (0: default).
 ``--gpu-layout`` counts the layout the code takes off the CPU (same results, other launches):
 ``lbfgs_trials`` 3, the annealer's fields as one embedding bag and its random numbers in the
-large blocks (``pipeline/signs.py``: ``_FIELDS_BY_BAG``, ``_RNG_NUMBERS``).
+large blocks (``pipeline/signs.py``: ``_FIELDS_BY_BAG``, ``_RNG_NUMBERS``), the neighbour
+searches in the blocks of an 80 GB device (``pipeline/noise.py``: ``knn_budget``).
 """
 from __future__ import annotations
 
@@ -50,7 +51,7 @@ def main() -> int:
     ap.add_argument("--trials", type=int, default=0, help="geometry.lbfgs_trials (0: the default)")
     ap.add_argument("--tools", default="../shared/tools", help="folder of gpu_floor.py")
     ap.add_argument("--gpu-layout", action="store_true",
-                    help="count the layout taken off the CPU (lbfgs_trials 3, bag fields, large RNG blocks)")
+                    help="count the layout taken off the CPU (lbfgs_trials 3, bag fields, large RNG and neighbour blocks)")
     a = ap.parse_args()
     stages = a.stage.split(",")
     if unknown := set(stages) - set(STAGES):
@@ -68,6 +69,9 @@ def main() -> int:
         from torch_isc.pipeline import signs
         signs._FIELDS_BY_BAG["cpu"] = True
         signs._RNG_NUMBERS["cpu"] = signs._RNG_NUMBERS_OTHER
+        from torch_isc.pipeline import noise
+        # the neighbour searches' blocks of an 80 GB device (noise.knn_budget)
+        noise._KNN_BUDGETS["cpu"] = (80 << 30) // noise._KNN_BYTES_PER_PAIR
         cfg.geometry.lbfgs_trials = a.trials or 3
     Bs = [int(b) for b in a.B.split(",")]
     shapes = make_shapes(max(Bs), a.points)

@@ -226,3 +226,45 @@ def test_a_ring_beside_a_line_is_a_blob_only_under_noise():
     D = np.sqrt(((x[:, None] - x[None]) ** 2).sum(-1))
     np.fill_diagonal(D, np.inf)
     assert np.argsort(D[0])[2] >= 8
+
+
+def test_rows_made_once_give_what_the_labels_give():
+    """The loop's blob rows (made once per solve, ``WorkingSet.blob_count``; a row whose item has
+    left is empty) against the labels counted on each call: three rings of 8 points in one mesh
+    labelled by their first point, and the same rings as rows 1, 3, 4 of 6 (rows 0, 2, 5 empty):
+    the same centroids, the same snap, the same vertices to flip; the rows' path reads nothing
+    on the host in blobs.py (gpu_floor's count, when present)."""
+    mesh = hexagon_mesh(torch.zeros(1, 2, dtype=torch.float64), torch.ones(1, dtype=torch.float64), 4)
+    V = mesh.verts.shape[0]
+    t = torch.arange(8, dtype=torch.float64) * (2 * math.pi / 8)
+    ring = 0.05 * torch.stack([torch.cos(t), torch.sin(t)], 1)
+    cens = torch.tensor([[0.31, 0.17], [-0.33, 0.21], [0.05, -0.4]], dtype=torch.float64)
+    pts = torch.cat([torch.tensor([[0.6, 0.6], [-0.6, -0.55]], dtype=torch.float64)] + [c + ring for c in cens])
+    labels = torch.cat([torch.tensor([-1, -1]), torch.full((8,), 2), torch.full((8,), 10), torch.full((8,), 18)])
+    rows = torch.cat([torch.tensor([-1, -1]), torch.full((8,), 1), torch.full((8,), 3), torch.full((8,), 4)])
+    ws = _WS(mesh, pts, labels, torch.ones(V, dtype=torch.float64))
+    c0, i0, r0, row0, has0 = bl.blob_centroids(pts, ws.point_item, labels)
+    c1, i1, r1, row1, has1 = bl.blob_centroids(pts, ws.point_item, rows, 6)
+    assert has0.tolist() == [True] * 3 and has1.tolist() == [False, True, False, True, True, False]
+    assert torch.equal(c1[has1], c0) and torch.equal(r1[has1], r0) and torch.allclose(c0, cens, atol=1e-15)
+    a = bl.snap_blobs(ws)
+    b = bl.snap_blobs(ws.replace(blob=rows, blob_count=6))
+    assert int(((a.mesh.verts - mesh.verts).norm(dim=1) > 0).sum()) == 3
+    assert torch.equal(a.mesh.verts, b.mesh.verts) and torch.equal(a.face, b.face)
+    hit = bl.blob_vertices(a.mesh, a.signs, pts, a.point_item, a.face, labels)
+    assert int(hit.sum()) == 3
+    assert torch.equal(hit, bl.blob_vertices(b.mesh, b.signs, pts, b.point_item, b.face, rows, 6))
+    import sys
+    from pathlib import Path
+    for p in (Path(__file__).resolve().parents[2] / "shared" / "tools", Path("/work/shared/tools")):
+        if (p / "gpu_floor.py").exists():
+            sys.path.insert(0, str(p))
+            break
+    else:
+        return
+    from gpu_floor import OpCounter
+    with OpCounter() as cnt:
+        bl.blob_centroids(pts, ws.point_item, rows, 6)
+        bl.blob_vertices(b.mesh, b.signs, pts, b.point_item, b.face, rows, 6)
+    # (the point location of the centroids reads its own sizes: core/locate.py)
+    assert sum(n for (site, kind), n in cnt.sites.items() if kind == "sync" and "blobs.py" in site) == 0

@@ -229,3 +229,28 @@ def test_the_loop_assumes_the_scaled_noise_after_denoising():
     n_half = reconstruct(pts, base.replace(denoise_iterations=1, denoise_noise_scale=0.5)).stats[0].noise
     assert n_on == pytest.approx(n_raw, rel=1e-6)          # the estimate is of the raw points
     assert n_half == pytest.approx(0.5 * n_raw, rel=1e-6)
+
+
+def test_block_size_does_not_change_the_results(monkeypatch):
+    """The neighbour searches, the noise estimate and the denoising run in blocks of points
+    (``noise.knn_budget``: small on the CPU, a share of memory on an accelerator): blocks of a
+    few points and one block for all give the same bits as the CPU's default."""
+    from torch_isc.pipeline import noise as nz
+    g = torch.Generator().manual_seed(7)
+    pts = torch.cat([_circle(400, 0.01, seed=8), _circle(300, 0.02, radius=0.2, seed=9) + 0.1])
+    item = torch.cat([torch.zeros(400), torch.ones(300)]).long()
+    pts = pts + 1e-3 * torch.randn(pts.shape, generator=g, dtype=torch.float64)
+    cfg = NoiseConfig()
+
+    def run():
+        est = noise_and_frames(pts, item, 2, cfg)
+        out = denoise_points(pts, item, est.level, est.frames, cfg, return_tangents=True)
+        return est.level, est.frames, *out
+
+    want = run()
+    for budget in (1 << 11, 1 << 26):
+        monkeypatch.setitem(nz._KNN_BUDGETS, "cpu", budget)
+        # 11: many blocks (the denoising's holds 10 points); 26: one block each
+        for a, b in zip(run(), want):
+            assert torch.equal(a, b)
+    assert (want[2] - pts).norm(dim=1).max() > 0                       # the denoising moved points

@@ -75,7 +75,8 @@ def _best_candidate(point_of_cand: torch.Tensor, face_of_cand: torch.Tensor, sco
     is_best = score == best[point_of_cand]
     big = torch.iinfo(torch.long).max
     face = torch.full((n_points,), big, dtype=torch.long, device=score.device)
-    face = face.scatter_reduce(0, point_of_cand[is_best], face_of_cand[is_best], "amin")
+    # the other candidates propose ``big`` (no boolean-mask indexing: no host read)
+    face = face.scatter_reduce(0, point_of_cand, torch.where(is_best, face_of_cand, big), "amin")
     face[face == big] = -1
     return face, best
 
@@ -116,7 +117,7 @@ def locate_grid(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor,
         ny = c1[:, 1] - c0[:, 1] + 1
         cnt = nx * ny
         pf = torch.repeat_interleave(torch.arange(mesh.faces.shape[0], device=dev), cnt)
-        r = torch.arange(pf.shape[0], device=dev) - torch.repeat_interleave(torch.cumsum(cnt, 0) - cnt, cnt)
+        r = torch.arange(pf.shape[0], device=dev) - (torch.cumsum(cnt, 0) - cnt)[pf]      # a gather: no host read
         ix = c0[pf, 0] + r % nx[pf]
         iy = c0[pf, 1] + r // nx[pf]
         key = cell_off[fi[pf]] + iy * g[fi[pf]] + ix

@@ -161,24 +161,38 @@ def find_blobs(points: torch.Tensor, point_item: torch.Tensor, k: int, min_point
         return torch.where(blob, lab, none)
 
 
-def blob_centroids(points: torch.Tensor, point_item: torch.Tensor, blob: torch.Tensor
-                   ) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+def blob_rows(blob: torch.Tensor) -> Tuple[torch.Tensor, int]:
+    """The labels ``blob (P,)`` renumbered ``0..K−1`` in their order (−1 stays) and ``K``. Two
+    host reads; a solve makes them once (:func:`start_blobs`), and with the rows and ``K``
+    :func:`blob_centroids` reads nothing."""
+    m = blob >= 0
+    uniq, inv = torch.unique(blob[m], return_inverse=True)
+    row = torch.full_like(blob, -1)
+    row[m] = inv
+    return row, int(uniq.shape[0])
+
+
+def blob_centroids(points: torch.Tensor, point_item: torch.Tensor, blob: torch.Tensor, count: Optional[int] = None
+                   ) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """The blobs of the labels ``blob (P,)``: centroids ``(K, 2)``, items ``(K,)``, mean radii
-    ``(K,)`` (mean distance of the points to the centroid) and each point's blob ``(P,)``
-    (0..K−1, −1 for none). One host read (the number of blobs)."""
+    ``(K,)`` (mean distance of the points to the centroid), each point's blob ``(P,)`` (0..K−1,
+    −1 for none) and which blobs have points ``(K,)``. With ``count``, the labels are the rows
+    ``0..count−1`` already (:func:`blob_rows`; a row whose points are gone is empty) and nothing
+    is read on the host; else one host read (the number of blobs)."""
     with torch.no_grad():
         dev, dt = points.device, points.dtype
-        m = blob >= 0
-        uniq, inv = torch.unique(blob[m], return_inverse=True)
-        K = uniq.shape[0]
-        row = torch.full_like(blob, -1)
-        row[m] = inv
-        x = points.detach()[m]
-        cnt = torch.zeros(K, dtype=dt, device=dev).index_add_(0, inv, torch.ones_like(x[:, 0]))
-        c = torch.zeros(K, 2, dtype=dt, device=dev).index_add_(0, inv, x) / cnt.clamp_min(1)[:, None]
-        rad = torch.zeros(K, dtype=dt, device=dev).index_add_(0, inv, (x - c[inv]).norm(dim=1)) / cnt.clamp_min(1)
-        item = torch.zeros(K, dtype=torch.long, device=dev).index_copy_(0, inv, point_item[m])
-        return c, item, rad, row
+        if count is None:
+            blob, count = blob_rows(blob)
+        K = count
+        # the points of no blob go to a dummy row K (no boolean-mask indexing); each row sums
+        # its own points in the same order either way
+        r = torch.where(blob >= 0, blob, K)
+        x = points.detach()
+        cnt = torch.zeros(K + 1, dtype=dt, device=dev).index_add_(0, r, torch.ones_like(x[:, 0]))
+        c = torch.zeros(K + 1, 2, dtype=dt, device=dev).index_add_(0, r, x) / cnt.clamp_min(1)[:, None]
+        rad = torch.zeros(K + 1, dtype=dt, device=dev).index_add_(0, r, (x - c[r]).norm(dim=1)) / cnt.clamp_min(1)
+        item = torch.zeros(K + 1, dtype=torch.long, device=dev).index_copy_(0, r, point_item)
+        return c[:K], item[:K], rad[:K], blob, cnt[:K] > 0
 
 
 def _explained(mesh, signs: torch.Tensor, face: torch.Tensor, row: torch.Tensor, K: int) -> torch.Tensor:
@@ -188,8 +202,9 @@ def _explained(mesh, signs: torch.Tensor, face: torch.Tensor, row: torch.Tensor,
     fn = neg[mesh.faces]
     face_cut = fn.any(1) & ~fn.all(1)
     inb = (row >= 0) & (face >= 0)
-    return torch.zeros(K, dtype=torch.long, device=signs.device).scatter_reduce(
-        0, row[inb], face_cut[face[inb]].long(), "amax") > 0
+    # the other points go to a dummy row K (no boolean-mask indexing)
+    return torch.zeros(K + 1, dtype=torch.long, device=signs.device).scatter_reduce(
+        0, torch.where(inb, row, K), (face_cut[face.clamp_min(0)] & inb).long(), "amax")[:K] > 0
 
 
 def snap_blobs(ws: "WorkingSet") -> "WorkingSet":
@@ -204,7 +219,7 @@ def snap_blobs(ws: "WorkingSet") -> "WorkingSet":
         return ws
     with torch.no_grad():
         mesh = ws.mesh
-        c, item, _, row = blob_centroids(ws.points, ws.point_item, ws.blob)
+        c, item, _, row, has = blob_centroids(ws.points, ws.point_item, ws.blob, getattr(ws, "blob_count", None))
         K = c.shape[0]
         if K == 0:
             return ws
@@ -214,7 +229,7 @@ def snap_blobs(ws: "WorkingSet") -> "WorkingSet":
         e = mesh.edges
         any_cut = torch.zeros(ws.num_items, dtype=torch.bool, device=dev).index_fill_(
             0, mesh.edge_item[neg[e[:, 0]] != neg[e[:, 1]]], True)
-        want = ~any_cut[item] | ~_explained(mesh, ws.signs, ws.face, row, K)
+        want = (~any_cut[item] | ~_explained(mesh, ws.signs, ws.face, row, K)) & has
         face, _ = locate_grid(mesh, c.to(v.dtype), item)
         ok = (face >= 0) & want
         tri = mesh.faces[face.clamp_min(0)]                                 # (K,3)
@@ -226,8 +241,8 @@ def snap_blobs(ws: "WorkingSet") -> "WorkingSet":
             # one blob per vertex (two blobs in one triangle: neither moves this corner)
             n = torch.zeros(V, dtype=torch.long, device=dev).index_add_(0, cand, ok.long())
             use = ok & (n[cand] == 1) & ~mesh.is_boundary_vert[cand]
-            vt = v.clone()
-            vt[cand[use]] = c[use].to(v.dtype)
+            # the blobs that do not use this corner write a dummy row V (no boolean-mask indexing)
+            vt = torch.cat([v, v[:1]]).index_copy_(0, torch.where(use, cand, V), c.to(v.dtype))[:V]
             q = mesh.kernel.quality(vt[F])                                   # (T,)
             # the worst quality of each moved vertex's star
             qs = torch.full((V,), float("inf"), dtype=v.dtype, device=dev)
@@ -239,29 +254,30 @@ def snap_blobs(ws: "WorkingSet") -> "WorkingSet":
         go = best_v >= 0
         if not bool(go.any()):
             return ws
-        vn = v.clone()
-        vn[best_v[go]] = c[go].to(v.dtype)
+        vn = torch.cat([v, v[:1]]).index_put_((torch.where(go, best_v, V),), c.to(v.dtype))[:V]
         new = mesh.with_verts(vn)
         f, bary = locate_walk(new, ws.points, ws.point_item, ws.face)
         # the other items' points keep their barycentrics bit for bit (an item's result does
         # not depend on its batch)
-        touched = torch.zeros(ws.num_items, dtype=torch.bool, device=dev).index_fill_(0, item[go], True)[ws.point_item]
+        B = ws.num_items
+        touched = torch.zeros(B + 1, dtype=torch.bool, device=dev).index_fill_(
+            0, torch.where(go, item, B), True)[ws.point_item]
         f = torch.where(touched, f, ws.face)
         bary = torch.where(touched[:, None], bary, ws.bary)
         return ws.replace(mesh=new, face=f, bary=bary)
 
 
 def blob_vertices(mesh, signs: torch.Tensor, points: torch.Tensor, point_item: torch.Tensor,
-                  face: torch.Tensor, blob: torch.Tensor) -> torch.Tensor:
+                  face: torch.Tensor, blob: torch.Tensor, count: Optional[int] = None) -> torch.Tensor:
     """``(V,)`` bool: the vertices that sit inside a blob no curve explains. Such a vertex is
     the corner nearest the blob's centroid of the triangle holding it, at most a quarter of the
     blob's mean radius from it; it is no boundary vertex, its star is not crossed by the signs,
-    and no point of the blob lies in a crossed triangle."""
+    and no point of the blob lies in a crossed triangle. ``count``: see :func:`blob_centroids`."""
     with torch.no_grad():
         V = signs.shape[0]
         dev = signs.device
         hit = torch.zeros(V, dtype=torch.bool, device=dev)
-        c, item, rad, row = blob_centroids(points, point_item, blob)
+        c, item, rad, row, has = blob_centroids(points, point_item, blob, count)
         K = c.shape[0]
         if K == 0:
             return hit
@@ -271,29 +287,33 @@ def blob_vertices(mesh, signs: torch.Tensor, points: torch.Tensor, point_item: t
         expl = _explained(mesh, signs, face, row, K)
         e = mesh.edges
         cut = neg[e[:, 0]] != neg[e[:, 1]]
-        crossed = torch.zeros(V, dtype=torch.bool, device=dev)
-        crossed.index_fill_(0, e[:, 0][cut], True).index_fill_(0, e[:, 1][cut], True)
+        # the ends of uncut edges go to a dummy row V (no boolean-mask indexing)
+        crossed = torch.zeros(V + 1, dtype=torch.bool, device=dev)
+        crossed = crossed.index_fill_(0, torch.where(cut, e[:, 0], V), True).index_fill_(
+            0, torch.where(cut, e[:, 1], V), True)[:V]
         f, _ = locate_grid(mesh, c.to(v.dtype), item)
         tri = mesh.faces[f.clamp_min(0)]                                     # (K,3)
         d = (v[tri] - c.to(v.dtype)[:, None, :]).norm(dim=2)
         dmin, j = d.min(1)
         vc = tri.gather(1, j[:, None]).squeeze(1)
-        good = (f >= 0) & ~expl & (dmin <= 0.25 * rad.to(v.dtype)) & ~crossed[vc] & ~mesh.is_boundary_vert[vc]
-        return hit.index_fill_(0, vc[good], True)
+        good = has & (f >= 0) & ~expl & (dmin <= 0.25 * rad.to(v.dtype)) & ~crossed[vc] & ~mesh.is_boundary_vert[vc]
+        return torch.cat([hit, hit[:1]]).index_fill_(0, torch.where(good, vc, V), True)[:V]
 
 
 def blob_stage(ws: "WorkingSet", signs: torch.Tensor) -> torch.Tensor:
     """``signs`` with :func:`blob_vertices` flipped (unchanged when ``ws.blob`` is None)."""
     if ws.blob is None:
         return signs
-    hit = blob_vertices(ws.mesh, signs, ws.points, ws.point_item, ws.face, ws.blob)
+    hit = blob_vertices(ws.mesh, signs, ws.points, ws.point_item, ws.face, ws.blob, getattr(ws, "blob_count", None))
     return torch.where(hit, -signs, signs)
 
 
 def start_blobs(points: torch.Tensor, point_item: torch.Tensor, k: int, min_points: int,
-                max_points: int, noise: Optional[torch.Tensor] = None) -> Optional[torch.Tensor]:
-    """:func:`find_blobs`, or None when the batch has no blob (then no stage pays for them)."""
+                max_points: int, noise: Optional[torch.Tensor] = None) -> Optional[Tuple[torch.Tensor, int]]:
+    """:func:`find_blobs` as :func:`blob_rows` (each point's blob row and the number of blobs),
+    or None when the batch has no blob (then no stage pays for them). The rows are made once per
+    solve: the stages read nothing on the host for them (``WorkingSet.blob_count``)."""
     if min_points <= 0:
         return None
-    blob = find_blobs(points, point_item, k, min_points, max_points, noise)
-    return blob if bool((blob >= 0).any()) else None
+    row, K = blob_rows(find_blobs(points, point_item, k, min_points, max_points, noise))
+    return (row, K) if K > 0 else None

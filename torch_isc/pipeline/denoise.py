@@ -22,10 +22,12 @@ item's translation and scale).
 """
 from __future__ import annotations
 
+from typing import Optional
+
 import torch
 
 from torch_isc.core.segments import segment_median, sym2_eigvals, sym2_eigvec
-from torch_isc.pipeline.noise import KNN_BUDGET, NoiseConfig, approximate_knn, nearest_candidates
+from torch_isc.pipeline.noise import NoiseConfig, approximate_knn, knn_budget, nearest_candidates
 from torch_isc.pipeline import budget
 
 __all__ = ["denoise_points"]
@@ -47,7 +49,7 @@ SPREAD_CLIP = 3.0
 
 
 def refine_knn(points: torch.Tensor, nbr: torch.Tensor, d2: torch.Tensor, hops: int = 6,
-               budget: int = KNN_BUDGET):
+               budget: Optional[int] = None):
     """One round of neighbour descent on an approximate kNN (``nbr (P, k)``, ``d2 (P, k)``
     ascending, ``inf`` where missing): each point's candidates are its neighbours and the
     neighbours of its ``hops`` nearest, of which the ``k`` nearest are kept. The Morton
@@ -62,7 +64,7 @@ def refine_knn(points: torch.Tensor, nbr: torch.Tensor, d2: torch.Tensor, hops: 
         return nbr, d2
     dev = points.device
     C = k + h * k
-    block = max(1, budget // C)
+    block = max(1, (knn_budget(dev) if budget is None else budget) // C)
     out_n = torch.empty_like(nbr)
     out_d = torch.empty_like(d2)
     for b0 in range(0, P, block):
@@ -183,7 +185,7 @@ def denoise_points(points: torch.Tensor, point_item: torch.Tensor, noise: torch.
         sband = (cfg.denoise_band * sigma).clamp_min(torch.finfo(dt).tiny)
         cap = cfg.denoise_max_move * sigma
         x = points.detach()
-        block = max(1, KNN_BUDGET // (8 * (kk + 1)))
+        block = max(1, knn_budget(dev) // (8 * (kk + 1)))
         t = _tangents(x, nbr, valid, R, frames[:, :2].to(dt), block)
         ridge = torch.tensor([0.0, 1e-3, 1e-3], dtype=dt, device=dev)
         sel = torch.tensor([[0, 1, 2], [1, 2, 3], [2, 3, 4]], device=dev)   # the Hankel matrix of the moments

@@ -232,8 +232,10 @@ def _start(batch: PointBatch, cfg: ReconstructConfig, rec: StatsRecorder, source
     mesh = initial_mesh(cfg.mesh, B, device, dtype)
     face, bary = locate_grid(mesh, points, batch.point_item)
     rec.tick("locate")
-    return WorkingSet.start(mesh, points, batch.point_item, face, bary, frames, batch.center,
-                            batch.scale, tol, level, batch.flat, sign_points=sign_points, blob=blob)
+    ws = WorkingSet.start(mesh, points, batch.point_item, face, bary, frames, batch.center,
+                          batch.scale, tol, level, batch.flat, sign_points=sign_points)
+    # the blobs' rows and their number, once per solve (no host read for them per level)
+    return ws if blob is None else ws.replace(blob=blob[0], blob_count=blob[1])
 
 
 def run_loop(batch: PointBatch, cfg: ReconstructConfig, source: SignSource,

@@ -272,8 +272,10 @@ def enclosed_vertices(mesh: MeshBatch, signs: torch.Tensor, points: torch.Tensor
         e = mesh.edges
         neg = signs < 0
         cut = neg[e[:, 0]] != neg[e[:, 1]]
-        crossed = torch.zeros(V, dtype=torch.bool, device=dev)
-        crossed.index_fill_(0, e[:, 1][cut], True).index_fill_(0, e[:, 0][cut], True)
+        # no boolean-mask indexing (a host read each): the ends of uncut edges go to a dummy row V
+        crossed = torch.zeros(V + 1, dtype=torch.bool, device=dev)
+        crossed = crossed.index_fill_(0, torch.where(cut, e[:, 1], V), True).index_fill_(
+            0, torch.where(cut, e[:, 0], V), True)[:V]
         fn = neg[mesh.faces]
         face_cut = fn.any(1) & ~fn.all(1)
         ok = face >= 0
@@ -286,7 +288,7 @@ def enclosed_vertices(mesh: MeshBatch, signs: torch.Tensor, points: torch.Tensor
             recv, pid = key // M, key % M
             deg = first[recv + 1] - first[recv]
             rep = pid.repeat_interleave(deg)
-            start = torch.repeat_interleave(first[recv] - torch.cumsum(deg, 0) + deg, deg)
+            start = torch.repeat_interleave(first[recv] - torch.cumsum(deg, 0) + deg, deg, output_size=rep.shape[0])
             nb = nbrs[start + torch.arange(rep.shape[0], device=dev)]
             key = torch.unique(torch.cat([key, nb * M + rep]))
         recv, pts = key // M, key % M
@@ -312,10 +314,14 @@ def enclosed_vertices(mesh: MeshBatch, signs: torch.Tensor, points: torch.Tensor
             head[1:] = ~same
             tail = torch.ones(n, dtype=torch.bool, device=dev)
             tail[:-1] = ~same
-            hx = torch.zeros(V, 2, dtype=v.dtype, device=dev).index_copy_(0, recv[head], x[head])
-            tx = torch.zeros(V, 2, dtype=v.dtype, device=dev).index_copy_(0, recv[tail], x[tail])
-            ha = torch.zeros(V, dtype=v.dtype, device=dev).index_copy_(0, recv[head], ang[head])
-            ta = torch.zeros(V, dtype=v.dtype, device=dev).index_copy_(0, recv[tail], ang[tail])
+            # the first and last row of each vertex, written without boolean-mask indexing (a
+            # host read each): the other rows go to a dummy row V
+            rh = torch.where(head, recv, V)
+            rt = torch.where(tail, recv, V)
+            hx = torch.zeros(V + 1, 2, dtype=v.dtype, device=dev).index_copy_(0, rh, x)[:V]
+            tx = torch.zeros(V + 1, 2, dtype=v.dtype, device=dev).index_copy_(0, rt, x)[:V]
+            ha = torch.zeros(V + 1, dtype=v.dtype, device=dev).index_copy_(0, rh, ang)[:V]
+            ta = torch.zeros(V + 1, dtype=v.dtype, device=dev).index_copy_(0, rt, ang)[:V]
             big = torch.maximum(big, (hx - tx).norm(dim=1))
             gap = torch.maximum(gap, ha + 2 * torch.pi - ta)
         count = torch.zeros(V, dtype=torch.long, device=dev).index_add_(0, recv, torch.ones_like(recv))

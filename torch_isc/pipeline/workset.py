@@ -61,6 +61,10 @@ class WorkingSet:
     #: ``(P,)`` long or None: each point's blob label (pipeline/blobs.py; −1: in none), None
     #: when the batch has no blob
     blob: Optional[torch.Tensor] = None
+    #: None, or the number of blobs of the solve when ``blob`` holds rows ``0..blob_count−1``
+    #: (made once per solve: the blob stages then read nothing on the host; a row whose
+    #: items have left is empty)
+    blob_count: Optional[int] = None
 
     ITEM_FIELDS = ("items", "center", "scale", "tol", "noise", "flat")
     VERT_FIELDS = ("values", "signs")
@@ -107,6 +111,7 @@ class WorkingSet:
                 out["sign_points"] = self.sign_points[kp]
             if self.blob is not None:
                 out["blob"] = self.blob[kp]
+                out["blob_count"] = self.blob_count
             f = out["face"]
             out["face"] = torch.where(f >= 0, remap_f[f.clamp_min(0)], f)
             out["point_item"] = new_item[self.point_item[kp]]
@@ -130,6 +135,9 @@ class WorkingSet:
             out["face"], out["point_item"] = torch.cat(faces), torch.cat(items)
             if all(w.blob is not None for w in sets):
                 out["blob"] = torch.cat([w.blob for w in sets])
+                counts = {w.blob_count for w in sets}
+                # rows of one solve share their numbering; other labels are counted when used
+                out["blob_count"] = counts.pop() if len(counts) == 1 else None
         return WorkingSet(mesh=MeshBatch.cat([w.mesh for w in sets]), **out)
 
     def follow(self, sd: Subdivision) -> "WorkingSet":

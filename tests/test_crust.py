@@ -129,3 +129,18 @@ def test_two_circles_three_spacings_apart_stay_two():
         c = pl["points"].mean(0)
         d = (pl["points"] - c).norm(dim=1)
         assert (d - 1.0).abs().max() < 0.05
+
+
+def test_coupling_of_an_item_does_not_depend_on_its_batch():
+    a, b = _circle(120, 0.3), _circle(90, 0.2, 0.05, -0.1)
+    one = [_ws(a, 0.0), _ws(b, 0.0)]
+    mesh = square_mesh(torch.zeros(2, 2, dtype=torch.float64), torch.full((2,), 0.55, dtype=torch.float64), 12)
+    pts = torch.cat([a, b])
+    item = torch.cat([torch.zeros(120, dtype=torch.long), torch.ones(90, dtype=torch.long)])
+    face, _ = locate_grid(mesh, pts, item)
+    both = SimpleNamespace(mesh=mesh, points=pts, point_item=item, face=face, num_items=2,
+                           noise=torch.zeros(2, dtype=torch.float64), tol=torch.full((2,), 0.004, dtype=torch.float64))
+    H = crust_coupling(both, 2.0, 0.1, 3.0)
+    E0 = one[0].mesh.edges.shape[0]
+    assert torch.equal(H[:E0], crust_coupling(one[0], 2.0, 0.1, 3.0))
+    assert torch.equal(H[E0:], crust_coupling(one[1], 2.0, 0.1, 3.0))

@@ -112,6 +112,11 @@ def test_noisy_items_get_no_coupling():
     assert (crust_coupling(ws, 2.0, 0.1, 3.0) == 0).all()
     ws = _ws(pts, noise=0.0003)
     assert (crust_coupling(ws, 2.0, 0.1, 3.0) != 0).any()
+    # a large tolerance: now the spacing (0.0157) gates, at 0.1 spacings
+    ws = _ws(pts, noise=0.003, tol=0.1)
+    assert (crust_coupling(ws, 2.0, 0.1, 3.0, 0.1) == 0).all()
+    ws = _ws(pts, noise=0.001, tol=0.1)
+    assert (crust_coupling(ws, 2.0, 0.1, 3.0, 0.1) != 0).any()
 
 
 def test_two_circles_three_spacings_apart_stay_two():

@@ -11,7 +11,7 @@ such segments joins vertices on opposite sides of the curve; one that crosses an
 energy (eq. 3.5), beside the line evidence.
 
 Noisy data make the crust zig-zag, so the rule only runs on items whose estimated noise is a
-small fraction of the tolerance. A segment longer than a few median sample spacings (an
+small fraction of the tolerance and of the sample spacing. A segment longer than a few median sample spacings (an
 outlier's link, a jump across a sampling gap) says nothing and is dropped.
 """
 from __future__ import annotations
@@ -119,12 +119,12 @@ def crossing_counts(mesh: "MeshBatch", p: torch.Tensor, q: torch.Tensor, item: t
     return out.index_add_(0, cand.reshape(-1), cross.reshape(-1).long()), ok
 
 
-def crust_parity(ws: "WorkingSet", noise_tolerances: float, max_length: float
+def crust_parity(ws: "WorkingSet", noise_tolerances: float, max_length: float, noise_spacings: float = 0.1
                  ) -> Tuple[torch.Tensor, torch.Tensor]:
     """``(E,)`` int8: ``1`` where a mesh edge crosses the crust an odd number of times (its ends
     on opposite sides), ``-1`` where an even, nonzero number, ``0`` elsewhere; and ``(B,)`` the
     items' sample spacing (0 where the rule is off). Only on items whose noise is at most
-    ``noise_tolerances`` times their tolerance."""
+    ``noise_tolerances`` times their tolerance and ``noise_spacings`` times their sample spacing."""
     mesh = ws.mesh
     E = mesh.edges.shape[0]
     par = torch.zeros(E, dtype=torch.int8, device=mesh.device)
@@ -137,6 +137,10 @@ def crust_parity(ws: "WorkingSet", noise_tolerances: float, max_length: float
         pts = ws.points[sel]
         it = ws.point_item[sel]
         seg, sp = crust_segments(pts, it, ws.num_items, max_length)
+        # ...and whose noise is small against their sample spacing too: a noisy sample's crust
+        # zig-zags (a scan quantized to a grid a third of its spacing gave wrong regions)
+        clean &= ws.noise <= noise_spacings * sp.to(ws.noise.dtype)
+        seg = seg[clean[it[seg[:, 0]]]]
         spacing = torch.where(clean, sp.to(mesh.dtype), spacing)
         if seg.shape[0] == 0:
             return par, spacing
@@ -146,11 +150,12 @@ def crust_parity(ws: "WorkingSet", noise_tolerances: float, max_length: float
         return par, spacing
 
 
-def crust_coupling(ws: "WorkingSet", weight: float, noise_tolerances: float, max_length: float) -> torch.Tensor:
+def crust_coupling(ws: "WorkingSet", weight: float, noise_tolerances: float, max_length: float,
+                   noise_spacings: float = 0.1) -> torch.Tensor:
     """``(E,)`` couplings added to ``H_e``: ``+weight`` on an edge that crosses the crust an odd
     number of times (its ends on opposite sides), ``−weight`` on one that crosses it an even,
     nonzero number of times, 0 elsewhere (:func:`crust_parity`)."""
-    par, _ = crust_parity(ws, noise_tolerances, max_length)
+    par, _ = crust_parity(ws, noise_tolerances, max_length, noise_spacings)
     return float(weight) * par.to(ws.mesh.dtype)
 
 
@@ -158,4 +163,5 @@ def crust_stage(ws: "WorkingSet", H: torch.Tensor, cfg) -> torch.Tensor:
     """``H`` plus :func:`crust_coupling` with ``cfg``'s settings (``TopologyConfig``)."""
     if cfg.crust_weight <= 0:
         return H
-    return H + crust_coupling(ws, cfg.crust_weight, cfg.crust_noise_tolerances, cfg.crust_max_length).to(H.dtype)
+    return H + crust_coupling(ws, cfg.crust_weight, cfg.crust_noise_tolerances, cfg.crust_max_length,
+                              cfg.crust_noise_spacings).to(H.dtype)

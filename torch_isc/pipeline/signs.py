@@ -108,6 +108,8 @@ class TopologyConfig:
     crust_weight: float = knob(2.0, ge=0)
     #: ...items whose estimated noise is at most this many tolerances
     crust_noise_tolerances: float = knob(0.1, ge=0)
+    #: ...and at most this many median sample spacings
+    crust_noise_spacings: float = knob(0.1, ge=0)
     #: ...segments at most this many median sample spacings long
     crust_max_length: float = knob(3.0, gt=0)
 

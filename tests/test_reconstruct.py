@@ -294,10 +294,12 @@ def test_glyph_with_acute_counter_has_no_pinched_off_loop(thickness):
     assert (res.num_closed, res.num_open) == (2, 0)
     truth = [(torch.as_tensor(resample_closed(o, 4000, 0.0)), True) for o in outlines]
     assert hausdorff(res.polylines, truth) < 0.02 * bbox_diagonal(pts)
-    off = reconstruct(pts, ReconstructConfig().replace(min_island_vertices=0, open_tolerances=0.0))
+    # the rules alone, without the crust coupling (pipeline/crust.py), which keeps this tip on
+    # its body by itself on clean data (with it, the rules off still give 2 loops)
+    off = reconstruct(pts, ReconstructConfig().replace(min_island_vertices=0, open_tolerances=0.0, crust_weight=0.0))
     assert off.num_closed == 3                          # the rules are what removes the third loop
     # either rule alone removes it (the speck rule: pipeline/simplify.py)
-    assert reconstruct(pts, ReconstructConfig().replace(min_island_vertices=0)).num_closed == 2
+    assert reconstruct(pts, ReconstructConfig().replace(min_island_vertices=0, crust_weight=0.0)).num_closed == 2
     assert reconstruct(pts, ReconstructConfig().replace(open_tolerances=0.0)).num_closed == 2
 
 

@@ -268,3 +268,24 @@ def test_rows_made_once_give_what_the_labels_give():
         bl.blob_vertices(b.mesh, b.signs, pts, b.point_item, b.face, rows, 6)
     # (the point location of the centroids reads its own sizes: core/locate.py)
     assert sum(n for (site, kind), n in cnt.sites.items() if kind == "sync" and "blobs.py" in site) == 0
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_small_components_are_bfs_components_up_to_the_size(seed):
+    """``small_components`` against breadth-first search on random graphs of many small parts and
+    one long path (a dense curve, far longer than the rounds): each vertex of a component of at
+    most ``max_size`` vertices gets its smallest vertex, every other vertex −1."""
+    g = torch.Generator().manual_seed(seed)
+    V = 400
+    E = int(torch.randint(150, 260, (1,), generator=g))
+    a = torch.randint(0, 300, (E,), generator=g)
+    b = (a + torch.randint(1, 4, (E,), generator=g)).clamp_max(299)
+    path = torch.stack([torch.arange(300, 399), torch.arange(301, 400)], 1)    # 100 vertices in a row
+    edges = torch.cat([torch.stack([a, b], 1), path])
+    edges = edges[torch.randperm(edges.shape[0], generator=g)]
+    bfs = torch.tensor(components_by_bfs(V, edges, torch.ones(edges.shape[0], dtype=torch.bool)))
+    size = torch.zeros(V, dtype=torch.long).index_add_(0, bfs, torch.ones(V, dtype=torch.long))[bfs]
+    for max_size in (1, 3, 8, 16):
+        want = torch.where(size <= max_size, bfs, torch.full_like(bfs, -1))
+        assert torch.equal(bl.small_components(V, edges, max_size), want)
+        assert (want[300:] == -1).all() and (want >= 0).any()

@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING, Optional, Tuple
 import torch
 
 from torch_isc.core.locate import locate_grid, locate_walk
-from torch_isc.core.segments import edge_components, sym2_eigvals
+from torch_isc.core.segments import sym2_eigvals
 
 if TYPE_CHECKING:
     from torch_isc.pipeline.workset import WorkingSet
@@ -109,11 +109,13 @@ def find_blobs(points: torch.Tensor, point_item: torch.Tensor, k: int, min_point
             # graph falls apart into small groups along it, whose gaps are about the noise
             join |= fin & (d2 <= (gap_noise_widths * noise.to(dt)[point_item, None]) ** 2)
         # only the joining edges go to the label propagation (a quarter of the candidates or
-        # less: it runs tens of rounds); one host read, once per solve
+        # less); one host read, once per solve
         edges = torch.stack([src[join], nbr[join]], 1)
-        lab = edge_components(P, edges, torch.ones(edges.shape[0], dtype=torch.bool, device=dev))
+        # a point of a component too large to be a blob is its own label (never a candidate)
+        small = small_components(P, edges, max_points)
+        lab = torch.where(small >= 0, small, torch.arange(P, device=dev))
         size = torch.zeros(P, dtype=torch.long, device=dev).index_add_(0, lab, torch.ones_like(lab))[lab]
-        cand = (size >= min_points) & (size <= max_points)
+        cand = (small >= 0) & (size >= min_points) & (size <= max_points)
         # the gap: the nearest point of another component, over the component
         out = fin & (lab[nbr] != lab[:, None])
         dout = torch.where(out, d2, torch.full_like(d2, float("inf"))).amin(1).sqrt()
@@ -159,6 +161,28 @@ def find_blobs(points: torch.Tensor, point_item: torch.Tensor, k: int, min_point
         side = (nh == 0) | (su.norm(dim=1) >= ONE_SIDED * nh)
         blob = cand & (gap >= need) & round_[lab] & side[lab]
         return torch.where(blob, lab, none)
+
+
+def small_components(num_verts: int, edges: torch.Tensor, max_size: int) -> torch.Tensor:
+    """``(V,)`` long: for each vertex of a component of at most ``max_size`` vertices of the
+    graph ``edges (E, 2)``, the smallest vertex of its component; −1 for a vertex of a larger
+    one (converged or not). Min-label propagation for ``max_size`` rounds, no host read: after ``r`` rounds a label
+    is at most the smallest vertex within ``r`` hops and never below its component's smallest, so
+    a component of ``max_size`` vertices or fewer (diameter below ``max_size``) has converged; a
+    label group that an edge leaves is part of a larger, unconverged component (a group without
+    such an edge is a whole component). A long chain (a dense curve of 1e5 points) needs
+    hundreds of rounds to converge, but no more than ``max_size`` to be known as large."""
+    with torch.no_grad():
+        lab = torch.arange(num_verts, device=edges.device)
+        a, b = edges[:, 0], edges[:, 1]
+        for _ in range(max(int(max_size), 1)):
+            lab = lab.scatter_reduce(0, a, lab[b], "amin")
+            lab = lab.scatter_reduce(0, b, lab[a], "amin")
+        cut = (lab[a] != lab[b]).long()
+        leaves = torch.zeros_like(lab).scatter_reduce(0, lab[a], cut, "amax").scatter_reduce(0, lab[b], cut, "amax")
+        size = torch.zeros_like(lab).index_add_(0, lab, torch.ones_like(lab))
+        large = (leaves > 0) | (size > max_size)
+        return torch.where(large[lab], torch.full_like(lab, -1), lab)
 
 
 def blob_rows(blob: torch.Tensor) -> Tuple[torch.Tensor, int]:

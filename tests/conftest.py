@@ -207,3 +207,17 @@ def components_by_bfs(V, edges, join):
                     comp.append(w)
                     todo.append(w)
     return lab                                   # v is the smallest index of its component
+
+
+def gpu_floor_counter():
+    """``gpu_floor.OpCounter`` from ``../shared/tools`` beside the repository, or None where that
+    folder is absent (the launch and sync counts are then not checked)."""
+    import sys
+    from pathlib import Path
+    tools = Path(__file__).resolve().parents[2] / "shared" / "tools"
+    if not (tools / "gpu_floor.py").exists():
+        return None
+    if str(tools) not in sys.path:
+        sys.path.insert(0, str(tools))
+    from gpu_floor import OpCounter
+    return OpCounter

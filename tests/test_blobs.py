@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import components_by_bfs
+from conftest import components_by_bfs, gpu_floor_counter
 from torch_isc.core.locate import locate_grid
 from torch_isc.core.mesh import hexagon_mesh
 from torch_isc.pipeline import blobs as bl
@@ -254,15 +254,9 @@ def test_rows_made_once_give_what_the_labels_give():
     hit = bl.blob_vertices(a.mesh, a.signs, pts, a.point_item, a.face, labels)
     assert int(hit.sum()) == 3
     assert torch.equal(hit, bl.blob_vertices(b.mesh, b.signs, pts, b.point_item, b.face, rows, 6))
-    import sys
-    from pathlib import Path
-    for p in (Path(__file__).resolve().parents[2] / "shared" / "tools", Path("/work/shared/tools")):
-        if (p / "gpu_floor.py").exists():
-            sys.path.insert(0, str(p))
-            break
-    else:
+    OpCounter = gpu_floor_counter()
+    if OpCounter is None:
         return
-    from gpu_floor import OpCounter
     with OpCounter() as cnt:
         bl.blob_centroids(pts, ws.point_item, rows, 6)
         bl.blob_vertices(b.mesh, b.signs, pts, b.point_item, b.face, rows, 6)

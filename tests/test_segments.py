@@ -78,16 +78,10 @@ def test_expand_in_chunks_against_loops(seed):
     want = _chunks_by_loops(counts.tolist(), budget)
     got = [(a, b, r.tolist(), s.tolist()) for a, b, r, s in expand_in_chunks(counts, budget)]
     assert got == want
-    import sys
-    from pathlib import Path
-    tools = Path(__file__).resolve().parents[2] / "shared" / "tools"
-    for p in (tools, Path("/work/shared/tools")):
-        if (p / "gpu_floor.py").exists():
-            sys.path.insert(0, str(p))
-            break
-    else:
+    from conftest import gpu_floor_counter
+    OpCounter = gpu_floor_counter()
+    if OpCounter is None:
         return
-    from gpu_floor import OpCounter
     with OpCounter(package="test_segments") as c:
         n = sum(1 for _ in expand_in_chunks(counts, budget))
     assert n == len(want) and c.syncs == n

@@ -49,7 +49,7 @@ SPREAD_CLIP = 3.0
 
 
 def refine_knn(points: torch.Tensor, nbr: torch.Tensor, d2: torch.Tensor, hops: int = 6,
-               budget: Optional[int] = None):
+               pairs_per_block: Optional[int] = None):
     """One round of neighbour descent on an approximate kNN (``nbr (P, k)``, ``d2 (P, k)``
     ascending, ``inf`` where missing): each point's candidates are its neighbours and the
     neighbours of its ``hops`` nearest, of which the ``k`` nearest are kept. The Morton
@@ -64,7 +64,7 @@ def refine_knn(points: torch.Tensor, nbr: torch.Tensor, d2: torch.Tensor, hops: 
         return nbr, d2
     dev = points.device
     C = k + h * k
-    block = max(1, (knn_budget(dev) if budget is None else budget) // C)
+    block = max(1, (knn_budget(dev) if pairs_per_block is None else pairs_per_block) // C)
     out_n = torch.empty_like(nbr)
     out_d = torch.empty_like(d2)
     for b0 in range(0, P, block):
@@ -190,7 +190,7 @@ def denoise_points(points: torch.Tensor, point_item: torch.Tensor, noise: torch.
         ridge = torch.tensor([0.0, 1e-3, 1e-3], dtype=dt, device=dev)
         sel = torch.tensor([[0, 1, 2], [1, 2, 3], [2, 3, 4]], device=dev)   # the Hankel matrix of the moments
         split = cfg.denoise_split_band > 0
-        bands = sband.clone()
+        bands = sband
         for it in budget.rounds(iters):
             xn = torch.empty_like(x)
             tn = torch.empty_like(t)

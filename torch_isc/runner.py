@@ -54,7 +54,7 @@ import torch
 import torch_isc
 from torch_isc import images
 from torch_isc._helpers import is_regular_file, one_line, printable, read_file_bytes
-from torch_isc.io import ExportContext, PointFileError, chosen_formats, export, formats_needing, loader_for
+from torch_isc.io import EXPORTERS, ExportContext, PointFileError, chosen_formats, export, formats_needing, loader_for
 from torch_isc.io.registry import LOADERS
 from torch_isc.io.files import atomic_write
 from torch_isc.images.read import DEFAULT_MAX_PIXELS, decode_image
@@ -379,6 +379,20 @@ def manifest_matches(out_dir: PathLike, stem: str, input_sha256: str, config_sha
         return False
 
 
+def _listed_outputs(man: Path, stem: str) -> set:
+    """The output files an existing manifest lists, restricted to ``<stem>.<format>`` names of
+    known formats that are regular files (a manifest is never trusted to name other files)."""
+    try:
+        if not is_regular_file(man) or man.stat().st_size > (1 << 20):
+            return set()
+        files = json.loads(man.read_text(encoding="utf-8"))["files"]
+        names = {f["name"] for f in files if isinstance(f, dict) and isinstance(f.get("name"), str)}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return set()
+    known = {f"{stem}.{f}" for f in EXPORTERS}
+    return {n for n in names & known if is_regular_file(man.parent / n)}
+
+
 # ============================================================================ the run
 @dataclass
 class _Job:
@@ -440,7 +454,15 @@ class _Run:
     def read(self, job: _Job) -> None:
         """Read one input into its job: points, and for an image the gray image (and the mask)."""
         if not job.is_image:
-            job.points = torch.from_numpy(loader_for(job.source).load(job.source)).to(self.device)
+            loader = loader_for(job.source)
+            if loader.decode is None:
+                job.points = torch.from_numpy(loader.load(job.source)).to(self.device)
+                return
+            # the bytes decoded are the bytes hashed: a file rewritten during the run cannot leave a
+            # manifest whose hash is of other content than its outputs
+            data = read_file_bytes(Path(job.source), PointFileError, "a point file")
+            job.input_sha256 = hashlib.sha256(data).hexdigest()
+            job.points = torch.from_numpy(loader.decode(job.source, data)).to(self.device)
             return
         o = self.opts
         # the file is read once: its bytes are decoded and hashed (the manifest's input sha256)
@@ -568,10 +590,18 @@ class _Run:
         complete; on an error the files written by this call are removed again."""
         formats = self.formats_of(job)
         man = manifest_path(self.out_dir, job.stem)
+        stale = _listed_outputs(man, job.stem)
         try:
             man.unlink()
         except FileNotFoundError:
             pass
+        # the previous set's files of formats not written now (a rerun with fewer formats or
+        # another config) would sit beside the new set as if they belonged to it
+        for name in stale - {f"{job.stem}.{f}" for f in formats}:
+            try:
+                (self.out_dir / name).unlink()
+            except OSError:
+                pass
         ctx = ExportContext(y_down=job.is_image, image=image, zoom=self.opts.zoom, region=self.opts.region)
         written: List[Path] = []
         try:

@@ -62,7 +62,7 @@ from torch_isc.pipeline.config import ReconstructConfig, config_hash
 from torch_isc.pipeline.loop import PointSetError, _as_config
 from torch_isc.core.points import item_label
 
-__all__ = ["RunError", "ImageOptions", "Record", "RunReport", "DEFAULT_FORMATS", "DEFAULT_IMAGE_FORMATS",
+__all__ = ["RunError", "ImageOptions", "DEFAULT_MAX_BOUNDARY", "boundary_length", "Record", "RunReport", "DEFAULT_FORMATS", "DEFAULT_IMAGE_FORMATS",
            "expand_inputs", "make_out_dir", "unique_stems", "overwritten_inputs", "run_arguments", "run_inputs", "shown", "file_sha256", "manifest_path", "manifest_matches",
            "MANIFEST_FORMAT"]
 
@@ -74,6 +74,21 @@ DEFAULT_FORMATS = ("json", "npz", "svg", "png")
 DEFAULT_IMAGE_FORMATS = ("json", "contours.npz")
 
 PathLike = Union[str, os.PathLike]
+
+
+#: The default :attr:`ImageOptions.max_boundary`: about 5 minutes and 3 GB of tracing on one
+#: CPU core (a 400x400 checkerboard, 320,000 pixel edges, takes 26 s on a loaded machine).
+DEFAULT_MAX_BOUNDARY = 4_000_000
+
+
+def boundary_length(mask: torch.Tensor) -> int:
+    """Pixel edges between foreground and background of a boolean ``(H, W)`` mask, the image
+    frame counted where the foreground touches it: the length of its contours in pixels, which
+    the tracing's work and memory follow."""
+    m = mask.to(torch.int8)
+    inner = (m[:, 1:] != m[:, :-1]).sum() + (m[1:, :] != m[:-1, :]).sum()
+    frame = m[0, :].sum() + m[-1, :].sum() + m[:, 0].sum() + m[:, -1].sum()
+    return int(inner + frame)
 
 
 class RunError(ValueError):
@@ -95,6 +110,11 @@ class ImageOptions:
         sigma: edges mode: Gaussian smoothing in pixels.
         max_pixels: the largest image read (width x height, from its header, before decoding);
             None: no limit.
+        max_boundary: the longest boundary of one image: in mask mode its pixel edges between
+            foreground and background (the image frame counted where the foreground meets it),
+            in edges mode its edge points; counted before the curve is traced (a noise or
+            checkerboard mask of a few megapixels has millions: hours of work and gigabytes);
+            None or 0: no limit.
         connectivity: mask mode: 8 (OpenCV's) or 4, of the foreground.
         zoom, region: of ``overlay.png``: an integer zoom and the part of the image shown
             (``(x0, y0, x1, y1)`` pixels, None: all); see :func:`torch_isc.io.render_overlay`.
@@ -106,6 +126,7 @@ class ImageOptions:
     canny: Tuple[float, float] = (0.1, 0.2)
     sigma: float = 1.0
     max_pixels: Optional[int] = DEFAULT_MAX_PIXELS
+    max_boundary: Optional[int] = DEFAULT_MAX_BOUNDARY
     connectivity: int = 8
     zoom: int = 1
     region: Optional[Tuple[int, int, int, int]] = None
@@ -134,6 +155,8 @@ class ImageOptions:
             bad = f"sigma must be in (0, 1000], got {self.sigma!r}"
         elif self.max_pixels is not None and not (integer(self.max_pixels) and self.max_pixels >= 0):
             bad = f"max_pixels must be None or an integer >= 0, got {self.max_pixels!r}"
+        elif self.max_boundary is not None and not (integer(self.max_boundary) and self.max_boundary >= 0):
+            bad = f"max_boundary must be None or an integer >= 0, got {self.max_boundary!r}"
         elif self.connectivity not in (4, 8) or isinstance(self.connectivity, bool):
             bad = f"connectivity must be 4 or 8, got {self.connectivity!r}"
         elif not (integer(self.zoom) and 1 <= self.zoom <= 64):
@@ -213,10 +236,12 @@ def expand_inputs(sources: Iterable[PathLike], errors: Optional[Dict[str, str]] 
     its one-line error (:func:`run_inputs` reports it as a failed input).
 
     Raises:
-        RunError: a folder without any such file, or one that cannot be listed.
+        RunError: a folder without any such file, or one that cannot be listed; an empty path.
     """
     out: List[str] = []
     for src in sources:
+        if os.fspath(src) == "":        # Path("") is ".": an unset shell variable would run the whole working folder
+            raise RunError("an empty path ('') given as an input")
         p = Path(src)
         try:
             is_dir = p.is_dir()
@@ -436,7 +461,7 @@ class _Run:
         self.total = 0
         self.batches = 0
         # what an output set must have been made with (the manifest's config hash)
-        opts = {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(image_opts).items() if k != "max_pixels"}
+        opts = {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(image_opts).items() if k not in ("max_pixels", "max_boundary")}
         for k, default in (("zoom", 1), ("region", None)):      # the overlay's view: hashed when set
             if opts.get(k) == default:
                 opts.pop(k, None)
@@ -475,6 +500,12 @@ class _Run:
             mask = torch.from_numpy(gray > thr).to(self.device)
             if not bool(mask.any()):
                 raise images.ImageError(f"{job.source}: empty mask: no pixel above threshold {thr:.3g} (all black)")
+            if o.max_boundary:
+                n = boundary_length(mask)
+                if n > o.max_boundary:
+                    raise images.ImageError(
+                        f"{job.source}: mask boundary too long: {n} pixel edges, more than the limit of "
+                        f"{o.max_boundary} (max_boundary, --max-boundary; a noise-like mask?)")
             if bool(mask.all()):
                 self.note(f"note: {shown(job.source)}: the whole image is foreground (all white at threshold "
                           f"{thr:.3g}): its curve is the image frame")
@@ -495,6 +526,9 @@ class _Run:
             if pts.shape[0] < 3:
                 raise images.ImageError(f"{job.source}: no edges found ({pts.shape[0]} edge pixel(s) at Canny "
                                         f"thresholds {low:g},{high:g}; flat image?)")
+            if o.max_boundary and pts.shape[0] > o.max_boundary:
+                raise images.ImageError(f"{job.source}: too many edge points: {pts.shape[0]}, more than the limit of "
+                                        f"{o.max_boundary} (max_boundary, --max-boundary)")
             job.points = pts.double()
 
     def read_isolated(self, job: _Job) -> bool:

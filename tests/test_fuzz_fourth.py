@@ -185,3 +185,71 @@ def test_mask_boundary_is_bounded(tmp_path, capsys):
     for bad in (-1, 1.5, True, "10"):
         with pytest.raises(RunError, match="max_boundary"):
             ImageOptions(max_boundary=bad)
+
+
+# ============================================================================ curve queries, rendering, deformation
+def _disc_curve():
+    from torch_isc import ImplicitCurve, hexagon_mesh
+
+    m = hexagon_mesh(torch.zeros(2, 2, dtype=torch.float64), torch.ones(2), 3)
+    return ImplicitCurve(m, m.verts.norm(dim=1) - torch.where(m.vert_item == 0, 0.5, 0.3).double())
+
+
+def test_query_points_and_items_are_checked():
+    """point_item of -1 meant the last curve (silently), 5 or a float raised torch's IndexError,
+    (N, 3) points a broadcast error: now one PointSetError naming the argument. Valid queries
+    give the hand values (distance to a circle of radius 0.5 / 0.3 from the centre)."""
+    from torch_isc import PointSetError, measures
+
+    c = _disc_curve()
+    p = torch.zeros(2, 2, dtype=torch.float64)
+    d = measures.point_curve_distance(c, p, torch.tensor([0, 1]))
+    assert ((d - torch.tensor([0.5, 0.3], dtype=torch.float64)).abs() < 0.05).all()      # inscribed polygons
+    for item, why in [(torch.tensor([0, -1]), r"in \[0, 2\), got -1"), (torch.tensor([0, 2]), r"in \[0, 2\), got 2"),
+                      (torch.tensor([0.0, 1.0]), "integer"), (torch.tensor([0]), r"\(2,\)"), ([0, 1], "list")]:
+        with pytest.raises(PointSetError, match=why):
+            measures.point_curve_distance(c, p, item)
+        with pytest.raises(PointSetError, match=why):
+            c.inside(p, item)
+    for bad in (torch.zeros(3, 3), torch.zeros(2), torch.zeros(2, 2, dtype=torch.complex64), [[0.0, 0.0]]):
+        with pytest.raises(PointSetError, match="points: expected a real"):
+            c.inside(bad, torch.zeros(len(bad), dtype=torch.long))
+
+
+def test_render_arguments_are_checked():
+    """rasterize: a negative or fractional size raised torch errors; tau NaN gave NaN images,
+    a negative tau the inverted occupancy; extent=[1.0] was broadcast to (1, 1, 1, 1)."""
+    from torch_isc.render import rasterize, soft_inside
+
+    c = _disc_curve()
+    img = rasterize(c, np.int64(8), 8, tau=np.float32(0.01))     # numpy sizes and widths are numbers too
+    assert img.shape == (2, 8, 8) and (img[0] > 0.5).sum() > (img[1] > 0.5).sum() > 0
+    for h, w in ((-1, 8), (8.5, 8), (True, 8), ("8", 8)):
+        with pytest.raises(ValueError, match="height must be an integer"):
+            rasterize(c, h, w, tau=0.01)
+    for tau in (0.0, -0.1, float("nan"), float("inf"), None):
+        with pytest.raises(ValueError, match="tau must be a finite distance > 0"):
+            rasterize(c, 4, 4, tau=tau)
+        with pytest.raises(ValueError, match="tau must be a finite distance > 0"):
+            soft_inside(c, torch.zeros(1, 2, dtype=torch.float64), tau, torch.zeros(1, dtype=torch.long))
+    with pytest.raises(ValueError, match="extent must be 4 numbers"):
+        rasterize(c, 4, 4, tau=0.01, extent=[1.0])
+
+
+def test_deform_tolerance_and_safety_are_checked():
+    """deform(tol=nan) accepted a move of the outer boundary (every comparison with NaN is
+    False); a negative tol reported a corner moving when nothing moved."""
+    from torch_isc.core.mesh import InvalidMeshError
+
+    c = _disc_curve()
+    v = c.mesh.verts.clone()
+    v[c.mesh.is_corner_vert] += 0.1                          # the corners leave the boundary
+    with pytest.raises(InvalidMeshError, match="corner"):
+        c.deform(v, tol=1e-6)
+    for tol in (float("nan"), -1.0, float("inf"), "1"):
+        with pytest.raises(InvalidMeshError, match="tol must be a finite number >= 0"):
+            c.deform(v, tol=tol)
+    assert c.deform(c.mesh.verts.clone(), tol=0).mesh.verts.equal(c.mesh.verts)
+    for safety in (0, 1.5, float("nan")):
+        with pytest.raises(InvalidMeshError, match="safety must be in"):
+            c.deform(v, clamp=True, safety=safety)

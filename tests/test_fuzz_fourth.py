@@ -253,3 +253,67 @@ def test_deform_tolerance_and_safety_are_checked():
     for safety in (0, 1.5, float("nan")):
         with pytest.raises(InvalidMeshError, match="safety must be in"):
             c.deform(v, clamp=True, safety=safety)
+
+
+# ============================================================================ curve and contour files
+def _saved_curve(tmp_path):
+    from torch_isc import reconstruct
+    from torch_isc.io import save_npz
+
+    res = reconstruct(torch.from_numpy(_circle()), CONFIG)
+    save_npz(tmp_path / "c.npz", res.curve, {"name": "c"})
+    return dict(np.load(tmp_path / "c.npz"))
+
+
+@pytest.mark.parametrize("case,why", [
+    ("faces_float", "faces of dtype float32, expected integers"),          # truncated silently before
+    ("negative_count", "verts_per_item holds a negative count"),           # RuntimeError in MeshBatch
+    ("int_verts", "verts of dtype int64, expected floats"),                # RuntimeError in the measures
+    ("complex_values", "values of dtype complex128, expected real numbers"),
+    ("metadata_list", "metadata is a JSON list, not an object"),
+])
+def test_curve_file_dtypes_and_counts(tmp_path, case, why):
+    from torch_isc.io import CurveFileError, load_npz
+
+    z = _saved_curve(tmp_path)
+    if case == "faces_float":
+        z["faces"] = z["faces"].astype(np.float32)
+    elif case == "negative_count":
+        z["verts_per_item"] = np.array([-1, z["verts"].shape[0] + 1])
+    elif case == "int_verts":
+        z["verts"] = (z["verts"] * 100).astype(np.int64)
+    elif case == "complex_values":
+        z["values"] = z["values"].astype(complex)
+    else:
+        z["metadata"] = np.array("[1]")
+    np.savez(tmp_path / "bad.npz", **z)
+    with pytest.raises(CurveFileError, match=f"bad.npz: invalid curve \\({why}\\)"):
+        load_npz(tmp_path / "bad.npz")
+    curve, meta = load_npz(tmp_path / "c.npz")                   # the file as written still loads
+    assert meta == {"name": "c"} and curve.num_items == 1
+
+
+@pytest.mark.parametrize("case", ["nan_point", "text_points", "float_hierarchy", "hierarchy_out_of_range"])
+def test_contours_file_is_checked(tmp_path, case):
+    """A NaN point became a garbage int32 (rint of NaN), text points a numpy ValueError, a float
+    or out-of-range hierarchy was returned as it was: now "inconsistent contours file"."""
+    from torch_isc.images import ImageError, load_contours
+
+    yy, xx = np.mgrid[:40, :50]
+    r2 = (xx - 24.5) ** 2 + (yy - 19.5) ** 2
+    cv2.imwrite(str(tmp_path / "ring.png"), (((r2 < 144) & (r2 >= 25)) * 255).astype(np.uint8))
+    assert cli.main(["reconstruct", str(tmp_path / "ring.png"), "--out", str(tmp_path / "o")]) == 0
+    z = dict(np.load(tmp_path / "o" / "ring.contours.npz"))
+    contours, h = load_contours(tmp_path / "o" / "ring.contours.npz", dtype=np.int32)
+    assert len(contours) == 2 and h.tolist() == [[[-1, -1, 1, -1], [-1, -1, -1, 0]]]     # outline, hole
+    if case == "nan_point":
+        z["points"][0, 0] = np.nan
+    elif case == "text_points":
+        z["points"] = z["points"].astype(str)
+    elif case == "float_hierarchy":
+        z["hierarchy"] = z["hierarchy"].astype(float)
+    else:
+        z["hierarchy"][0, 2] = 7
+    np.savez(tmp_path / "bad.npz", **z)
+    with pytest.raises(ImageError, match="bad.npz: inconsistent contours file"):
+        load_contours(tmp_path / "bad.npz", dtype=np.int32)

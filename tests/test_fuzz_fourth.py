@@ -19,6 +19,17 @@ the manifest held the new hash beside outputs of the
 old content (a later rerun skipped it)
 a noise or checkerboard mask under the pixel limit:    test_mask_boundary_is_bounded,
 hours of tracing, gigabytes (80 us a pixel edge)       test_boundary_length_hand_values
+curve queries: point_item -1 meant the last curve;     test_query_points_and_items_are_checked
+5, a float item or (N, 3) points raised torch errors
+rasterize / soft_inside: tau NaN (NaN images), < 0     test_render_arguments_are_checked
+(inverted), sizes -1 / 8.5, extent=[1.0] broadcast
+deform(tol=nan) accepted any move of the boundary      test_deform_tolerance_and_safety_are_checked
+curve .npz: float faces truncated, negative counts,    test_curve_file_dtypes_and_counts
+integer vertices, complex values (torch errors later)
+contours .npz: NaN / text points, float or             test_contours_file_is_checked
+out-of-range hierarchy returned as they were
+run_inputs(stems=["../x", ...]) wrote outside the    test_run_stems_stay_inside_the_output_folder
+output folder; equal stems overwrote each other
 =====================================================  ==========================================
 """
 from __future__ import annotations
@@ -317,3 +328,16 @@ def test_contours_file_is_checked(tmp_path, case):
     np.savez(tmp_path / "bad.npz", **z)
     with pytest.raises(ImageError, match="bad.npz: inconsistent contours file"):
         load_contours(tmp_path / "bad.npz", dtype=np.int32)
+
+
+def test_run_stems_stay_inside_the_output_folder(tmp_path):
+    """run_inputs(stems=...) wrote "../x" beside the output folder and let two inputs share a
+    stem (one set overwrote the other)."""
+    a, b = _xy(tmp_path / "a.xy", _circle()), _xy(tmp_path / "b.xy", _circle(r=2.0))
+    for stems in (["../x", "b"], ["a/b", "b"], ["", "b"], [".", "b"], ["x", "x"], [3, "b"]):
+        with pytest.raises(RunError, match="stems: "):
+            run_inputs([a, b], CONFIG, tmp_path / "o", formats=["json"], stems=stems)
+    assert not (tmp_path / "x.json").exists()
+    rep = run_inputs([a, b], CONFIG, tmp_path / "o", formats=["json"], stems=["p", "q"])
+    assert [r.status for r in rep.records] == ["done", "done"]
+    assert sorted(os.listdir(tmp_path / "o")) == ["p.json", "p.manifest.json", "q.json", "q.manifest.json"]

@@ -823,6 +823,16 @@ def run_inputs(inputs: Iterable[PathLike], config: ReconstructConfig, out_dir: P
         stems = unique_stems(sources, run.note)
     elif len(stems) != len(sources):
         raise RunError(f"{len(stems)} stem(s) given for {len(sources)} input(s)")
+    else:
+        # a stem names files inside out_dir: "../x" or "a/b" would write elsewhere, two equal
+        # stems would overwrite each other's outputs
+        for st in stems:
+            if (not isinstance(st, str) or st in ("", ".", "..") or "/" in st or "\0" in st
+                    or (os.altsep is not None and os.altsep in st) or os.sep in st):
+                raise RunError(f"stems: {shown(st)!r} is not a file name inside the output folder")
+        dup = [st for st, n in Counter(stems).items() if n > 1]
+        if dup:
+            raise RunError(f"stems: {shown(dup[0])!r} is given to more than one input")
     jobs = [_Job(Record(src, stem), _is_image(src)) for src, stem in zip(sources, stems)]
     clobber = overwritten_inputs(sources, stems, out, lambda src: run.image_formats if _is_image(src) else run.formats)
 

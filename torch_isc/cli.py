@@ -57,7 +57,7 @@ from torch_isc._helpers import one_line
 from torch_isc.io import chosen_formats
 from torch_isc.pipeline.config import ConfigError, flat_keys, load_config, parse_overrides, read_config_mapping
 from torch_isc.images.read import DEFAULT_MAX_PIXELS
-from torch_isc.runner import ImageOptions, Record, RunError, run_inputs, shown
+from torch_isc.runner import DEFAULT_MAX_BOUNDARY, ImageOptions, Record, RunError, run_inputs, shown
 
 DEFAULT_IMAGE_FORMATS = "json,contours.npz"
 
@@ -122,6 +122,10 @@ def build_parser() -> argparse.ArgumentParser:
     img.add_argument("--max-pixels", type=float, default=float(DEFAULT_MAX_PIXELS), metavar="N",
                      help=f"the largest image read, in pixels (width x height, from the header, before decoding; "
                           f"default: {DEFAULT_MAX_PIXELS:.0e}; 0: no limit)")
+    img.add_argument("--max-boundary", type=float, default=float(DEFAULT_MAX_BOUNDARY), metavar="N",
+                     help=f"the longest boundary of an image: pixel edges between foreground and background in mask "
+                          f"mode, edge points in edges mode; counted before tracing (default: {DEFAULT_MAX_BOUNDARY:.0e}; "
+                          f"0: no limit)")
     img.add_argument("--zoom", type=int, default=1, metavar="N",
                      help="overlay.png: an integer zoom, each pixel drawn as an NxN block under the sub-pixel curve "
                           "(vertices marked from 8 on), to see sub-pixel defects; adds overlay.png to the image formats")
@@ -273,6 +277,8 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
         image_formats.append("overlay.png")
     if not 0 <= args.max_pixels < 2 ** 62:
         raise UsageError(f"--max-pixels must be >= 0, got {args.max_pixels}")
+    if not 0 <= args.max_boundary < 2 ** 62:
+        raise UsageError(f"--max-boundary must be >= 0, got {args.max_boundary}")
     try:
         device = torch.device(args.device)
         torch.empty(0, device=device)
@@ -312,7 +318,8 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
     try:
         image_options = ImageOptions(mode=args.mode, threshold=args.threshold, spacing=args.spacing,
                                      use_oracle=not args.no_oracle, canny=(low, high), sigma=args.sigma,
-                                     max_pixels=int(args.max_pixels) or None, connectivity=args.connectivity,
+                                     max_pixels=int(args.max_pixels) or None,
+                                     max_boundary=int(args.max_boundary) or None, connectivity=args.connectivity,
                                      zoom=args.zoom, region=region)
     except RunError as e:
         raise UsageError(str(e)) from None

@@ -54,7 +54,7 @@ import torch
 import torch_isc
 from torch_isc import images
 from torch_isc._helpers import is_regular_file, one_line, printable, read_file_bytes
-from torch_isc.io import ExportContext, PointFileError, chosen_formats, export, formats_needing, loader_for
+from torch_isc.io import EXPORTERS, ExportContext, PointFileError, chosen_formats, export, formats_needing, loader_for
 from torch_isc.io.registry import LOADERS
 from torch_isc.io.files import atomic_write
 from torch_isc.images.read import DEFAULT_MAX_PIXELS, decode_image
@@ -62,7 +62,7 @@ from torch_isc.pipeline.config import ReconstructConfig, config_hash
 from torch_isc.pipeline.loop import PointSetError, _as_config
 from torch_isc.core.points import item_label
 
-__all__ = ["RunError", "ImageOptions", "Record", "RunReport", "DEFAULT_FORMATS", "DEFAULT_IMAGE_FORMATS",
+__all__ = ["RunError", "ImageOptions", "DEFAULT_MAX_BOUNDARY", "boundary_length", "Record", "RunReport", "DEFAULT_FORMATS", "DEFAULT_IMAGE_FORMATS",
            "expand_inputs", "make_out_dir", "unique_stems", "overwritten_inputs", "run_arguments", "run_inputs", "shown", "file_sha256", "manifest_path", "manifest_matches",
            "MANIFEST_FORMAT"]
 
@@ -74,6 +74,21 @@ DEFAULT_FORMATS = ("json", "npz", "svg", "png")
 DEFAULT_IMAGE_FORMATS = ("json", "contours.npz")
 
 PathLike = Union[str, os.PathLike]
+
+
+#: The default :attr:`ImageOptions.max_boundary`: about 5 minutes and 3 GB of tracing on one
+#: CPU core (a 400x400 checkerboard, 320,000 pixel edges, takes 26 s on a loaded machine).
+DEFAULT_MAX_BOUNDARY = 4_000_000
+
+
+def boundary_length(mask: torch.Tensor) -> int:
+    """Pixel edges between foreground and background of a boolean ``(H, W)`` mask, the image
+    frame counted where the foreground touches it: the length of its contours in pixels, which
+    the tracing's work and memory follow."""
+    m = mask.to(torch.int8)
+    inner = (m[:, 1:] != m[:, :-1]).sum() + (m[1:, :] != m[:-1, :]).sum()
+    frame = m[0, :].sum() + m[-1, :].sum() + m[:, 0].sum() + m[:, -1].sum()
+    return int(inner + frame)
 
 
 class RunError(ValueError):
@@ -95,6 +110,11 @@ class ImageOptions:
         sigma: edges mode: Gaussian smoothing in pixels.
         max_pixels: the largest image read (width x height, from its header, before decoding);
             None: no limit.
+        max_boundary: the longest boundary of one image: in mask mode its pixel edges between
+            foreground and background (the image frame counted where the foreground meets it),
+            in edges mode its edge points; counted before the curve is traced (a noise or
+            checkerboard mask of a few megapixels has millions: hours of work and gigabytes);
+            None or 0: no limit.
         connectivity: mask mode: 8 (OpenCV's) or 4, of the foreground.
         zoom, region: of ``overlay.png``: an integer zoom and the part of the image shown
             (``(x0, y0, x1, y1)`` pixels, None: all); see :func:`torch_isc.io.render_overlay`.
@@ -106,6 +126,7 @@ class ImageOptions:
     canny: Tuple[float, float] = (0.1, 0.2)
     sigma: float = 1.0
     max_pixels: Optional[int] = DEFAULT_MAX_PIXELS
+    max_boundary: Optional[int] = DEFAULT_MAX_BOUNDARY
     connectivity: int = 8
     zoom: int = 1
     region: Optional[Tuple[int, int, int, int]] = None
@@ -134,6 +155,8 @@ class ImageOptions:
             bad = f"sigma must be in (0, 1000], got {self.sigma!r}"
         elif self.max_pixels is not None and not (integer(self.max_pixels) and self.max_pixels >= 0):
             bad = f"max_pixels must be None or an integer >= 0, got {self.max_pixels!r}"
+        elif self.max_boundary is not None and not (integer(self.max_boundary) and self.max_boundary >= 0):
+            bad = f"max_boundary must be None or an integer >= 0, got {self.max_boundary!r}"
         elif self.connectivity not in (4, 8) or isinstance(self.connectivity, bool):
             bad = f"connectivity must be 4 or 8, got {self.connectivity!r}"
         elif not (integer(self.zoom) and 1 <= self.zoom <= 64):
@@ -213,10 +236,12 @@ def expand_inputs(sources: Iterable[PathLike], errors: Optional[Dict[str, str]] 
     its one-line error (:func:`run_inputs` reports it as a failed input).
 
     Raises:
-        RunError: a folder without any such file, or one that cannot be listed.
+        RunError: a folder without any such file, or one that cannot be listed; an empty path.
     """
     out: List[str] = []
     for src in sources:
+        if os.fspath(src) == "":        # Path("") is ".": an unset shell variable would run the whole working folder
+            raise RunError("an empty path ('') given as an input")
         p = Path(src)
         try:
             is_dir = p.is_dir()
@@ -379,6 +404,20 @@ def manifest_matches(out_dir: PathLike, stem: str, input_sha256: str, config_sha
         return False
 
 
+def _listed_outputs(man: Path, stem: str) -> set:
+    """The output files an existing manifest lists, restricted to ``<stem>.<format>`` names of
+    known formats that are regular files (a manifest is never trusted to name other files)."""
+    try:
+        if not is_regular_file(man) or man.stat().st_size > (1 << 20):
+            return set()
+        files = json.loads(man.read_text(encoding="utf-8"))["files"]
+        names = {f["name"] for f in files if isinstance(f, dict) and isinstance(f.get("name"), str)}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return set()
+    known = {f"{stem}.{f}" for f in EXPORTERS}
+    return {n for n in names & known if is_regular_file(man.parent / n)}
+
+
 # ============================================================================ the run
 @dataclass
 class _Job:
@@ -422,7 +461,7 @@ class _Run:
         self.total = 0
         self.batches = 0
         # what an output set must have been made with (the manifest's config hash)
-        opts = {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(image_opts).items() if k != "max_pixels"}
+        opts = {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(image_opts).items() if k not in ("max_pixels", "max_boundary")}
         for k, default in (("zoom", 1), ("region", None)):      # the overlay's view: hashed when set
             if opts.get(k) == default:
                 opts.pop(k, None)
@@ -440,7 +479,15 @@ class _Run:
     def read(self, job: _Job) -> None:
         """Read one input into its job: points, and for an image the gray image (and the mask)."""
         if not job.is_image:
-            job.points = torch.from_numpy(loader_for(job.source).load(job.source)).to(self.device)
+            loader = loader_for(job.source)
+            if loader.decode is None:
+                job.points = torch.from_numpy(loader.load(job.source)).to(self.device)
+                return
+            # the bytes decoded are the bytes hashed: a file rewritten during the run cannot leave a
+            # manifest whose hash is of other content than its outputs
+            data = read_file_bytes(Path(job.source), PointFileError, "a point file")
+            job.input_sha256 = hashlib.sha256(data).hexdigest()
+            job.points = torch.from_numpy(loader.decode(job.source, data)).to(self.device)
             return
         o = self.opts
         # the file is read once: its bytes are decoded and hashed (the manifest's input sha256)
@@ -453,6 +500,12 @@ class _Run:
             mask = torch.from_numpy(gray > thr).to(self.device)
             if not bool(mask.any()):
                 raise images.ImageError(f"{job.source}: empty mask: no pixel above threshold {thr:.3g} (all black)")
+            if o.max_boundary:
+                n = boundary_length(mask)
+                if n > o.max_boundary:
+                    raise images.ImageError(
+                        f"{job.source}: mask boundary too long: {n} pixel edges, more than the limit of "
+                        f"{o.max_boundary} (max_boundary, --max-boundary; a noise-like mask?)")
             if bool(mask.all()):
                 self.note(f"note: {shown(job.source)}: the whole image is foreground (all white at threshold "
                           f"{thr:.3g}): its curve is the image frame")
@@ -473,6 +526,9 @@ class _Run:
             if pts.shape[0] < 3:
                 raise images.ImageError(f"{job.source}: no edges found ({pts.shape[0]} edge pixel(s) at Canny "
                                         f"thresholds {low:g},{high:g}; flat image?)")
+            if o.max_boundary and pts.shape[0] > o.max_boundary:
+                raise images.ImageError(f"{job.source}: too many edge points: {pts.shape[0]}, more than the limit of "
+                                        f"{o.max_boundary} (max_boundary, --max-boundary)")
             job.points = pts.double()
 
     def read_isolated(self, job: _Job) -> bool:
@@ -568,10 +624,18 @@ class _Run:
         complete; on an error the files written by this call are removed again."""
         formats = self.formats_of(job)
         man = manifest_path(self.out_dir, job.stem)
+        stale = _listed_outputs(man, job.stem)
         try:
             man.unlink()
         except FileNotFoundError:
             pass
+        # the previous set's files of formats not written now (a rerun with fewer formats or
+        # another config) would sit beside the new set as if they belonged to it
+        for name in stale - {f"{job.stem}.{f}" for f in formats}:
+            try:
+                (self.out_dir / name).unlink()
+            except OSError:
+                pass
         ctx = ExportContext(y_down=job.is_image, image=image, zoom=self.opts.zoom, region=self.opts.region)
         written: List[Path] = []
         try:
@@ -759,6 +823,16 @@ def run_inputs(inputs: Iterable[PathLike], config: ReconstructConfig, out_dir: P
         stems = unique_stems(sources, run.note)
     elif len(stems) != len(sources):
         raise RunError(f"{len(stems)} stem(s) given for {len(sources)} input(s)")
+    else:
+        # a stem names files inside out_dir: "../x" or "a/b" would write elsewhere, two equal
+        # stems would overwrite each other's outputs
+        for st in stems:
+            if (not isinstance(st, str) or st in ("", ".", "..") or "/" in st or "\0" in st
+                    or (os.altsep is not None and os.altsep in st) or os.sep in st):
+                raise RunError(f"stems: {shown(st)!r} is not a file name inside the output folder")
+        dup = [st for st, n in Counter(stems).items() if n > 1]
+        if dup:
+            raise RunError(f"stems: {shown(dup[0])!r} is given to more than one input")
     jobs = [_Job(Record(src, stem), _is_image(src)) for src, stem in zip(sources, stems)]
     clobber = overwritten_inputs(sources, stems, out, lambda src: run.image_formats if _is_image(src) else run.formats)
 

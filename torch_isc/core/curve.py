@@ -7,6 +7,7 @@ inside, ``f > 0`` outside, and the outer boundary of each mesh is outside.
 """
 from __future__ import annotations
 
+import numbers
 from functools import cached_property
 from typing import Optional, Sequence, Tuple
 
@@ -15,6 +16,7 @@ import torch
 from torch_isc.core.extract import Polylines, extract_zero_set
 from torch_isc.core.locate import barycentric, locate_grid
 from torch_isc.core.mesh import InvalidMeshError, MeshBatch
+from torch_isc.core.points import PointSetError
 
 __all__ = ["ImplicitCurve", "InvalidValuesError", "check_values", "crossed_triangles", "max_orientation_fraction"]
 
@@ -173,11 +175,28 @@ class ImplicitCurve:
             return self(points, point_item) < 0
 
     def _point_item(self, points, point_item):
+        """``point_item`` (default all 0) after checking both arguments of a query: a wrong
+        shape gave torch's broadcast errors, a float item an IndexError, and an item of -1
+        silently meant the last curve."""
+        if (not torch.is_tensor(points) or points.dim() != 2 or points.shape[1] != 2 or points.is_complex()
+                or points.dtype == torch.bool):
+            got = f"shape {tuple(points.shape)} {points.dtype}" if torch.is_tensor(points) else type(points).__name__
+            raise PointSetError(f"points: expected a real (N, 2) tensor, got {got}")
         if point_item is None:
             if self.num_items != 1:
                 raise ValueError("point_item is required for a batch of more than one curve")
-            point_item = torch.zeros(points.shape[0], dtype=torch.long, device=points.device)
-        return point_item
+            return torch.zeros(points.shape[0], dtype=torch.long, device=points.device)
+        n = points.shape[0]
+        if (not torch.is_tensor(point_item) or point_item.shape != (n,) or point_item.is_floating_point()
+                or point_item.is_complex() or point_item.dtype == torch.bool):
+            got = (f"shape {tuple(point_item.shape)} {point_item.dtype}" if torch.is_tensor(point_item)
+                   else type(point_item).__name__)
+            raise PointSetError(f"point_item: expected an integer ({n},) tensor, got {got}")
+        if n:
+            lo, hi = (int(v) for v in torch.aminmax(point_item))
+            if lo < 0 or hi >= self.num_items:
+                raise PointSetError(f"point_item: items must be in [0, {self.num_items}), got {lo if lo < 0 else hi}")
+        return point_item.long()
 
     # --------------------------------------------------------------- zero set
     def zero_set(self) -> Polylines:
@@ -226,6 +245,11 @@ class ImplicitCurve:
         """
         if verts.shape != self.mesh.verts.shape:
             raise InvalidMeshError(f"deform: verts must have shape {tuple(self.mesh.verts.shape)}, got {tuple(verts.shape)}")
+        # a NaN tol passed every boundary check (comparisons with NaN are False)
+        if tol is not None and not (isinstance(tol, numbers.Real) and 0 <= tol < float("inf")):
+            raise InvalidMeshError(f"deform: tol must be a finite number >= 0, got {tol!r}")
+        if not (isinstance(safety, numbers.Real) and 0 < safety <= 1):
+            raise InvalidMeshError(f"deform: safety must be in (0, 1], got {safety!r}")
         if clamp:
             return self._deform_clamped(verts, safety)
         new = self.mesh.with_verts(verts)

@@ -11,6 +11,8 @@ with zero gradient. No route ever indexes a triangle with ``face = -1``.
 """
 from __future__ import annotations
 
+import numbers
+import operator
 from typing import Optional, Sequence, Union
 
 import torch
@@ -37,9 +39,10 @@ def soft_inside(curve, points: torch.Tensor, tau: float, point_item: Optional[to
         >>> soft_inside(c, p, tau=0.1)
         tensor([9.9753e-01, 5.0000e-01, 2.6894e-01, 1.2339e-04], dtype=torch.float64)
     """
+    _check_tau(tau)
     mesh = curve.mesh
+    point_item = curve._point_item(points, point_item)
     pts = points.to(mesh.dtype)
-    point_item = curve._point_item(pts, point_item)
     with torch.no_grad():
         face, _ = locate_grid(mesh, pts, point_item)
         on = face >= 0
@@ -58,6 +61,14 @@ def soft_inside(curve, points: torch.Tensor, tau: float, point_item: Optional[to
     with torch.no_grad():
         sign = torch.where(on & (f < 0), -1.0, 1.0).to(pts.dtype)
     return torch.sigmoid(-sign * d / tau)
+
+
+def _check_tau(tau) -> None:
+    """A number ``tau`` must be a finite width > 0 (NaN gave NaN images, a negative one the
+    inverted occupancy, 0 NaN on the curve); a tensor is the caller's (it may be learned)."""
+    if not torch.is_tensor(tau) and not (isinstance(tau, numbers.Real) and not isinstance(tau, bool)
+                                         and 0 < tau < float("inf")):
+        raise ValueError(f"tau must be a finite distance > 0, got {tau!r}")
 
 
 def pixel_centers(height: int, width: int, extent: torch.Tensor) -> torch.Tensor:
@@ -94,13 +105,24 @@ def rasterize(curve, height: int, width: int, tau: float,
                  [0, 1, 1, 0],
                  [0, 0, 0, 0]]], dtype=torch.int32)
     """
+    size = []
+    for name, v in (("height", height), ("width", width)):
+        try:
+            n = operator.index(v)             # int, numpy and 0-d integer tensors; not 8.5
+        except TypeError:
+            n = -1
+        if n < 0 or isinstance(v, bool):
+            raise ValueError(f"{name} must be an integer >= 0, got {v!r}")
+        size.append(n)
+    height, width = size
+    _check_tau(tau)
     mesh = curve.mesh
     B, dt, dev = mesh.num_items, mesh.dtype, mesh.device
     if extent is None:
         ext = mesh.item_bbox()
     else:
         ext = torch.as_tensor(extent, dtype=dt, device=dev)
-        if ext.dim() == 1:
+        if ext.dim() == 1 and ext.numel() == 4:
             ext = ext[None].expand(B, 4)
         if ext.shape != (B, 4):
             raise ValueError(f"extent must be 4 numbers or a ({B}, 4) tensor, got shape {tuple(ext.shape)}")

@@ -379,9 +379,11 @@ def load_contours(path: Union[str, os.PathLike], dtype=np.float32) -> Tuple[List
         pts, counts, h = z["points"], z["counts"], z["hierarchy"]
     except KeyError as e:
         raise ImageError(f"{path}: not a contours file (no {e} array)") from None
-    ok = (pts.ndim == 2 and pts.shape[1] == 2 and counts.ndim == 1 and np.issubdtype(counts.dtype, np.integer)
-          and (counts >= 0).all() and int(counts.sum()) == pts.shape[0] and h.shape == (counts.size, 4))
-    if not ok:
+    real = (np.issubdtype(pts.dtype, np.floating) or np.issubdtype(pts.dtype, np.integer)) and np.isfinite(pts).all()
+    ok = (real and pts.ndim == 2 and pts.shape[1] == 2 and counts.ndim == 1 and np.issubdtype(counts.dtype, np.integer)
+          and (counts >= 0).all() and int(counts.astype(object).sum()) == pts.shape[0] and h.shape == (counts.size, 4)
+          and np.issubdtype(h.dtype, np.integer) and (h.size == 0 or (h.min() >= -1 and h.max() < counts.size)))
+    if not ok:       # the hierarchy indexes the contours (-1: none); points are finite numbers
         raise ImageError(f"{path}: inconsistent contours file (points {pts.shape}, counts {counts.shape}, "
                          f"hierarchy {h.shape})")
     pieces = np.split(pts, np.cumsum(counts)[:-1]) if counts.size else []

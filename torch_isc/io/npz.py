@@ -88,6 +88,22 @@ def load_npz(path: PathLike, device: Union[str, torch.device, None] = None,
         dtypes = json.loads(str(z["dtypes"]))
         t = {k: _from_numpy(z[k], dtypes.get(k, "")) for k in _ARRAYS}
         meta = json.loads(str(z["metadata"])) if "metadata" in z else {}
+        # what save_npz writes of a curve: float coordinates, real values, integer indices and
+        # counts (integer vertices or complex values failed later inside torch, negative counts
+        # in MeshBatch, float faces were truncated)
+        for k, ok in (("verts", t["verts"].dtype.is_floating_point),
+                      ("values", not (t["values"].dtype.is_complex or t["values"].dtype == torch.bool))):
+            if not ok:
+                raise CurveFileError(f"{p}: invalid curve ({k} of dtype {str(t[k].dtype).replace('torch.', '')}, "
+                                     f"expected {'floats' if k == 'verts' else 'real numbers'})")
+        for k in ("faces", "verts_per_item", "faces_per_item"):
+            if t[k].dtype.is_floating_point or t[k].dtype.is_complex or t[k].dtype == torch.bool:
+                raise CurveFileError(f"{p}: invalid curve ({k} of dtype {str(t[k].dtype).replace('torch.', '')}, "
+                                     f"expected integers)")
+            if k != "faces" and t[k].numel() and int(t[k].min()) < 0:
+                raise CurveFileError(f"{p}: invalid curve ({k} holds a negative count)")
+        if not isinstance(meta, dict):
+            raise CurveFileError(f"{p}: invalid curve (metadata is a JSON {type(meta).__name__}, not an object)")
     except CurveFileError:
         raise
     except Exception as e:  # ValueError, KeyError, json errors, RecursionError from a corrupt file

@@ -39,7 +39,7 @@ __all__ = ["read_points", "Loader", "LOADERS", "loader_for", "ExportContext", "E
 
 
 # =============================================================================== reading
-def read_points(path: PathLike) -> np.ndarray:
+def read_points(path: PathLike, data: Optional[bytes] = None) -> np.ndarray:
     """Read a point set.
 
     Args:
@@ -58,9 +58,12 @@ def read_points(path: PathLike) -> np.ndarray:
         PointFileError: missing or unreadable file, no points, non-numeric text (with the line
             number), a row without exactly 2 columns (with the line number and the count), a
             ``.npy`` of the wrong shape or dtype or truncated, NaN/Inf coordinates (with the count).
+
+    ``data``: the file's bytes when the caller has read them already (``path`` then only names
+    the file and chooses the format), so what is decoded is what the caller hashed.
     """
     p = Path(path)
-    raw = read_file_bytes(p, PointFileError, "a point file")
+    raw = read_file_bytes(p, PointFileError, "a point file") if data is None else bytes(data)
     as_npy = npy.is_npy(raw) or p.suffix.lower() in npy.SUFFIXES
     suffix = p.suffix.lower()
     if not as_npy and suffix not in points_text.SUFFIXES and (
@@ -89,12 +92,15 @@ class Loader:
         kind: ``"points"`` (``load`` gives ``(N, 2)`` float64) or ``"image"`` (``load`` gives a
             gray ``(H, W)`` float32 image in ``[0, 1]``).
         load: ``load(path) -> array``; raises a one-line error naming the file.
+        decode: ``decode(path, data) -> array`` from bytes already read (``path`` names the
+            file), or None: a caller that hashes the input decodes the very bytes it hashed.
     """
     kind: str
     load: Callable[[PathLike], np.ndarray]
+    decode: Optional[Callable[[PathLike, bytes], np.ndarray]] = None
 
 
-_POINTS = Loader("points", read_points)
+_POINTS = Loader("points", read_points, lambda path, data: read_points(path, data=data))
 _IMAGE = Loader("image", read_image)
 
 #: Suffix (lower case, with the dot) -> :class:`Loader`, point formats first: the suffixes

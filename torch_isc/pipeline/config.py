@@ -20,7 +20,7 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Dict, Iterable, List, Mapping, Optional, Union
 
-from torch_isc._helpers import decode_text, is_regular_file
+from torch_isc._helpers import decode_text, is_regular_file, one_line
 from torch_isc.pipeline.band import BandConfig
 from torch_isc.pipeline.evidence import EvidenceConfig
 from torch_isc.pipeline.knobs import ConfigError, check_bounds, check_section, knob
@@ -242,6 +242,10 @@ def _parse_yaml(text: str, where: str):
         raise ConfigError(f"{where}: YAML nested too deeply") from None
     except yaml.YAMLError as e:
         raise ConfigError(f"{where}: not valid YAML ({_first_line(str(e))})") from None
+    except (ValueError, TypeError, AttributeError, OverflowError) as e:
+        # PyYAML's constructors raise these for values of a valid document: "2001-13-45",
+        # "!!float abc", "!!timestamp x", an integer of more than 4300 digits
+        raise ConfigError(f"{where}: a YAML value cannot be read ({_first_line(one_line(e, type(e).__name__), 120)})") from None
 
 
 def _first_line(s: str, limit: int = 200) -> str:
@@ -313,7 +317,7 @@ def parse_overrides(items: Iterable[str]) -> Dict[str, Any]:
         try:
             out[k.strip()] = _parse_yaml(v, f"--set {shown}")
         except ConfigError as e:
-            if "aliases" in str(e) or "deeply" in str(e):
+            if "aliases" in str(e) or "deeply" in str(e) or "cannot be read" in str(e):
                 raise
             raise ConfigError(f"--set {shown}: value is not a YAML scalar") from None
     return out

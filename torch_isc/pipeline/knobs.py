@@ -71,7 +71,10 @@ def check_section(obj: Any) -> None:
             except ValueError:
                 pass
         if want is float and isinstance(v, int) and not isinstance(v, bool):
-            v = float(v)
+            try:
+                v = float(v)
+            except OverflowError:         # an integer beyond the float64 range
+                raise ConfigError(f"config key '{f.name}': must be finite, got {_short(v)}") from None
         if not isinstance(v, want) or (want in (int, float) and isinstance(v, bool)):
             raise ConfigError(f"config key '{f.name}': expected {want.__name__}, got {type(v).__name__} {_short(v)}")
         object.__setattr__(obj, f.name, v)

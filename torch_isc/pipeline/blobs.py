@@ -11,7 +11,9 @@ clusters are found from the points alone, independent of the mesh:
   nearest neighbours are on both sides of it); a cluster whose points' nearest neighbours are
   all inside it is a component of its own. A component of ``min_points`` to ``max_points``
   points is a blob: a small closed curve of its own (an isolated outlier joins the curve its
-  neighbours lie on, so scattered outliers make no blob).
+  neighbours lie on, so scattered outliers make no blob). With the data's tangents, a blob must
+  lie off the side of the curve next to it, not on its continuation (the open end of a noisy
+  band cut off by a gap is round and one-sided too).
 * :func:`snap_blobs`: before each level, one corner of the triangle that holds a blob's
   centroid moves onto the centroid (the corner whose star keeps the best quality, never below a
   floor), so a vertex sits inside every blob.

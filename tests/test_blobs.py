@@ -12,7 +12,7 @@ from torch_isc.core.mesh import hexagon_mesh
 from torch_isc.pipeline import blobs as bl
 
 
-def blobs_by_brute_force(x, k, lo, hi, noise, gap_widths):
+def blobs_by_brute_force(x, k, lo, hi, noise, gap_widths, tangents=None):
     """find_blobs by plain loops: exact neighbours, breadth-first components, the criteria
     written out point by point (one item)."""
     x = np.asarray(x, dtype=float)
@@ -59,6 +59,27 @@ def blobs_by_brute_force(x, k, lo, hi, noise, gap_widths):
             if j is not None:
                 dirs.append((x[j] - c) / np.linalg.norm(x[j] - c))
         side = not dirs or np.linalg.norm(np.mean(dirs, 0)) >= bl.ONE_SIDED
+        if tangents is not None and others:
+            # not on the continuation of the curve next to it: for both tangent estimates at
+            # each point's nearest outside point o (the given one; the major axis of o's
+            # max(k, hi + 8) nearest others outside the blob), the mean |cos| to o -> point
+            kk = max(k, hi + 8)
+            means = []
+            for est in range(2):
+                cs = []
+                for i in m:
+                    o = min(others, key=lambda j: D[i, j])
+                    u = (x[i] - x[o]) / np.linalg.norm(x[i] - x[o])
+                    if est == 0:
+                        t = np.asarray(tangents[o], dtype=float)
+                    else:
+                        nb = [j for j in order[o, :kk] if j not in m]
+                        q = x[nb] - x[o]
+                        w, v = np.linalg.eigh(np.cov(q.T, bias=True))
+                        t = v[:, 1]
+                    cs.append(abs(float(t @ u)) / np.linalg.norm(t))
+                means.append(np.mean(cs))
+            side = side and min(means) < bl.CONTINUES
         if ev[0] >= bl.ROUNDNESS * ev[1] and gap >= need and side:
             for i in m:
                 out[i] = root
@@ -283,3 +304,61 @@ def test_small_components_are_bfs_components_up_to_the_size(seed):
         want = torch.where(size <= max_size, bfs, torch.full_like(bfs, -1))
         assert torch.equal(bl.small_components(V, edges, max_size), want)
         assert (want[300:] == -1).all() and (want >= 0).any()
+
+
+def line_and_rings():
+    """Two items: a line of 151 points (y = 0, x from -3 to 0) and an exact octagon of radius 1,
+    on the line's continuation (centre (2.6, 0), 1.6 past its end) in item 0 and beside it
+    (centre (-1.5, 2.6), 1.6 above it) in item 1; normalized to about unit size. Returns points,
+    items, groups (0 line, 1 ring) and the line's tangent (1, 0) at every point (the rings' own
+    are never read)."""
+    a = np.arange(8) * np.pi / 4 + 0.2
+    ring = np.stack([np.cos(a), np.sin(a)], 1)
+    line = np.stack([np.linspace(-3, 0, 151), np.zeros(151)], 1)
+    x = np.concatenate([line, ring + [2.6, 0.0], line, ring + [-1.5, 2.6]]) / 7
+    item = np.repeat([0, 1], 159)
+    grp = np.tile(np.repeat([0, 1], [151, 8]), 2)
+    tang = np.tile([1.0, 0.0], (len(x), 1))
+    return x, item, grp, tang
+
+
+def test_a_ring_on_the_continuation_of_a_curve_is_no_blob_one_beside_it_is():
+    """Both rings are round, isolated (gap 1.6 > 1.5 radii) and one-sided, so without tangents
+    both are blobs. The end ring's points see the line's end point along the line (mean |cos|
+    0.96 by hand: (3.6, 0) at angle 0, (2.6, 1) at 90 degrees, ...), above CONTINUES: with
+    tangents it is no blob. The side ring's points see the line below them (|cos| near 0)."""
+    x, item, grp, tang = line_and_rings()
+    it = torch.as_tensor(item)
+    end, side = (item == 0) & (grp == 1), (item == 1) & (grp == 1)
+    plain = bl.find_blobs(torch.as_tensor(x), it, 3, 6, 16)
+    assert (plain[end] >= 0).all() and (plain[side] >= 0).all() and (plain[grp == 0] == -1).all()
+    got = bl.find_blobs(torch.as_tensor(x), it, 3, 6, 16, tangents=torch.as_tensor(tang))
+    assert (got[end] == -1).all() and (got[side] >= 0).all() and (got[grp == 0] == -1).all()
+    # the end ring's alignment by hand: from the line's end (0, 0) to each octagon point
+    a = np.arange(8) * np.pi / 4 + 0.2
+    d = np.stack([2.6 + np.cos(a), np.sin(a)], 1)
+    assert np.mean(np.abs(d[:, 0]) / np.linalg.norm(d, axis=1)) > bl.CONTINUES
+    for b in (0, 1):
+        m = item == b
+        ref = blobs_by_brute_force(x[m], 3, 6, 16, None, 3.0, tang[m])
+        mine = got[torch.as_tensor(m)]
+        assert ((mine >= 0).numpy() == (np.asarray(ref) >= 0)).all()
+    # both estimates must agree for the rule to drop a blob: a tangent turned across the line
+    # at its end point alone (the axis of its neighbours still along the line) keeps the blob
+    bad = tang.copy()
+    bad[150] = [0.0, 1.0]
+    kept = bl.find_blobs(torch.as_tensor(x), it, 3, 6, 16, tangents=torch.as_tensor(bad))
+    assert (kept[end] >= 0).all()
+    assert ((kept[:159] >= 0).numpy() == (np.asarray(blobs_by_brute_force(x[:159], 3, 6, 16, None, 3.0, bad[:159])) >= 0)).all()
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_find_blobs_with_tangents_against_brute_force(seed):
+    rng = np.random.default_rng(seed)
+    x, _ = scene(rng, noise=0.002)
+    t = rng.normal(size=x.shape)
+    t /= np.linalg.norm(t, axis=1, keepdims=True)
+    sig = torch.tensor([0.002], dtype=torch.float64)
+    got = bl.find_blobs(torch.as_tensor(x), torch.zeros(len(x), dtype=torch.long), 3, 6, 16, sig, 3.0,
+                        tangents=torch.as_tensor(t))
+    assert got.tolist() == blobs_by_brute_force(x, 3, 6, 16, 0.002, 3.0, t)

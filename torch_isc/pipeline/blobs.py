@@ -11,7 +11,9 @@ clusters are found from the points alone, independent of the mesh:
   nearest neighbours are on both sides of it); a cluster whose points' nearest neighbours are
   all inside it is a component of its own. A component of ``min_points`` to ``max_points``
   points is a blob: a small closed curve of its own (an isolated outlier joins the curve its
-  neighbours lie on, so scattered outliers make no blob).
+  neighbours lie on, so scattered outliers make no blob). With the data's tangents, a blob must
+  lie off the side of the curve next to it, not on its continuation (the open end of a noisy
+  band cut off by a gap is round and one-sided too).
 * :func:`snap_blobs`: before each level, one corner of the triangle that holds a blob's
   centroid moves onto the centroid (the corner whose star keeps the best quality, never below a
   floor), so a vertex sits inside every blob.
@@ -29,7 +31,7 @@ from typing import TYPE_CHECKING, Optional, Tuple
 import torch
 
 from torch_isc.core.locate import locate_grid, locate_walk
-from torch_isc.core.segments import sym2_eigvals
+from torch_isc.core.segments import sym2_eigvals, sym2_eigvec
 
 if TYPE_CHECKING:
     from torch_isc.pipeline.workset import WorkingSet
@@ -55,10 +57,15 @@ MUTUAL = 2
 REFINE_HOPS = 4
 #: the Morton-order window of the neighbour search (each side, two orders)
 WINDOW = 16
+#: the mean |cos| between the tangent at each blob point's nearest outside point and the direction
+#: from there to the point is below this (the blob lies off the curve's side, not on its
+#: continuation past a gap); cos 41 degrees
+CONTINUES = 0.75
 
 
 def find_blobs(points: torch.Tensor, point_item: torch.Tensor, k: int, min_points: int,
-               max_points: int, noise: Optional[torch.Tensor] = None, gap_noise_widths: float = 3.0) -> torch.Tensor:
+               max_points: int, noise: Optional[torch.Tensor] = None, gap_noise_widths: float = 3.0,
+               tangents: Optional[torch.Tensor] = None) -> torch.Tensor:
     """``(P,)`` long: each point's blob label (the smallest point index of its blob), −1 for a
     point in no blob. A blob is a connected component of ``min_points`` to ``max_points``
     points of the graph joining every point to its ``k`` nearest neighbours (of its item) that
@@ -75,7 +82,16 @@ def find_blobs(points: torch.Tensor, point_item: torch.Tensor, k: int, min_point
     2k nearest too (a satellite beside a curve is not tied to it by its third neighbour). Under
     noise the radius is taken less the noise's part (``sqrt(rms² − 2σ²)``), the gap may be
     ``2 GAP_NOISE σ`` short of ``GAP_RADII`` radii (the noise of its two sides), and a ring whose
-    radius less the noise is under ``MIN_RADIUS σ`` is none (a clump of a noisy band)."""
+    radius less the noise is under ``MIN_RADIUS σ`` is none (a clump of a noisy band).
+
+    With ``tangents (P, 2)`` (the data's unit tangent at each point), a blob also lies off the
+    side of the curve next to it, not on its continuation: the nearest point of a smooth curve to
+    a separate small curve sees it along its normal, while the end of an open stroke (a noisy
+    band's last few points cut off by a gap) sees the rest along its tangent. The mean of
+    ``|t·u|`` over the blob's points (``t`` the tangent at a point's nearest outside point ``o``,
+    ``u`` the unit direction from ``o`` to the point) must be below :data:`CONTINUES` for ``t``
+    either of two estimates: ``tangents[o]`` or the major axis of the covariance of ``o``'s
+    neighbours (among the ``max(k, max_points + 8)`` nearest) outside the blob."""
     with torch.no_grad():
         from torch_isc.pipeline.denoise import refine_knn
         from torch_isc.pipeline.noise import approximate_knn
@@ -159,6 +175,32 @@ def find_blobs(points: torch.Tensor, point_item: torch.Tensor, k: int, min_point
         su = torch.zeros(P, 2, dtype=dt, device=dev).index_add_(0, lab, u * has[:, None].to(dt))
         nh = torch.zeros(P, dtype=dt, device=dev).index_add_(0, lab, has.to(dt))
         side = (nh == 0) | (su.norm(dim=1) >= ONE_SIDED * nh)
+        if tangents is not None:
+            # off the curve's side, not on its continuation past a gap (the open end of a noisy
+            # band is one-sided and round like a satellite). From each point's own nearest
+            # outside point o, whose curve sees a point off its side along its normal
+            o = nbr.gather(1, jo[:, None]).squeeze(1)
+            up = x - xo
+            up = up / up.norm(dim=1, keepdim=True).clamp_min(torch.finfo(dt).tiny)
+            hw = has.to(dt)
+            # two estimates of the tangent at o, each wrong in its own way: the data's (the
+            # denoising fit's, whose radius may take in the blob's own points beside a noise
+            # spike) and the major axis of o's neighbours outside the blob (which a sparse curve
+            # spreads over other structure); only both along u mean a continuation
+            no = nbr[o]
+            qn = x[no] - xo[:, None, :]
+            wn = (fin[o] & (lab[no] != lab[:, None])).to(dt)
+            cw = wn.sum(1).clamp_min(1)
+            qd = qn - ((qn * wn[..., None]).sum(1) / cw[:, None])[:, None, :]
+            ca, cb, cd = ((wn * qd[..., 0] ** 2).sum(1) / cw, (wn * qd[..., 0] * qd[..., 1]).sum(1) / cw,
+                          (wn * qd[..., 1] ** 2).sum(1) / cw)
+            al = None
+            for t in (tangents.to(dt)[o], sym2_eigvec(ca, cb, cd, sym2_eigvals(ca, cb, cd)[1])):
+                # no axis (no neighbour outside the blob): no sign of a continuation
+                t = torch.nan_to_num(t / t.norm(dim=1, keepdim=True).clamp_min(torch.finfo(dt).tiny), 0.0, 0.0, 0.0)
+                a = torch.zeros(P, dtype=dt, device=dev).index_add_(0, lab, (t * up).sum(1).abs() * hw)
+                al = a if al is None else torch.minimum(al, a)
+            side &= (nh == 0) | (al < CONTINUES * nh)
         blob = cand & (gap >= need) & round_[lab] & side[lab]
         return torch.where(blob, lab, none)
 
@@ -333,11 +375,12 @@ def blob_stage(ws: "WorkingSet", signs: torch.Tensor) -> torch.Tensor:
 
 
 def start_blobs(points: torch.Tensor, point_item: torch.Tensor, k: int, min_points: int,
-                max_points: int, noise: Optional[torch.Tensor] = None) -> Optional[Tuple[torch.Tensor, int]]:
+                max_points: int, noise: Optional[torch.Tensor] = None,
+                tangents: Optional[torch.Tensor] = None) -> Optional[Tuple[torch.Tensor, int]]:
     """:func:`find_blobs` as :func:`blob_rows` (each point's blob row and the number of blobs),
     or None when the batch has no blob (then no stage pays for them). The rows are made once per
     solve: the stages read nothing on the host for them (``WorkingSet.blob_count``)."""
     if min_points <= 0:
         return None
-    row, K = blob_rows(find_blobs(points, point_item, k, min_points, max_points, noise))
+    row, K = blob_rows(find_blobs(points, point_item, k, min_points, max_points, noise, tangents=tangents))
     return (row, K) if K > 0 else None

@@ -227,7 +227,8 @@ def _start(batch: PointBatch, cfg: ReconstructConfig, rec: StatsRecorder, source
         # through a ring of 8 points flattens it); the loop sees them denoised like the rest:
         # with blob points kept raw, glyph_B at 1% noise (public cases) lost its counter
         blob = start_blobs(batch.points, batch.point_item, cfg.topology.blob_neighbours,
-                           cfg.topology.blob_min_points, cfg.topology.blob_max_points, est.level) if source_blobs else None
+                           cfg.topology.blob_min_points, cfg.topology.blob_max_points, est.level,
+                           tang) if source_blobs else None
     rec.skip()                                   # the noise estimate is not a stage of the loop
     mesh = initial_mesh(cfg.mesh, B, device, dtype)
     face, bary = locate_grid(mesh, points, batch.point_item)

@@ -193,7 +193,7 @@ def squared_distances(points: torch.Tensor, idx: torch.Tensor, c: torch.Tensor) 
     two squares rounds once either way), by coordinate columns: no ``(R, C, 2)`` gather."""
     out = None
     for j in range(points.shape[1]):
-        col = points[:, j].contiguous()
+        col = points[:, j]
         d = take(col, c).sub_(take(col, idx)[:, None])
         d = d.mul_(d)
         out = d if out is None else out.add_(d)

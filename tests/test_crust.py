@@ -149,3 +149,33 @@ def test_coupling_of_an_item_does_not_depend_on_its_batch():
     E0 = one[0].mesh.edges.shape[0]
     assert torch.equal(H[:E0], crust_coupling(one[0], 2.0, 0.1, 3.0))
     assert torch.equal(H[E0:], crust_coupling(one[1], 2.0, 0.1, 3.0))
+
+
+def _batch_ws(sets, noise, items, res):
+    B = len(sets)
+    mesh = square_mesh(torch.zeros(B, 2, dtype=torch.float64), torch.full((B,), 0.55, dtype=torch.float64), res)
+    pts = torch.cat(sets)
+    item = torch.cat([torch.full((s.shape[0],), i, dtype=torch.long) for i, s in enumerate(sets)])
+    face, _ = locate_grid(mesh, pts, item)
+    return SimpleNamespace(mesh=mesh, points=pts, point_item=item, face=face, num_items=B, device=pts.device,
+                           items=torch.tensor(items), noise=torch.tensor(noise, dtype=torch.float64),
+                           tol=torch.full((B,), 0.004, dtype=torch.float64))
+
+
+def test_cached_crust_of_later_levels_is_the_crust_of_their_items():
+    """The cache made at a solve's first level serves its later levels (items gone, finer mesh)
+    with the coupling an uncached call computes from their points."""
+    from torch_isc.pipeline.crust import CrustCache
+    a, b, c = _circle(120, 0.3), _circle(90, 0.2, 0.05, -0.1), _circle(100, 0.25, phase=0.3)
+    d = torch.cat([_circle(60, 0.3), _circle(50, 0.22)])
+    first = _batch_ws([a, b, c, d], [0.0, 0.0, 0.01, 0.0], [0, 1, 2, 3], 12)
+    cache = CrustCache()
+    assert torch.equal(crust_coupling(first, 2.0, 0.1, 3.0, cache=cache), crust_coupling(first, 2.0, 0.1, 3.0))
+    # items 0 and 2 have left; the others are on a finer mesh, points renumbered
+    later = _batch_ws([b, c, d], [0.0, 0.01, 0.0], [1, 2, 3], 17)
+    H = crust_coupling(later, 2.0, 0.1, 3.0, cache=cache)
+    assert (H != 0).sum() > 30
+    assert torch.equal(H, crust_coupling(later, 2.0, 0.1, 3.0))
+    # only the noisy item left: no coupling
+    last = _batch_ws([c], [0.01], [2], 9)
+    assert (crust_coupling(last, 2.0, 0.1, 3.0, cache=cache) == 0).all()

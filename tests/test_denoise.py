@@ -254,3 +254,25 @@ def test_block_size_does_not_change_the_results(monkeypatch):
         for a, b in zip(run(), want):
             assert torch.equal(a, b)
     assert (want[2] - pts).norm(dim=1).max() > 0                       # the denoising moved points
+
+
+def test_squared_distances_are_the_naive_sums_bit_for_bit():
+    """noise.squared_distances (by coordinate columns) against Python's own arithmetic per pair,
+    and against the (R, C, 2) expression it replaces in float32; ``take`` is plain indexing."""
+    from torch_isc.pipeline.noise import squared_distances, take
+    g = torch.Generator().manual_seed(7)
+    p = torch.randn(500, 2, dtype=torch.float64, generator=g) * 3.0
+    p[:100] = (p[:100] * 4).round() / 4                       # a grid: many equal distances
+    idx = torch.arange(40, 70)
+    c = torch.randint(0, 500, (30, 17), generator=g)
+    got = squared_distances(p, idx, c)
+    P = p.tolist()
+    for r in range(30):
+        xi, yi = P[40 + r]
+        for j in range(17):
+            xc, yc = P[c[r, j]]
+            dx, dy = xc - xi, yc - yi
+            assert got[r, j].item() == dx * dx + dy * dy
+    p32 = p.float()
+    assert torch.equal(squared_distances(p32, idx, c), ((p32[c] - p32[idx][:, None, :]) ** 2).sum(-1))
+    assert torch.equal(take(p, c), p[c]) and torch.equal(take(c, idx - 40), c[idx - 40])

@@ -26,7 +26,7 @@ if TYPE_CHECKING:
     from torch_isc.core.mesh import MeshBatch
     from torch_isc.pipeline.workset import WorkingSet
 
-__all__ = ["crust_segments", "crossing_counts", "crust_parity", "crust_coupling", "crust_stage"]
+__all__ = ["crust_segments", "crossing_counts", "crust_parity", "crust_coupling", "crust_stage", "CrustCache"]
 
 #: neighbours looked at for the nearest one on the other side of a sample
 CRUST_NEIGHBOURS = 8
@@ -119,24 +119,83 @@ def crossing_counts(mesh: "MeshBatch", p: torch.Tensor, q: torch.Tensor, item: t
     return out.index_add_(0, cand.reshape(-1), cross.reshape(-1).long()), ok
 
 
-def crust_parity(ws: "WorkingSet", noise_tolerances: float, max_length: float, noise_spacings: float = 0.1
-                 ) -> Tuple[torch.Tensor, torch.Tensor]:
+class CrustCache:
+    """The crust segments of one solve's items, made at its first level (the points do not
+    change from level to level; only the mesh the parity is counted on does): later levels of
+    the same solve take the rows of their items instead of a new neighbour search. Holds the
+    first working set's item ids, each item's first point there, the segments (in that point
+    numbering) and each item's spacing."""
+
+    def __init__(self):
+        self.items = None
+
+    def get(self, ws: "WorkingSet", clean: torch.Tensor, max_length: float):
+        """``(seg (S, 2), sp (B,))`` as :func:`crust_segments` gives them for the points of the
+        ``clean (B,)`` items of ``ws`` (the same segments; the order may differ, which no
+        count depends on), or None when no item is clean."""
+        B, dev = ws.num_items, ws.device
+        if self.items is None:
+            self.items, self.start = ws.items, _starts(ws.point_item, B)
+            self.rows = int(ws.items.max()) + 1                              # one host read per solve
+            sel = clean[ws.point_item].nonzero().squeeze(1)                 # one host read
+            if sel.numel() < 2:
+                self.seg = torch.zeros(0, 2, dtype=torch.long, device=dev)
+                self.sp = torch.zeros(B, dtype=ws.points.dtype, device=dev)
+            else:
+                seg, self.sp = crust_segments(ws.points[sel], ws.point_item[sel], B, max_length)
+                self.seg = sel[seg]                                          # the first level's point numbering
+            self.seg_item = ws.point_item[self.seg[:, 0]]
+        # each working item's row in the first level's items (a solve's items only leave)
+        rows = torch.full((self.rows,), -1, dtype=torch.long, device=dev)
+        rows[self.items] = torch.arange(self.items.shape[0], device=dev)
+        row = rows[ws.items]
+        sp = torch.where(clean, self.sp[row], torch.zeros_like(self.sp[row]))
+        # the segments of the clean working items, renumbered into this level's points
+        here = torch.full((self.items.shape[0],), -1, dtype=torch.long, device=dev)
+        here[row] = torch.arange(B, device=dev)
+        b = here[self.seg_item]
+        keep = (b >= 0) & clean[b.clamp_min(0)]
+        idx = keep.nonzero().squeeze(1)                                      # one host read
+        if idx.numel() == 0:
+            return None
+        b = b[idx]
+        seg = self.seg[idx] - self.start[self.seg_item[idx], None] + _starts(ws.point_item, B)[b, None]
+        return seg, sp
+
+
+def _starts(point_item: torch.Tensor, B: int) -> torch.Tensor:
+    """``(B,)`` the first point of each item (points packed item by item)."""
+    cnt = torch.zeros(B, dtype=torch.long, device=point_item.device).index_add_(0, point_item, torch.ones_like(point_item))
+    return torch.cumsum(cnt, 0) - cnt
+
+
+def crust_parity(ws: "WorkingSet", noise_tolerances: float, max_length: float, noise_spacings: float = 0.1,
+                 cache: "CrustCache | None" = None) -> Tuple[torch.Tensor, torch.Tensor]:
     """``(E,)`` int8: ``1`` where a mesh edge crosses the crust an odd number of times (its ends
     on opposite sides), ``-1`` where an even, nonzero number, ``0`` elsewhere; and ``(B,)`` the
     items' sample spacing (0 where the rule is off). Only on items whose noise is at most
-    ``noise_tolerances`` times their tolerance and ``noise_spacings`` times their sample spacing."""
+    ``noise_tolerances`` times their tolerance and ``noise_spacings`` times their sample spacing.
+    ``cache``: a :class:`CrustCache` shared by the levels of one solve (the same result)."""
     mesh = ws.mesh
     E = mesh.edges.shape[0]
     par = torch.zeros(E, dtype=torch.int8, device=mesh.device)
     spacing = torch.zeros(ws.num_items, dtype=mesh.dtype, device=mesh.device)
     with torch.no_grad():
         clean = ws.noise <= noise_tolerances * ws.tol
-        sel = clean[ws.point_item].nonzero().squeeze(1)                     # one host read
-        if sel.numel() < 2:
-            return par, spacing
-        pts = ws.points[sel]
-        it = ws.point_item[sel]
-        seg, sp = crust_segments(pts, it, ws.num_items, max_length)
+        if cache is not None:
+            got = cache.get(ws, clean, max_length)
+            if got is None:
+                return par, spacing
+            seg, sp = got
+            pts, it, face = ws.points, ws.point_item, ws.face
+        else:
+            sel = clean[ws.point_item].nonzero().squeeze(1)                     # one host read
+            if sel.numel() < 2:
+                return par, spacing
+            pts = ws.points[sel]
+            it = ws.point_item[sel]
+            face = ws.face[sel]
+            seg, sp = crust_segments(pts, it, ws.num_items, max_length)
         # ...and whose noise is small against their sample spacing too: a noisy sample's crust
         # zig-zags (a scan quantized to a grid a third of its spacing gave wrong regions)
         clean &= ws.noise <= noise_spacings * sp.to(ws.noise.dtype)
@@ -144,24 +203,24 @@ def crust_parity(ws: "WorkingSet", noise_tolerances: float, max_length: float, n
         spacing = torch.where(clean, sp.to(mesh.dtype), spacing)
         if seg.shape[0] == 0:
             return par, spacing
-        face = ws.face[sel]
         k, _ = crossing_counts(mesh, pts[seg[:, 0]], pts[seg[:, 1]], it[seg[:, 0]], face[seg[:, 0]], face[seg[:, 1]])
         par = torch.where(k % 2 == 1, torch.ones_like(par), torch.where(k > 0, -torch.ones_like(par), par))
         return par, spacing
 
 
 def crust_coupling(ws: "WorkingSet", weight: float, noise_tolerances: float, max_length: float,
-                   noise_spacings: float = 0.1) -> torch.Tensor:
+                   noise_spacings: float = 0.1, cache: "CrustCache | None" = None) -> torch.Tensor:
     """``(E,)`` couplings added to ``H_e``: ``+weight`` on an edge that crosses the crust an odd
     number of times (its ends on opposite sides), ``−weight`` on one that crosses it an even,
     nonzero number of times, 0 elsewhere (:func:`crust_parity`)."""
-    par, _ = crust_parity(ws, noise_tolerances, max_length, noise_spacings)
+    par, _ = crust_parity(ws, noise_tolerances, max_length, noise_spacings, cache)
     return float(weight) * par.to(ws.mesh.dtype)
 
 
-def crust_stage(ws: "WorkingSet", H: torch.Tensor, cfg) -> torch.Tensor:
-    """``H`` plus :func:`crust_coupling` with ``cfg``'s settings (``TopologyConfig``)."""
+def crust_stage(ws: "WorkingSet", H: torch.Tensor, cfg, cache: "CrustCache | None" = None) -> torch.Tensor:
+    """``H`` plus :func:`crust_coupling` with ``cfg``'s settings (``TopologyConfig``); ``cache``
+    keeps the crust of a solve from level to level."""
     if cfg.crust_weight <= 0:
         return H
     return H + crust_coupling(ws, cfg.crust_weight, cfg.crust_noise_tolerances, cfg.crust_max_length,
-                              cfg.crust_noise_spacings).to(H.dtype)
+                              cfg.crust_noise_spacings, cache).to(H.dtype)

@@ -27,7 +27,7 @@ from typing import Optional
 import torch
 
 from torch_isc.core.segments import segment_median, sym2_eigvals, sym2_eigvec
-from torch_isc.pipeline.noise import NoiseConfig, approximate_knn, knn_budget, nearest_candidates
+from torch_isc.pipeline.noise import NoiseConfig, approximate_knn, knn_budget, nearest_candidates, take
 from torch_isc.pipeline import budget
 
 __all__ = ["denoise_points"]
@@ -69,8 +69,8 @@ def refine_knn(points: torch.Tensor, nbr: torch.Tensor, d2: torch.Tensor, hops: 
     out_d = torch.empty_like(d2)
     for b0 in range(0, P, block):
         idx = torch.arange(b0, min(P, b0 + block), device=dev)
-        own = nbr[idx]
-        c = torch.cat([own, nbr[own[:, :h]].reshape(idx.shape[0], -1)], 1)
+        own = take(nbr, idx)
+        c = torch.cat([own, take(nbr, own[:, :h]).reshape(idx.shape[0], -1)], 1)
         # a missing neighbour is the point itself (approximate_knn's convention): masked below
         c, _ = torch.sort(c, 1)
         out_n[idx], out_d[idx] = nearest_candidates(points, idx, c, c == idx[:, None], k)
@@ -87,8 +87,9 @@ def _tangents(x: torch.Tensor, nbr: torch.Tensor, valid: torch.Tensor, R: torch.
     t = torch.empty_like(fallback)
     for b0 in range(0, P, block):
         idx = torch.arange(b0, min(P, b0 + block), device=x.device)
-        q = x[nbr[idx]] - x[idx, None, :]
-        w = (1.0 - (q * q).sum(-1) / R[idx, None] ** 2).clamp_min(0) ** 2
+        q = take(x, take(nbr, idx)) - take(x, idx)[:, None, :]
+        q2 = q * q
+        w = (1.0 - (q2[..., 0] + q2[..., 1]) / R[idx, None] ** 2).clamp_min(0) ** 2   # (q * q).sum(-1), bit for bit
         w = torch.where(valid[idx], w, torch.zeros_like(w))
         W = (1.0 + w.sum(1)).clamp_min(torch.finfo(x.dtype).tiny)          # the point itself (q = 0) counts
         mean = (w[..., None] * q).sum(1) / W[:, None]
@@ -109,15 +110,21 @@ def _fit_rows(x, t, nbr, valid, R, bands, cap, idx, ridge, sel, spread: bool):
     offset of their neighbours from the fitted parabola (within :data:`SPREAD_CLIP` bands;
     else None)."""
     dt = x.dtype
-    xi, ti = x[idx], t[idx]
+    xi, ti = take(x, idx), take(t, idx)
     ni = torch.stack([-ti[:, 1], ti[:, 0]], 1)
-    q = x[nbr[idx]] - xi[:, None, :]                          # (n, kk, 2)
-    q = torch.cat([torch.zeros_like(q[:, :1]), q], 1)          # the point itself first
+    nb = take(nbr, idx)
+    # the offsets by coordinate, the point itself first (zero): (q * t).sum(-1) of (n, kk+1, 2)
+    # as q0 t0 + q1 t1 + 0, bit for bit (a sum starts at +0), without the slow size-2 reductions
+    q = []
+    for j in range(2):
+        qj = torch.zeros(nb.shape[0], nb.shape[1] + 1, dtype=dt, device=x.device)
+        torch.sub(take(x[:, j], nb), xi[:, j, None], out=qj[:, 1:])
+        q.append(qj)
     ok = torch.cat([torch.ones_like(valid[idx, :1]), valid[idx]], 1)
     Ri = R[idx, None]
     sb = bands[idx, None]
-    u = (q * ti[:, None, :]).sum(-1) / Ri                      # along the tangent, in radii
-    s = (q * ni[:, None, :]).sum(-1)                           # across it
+    u = (q[0] * ti[:, None, 0]).add_(q[1] * ti[:, None, 1]).add_(0.0).div_(Ri)   # along the tangent, in radii
+    s = (q[0] * ni[:, None, 0]).add_(q[1] * ni[:, None, 1]).add_(0.0)           # across it
     r2 = u * u + (s / Ri) ** 2
     wsp = (1.0 - r2).clamp_min(0) ** 2
     wsp = torch.where(ok, wsp, torch.zeros_like(wsp))

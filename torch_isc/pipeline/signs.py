@@ -622,8 +622,10 @@ class IsingSigns:
                 cpl, far = support_coupling(ws, self.cfg.unsupported_weight, self.cfg.unsupported_noise_widths)
                 H = H + cpl
             if self.cfg.crust_weight > 0:
-                from torch_isc.pipeline.crust import crust_stage
-                H = crust_stage(ws, H, self.cfg)
+                from torch_isc.pipeline.crust import CrustCache, crust_stage
+                if level == 0 or getattr(self, "_crust", None) is None:
+                    self._crust = CrustCache()            # a new solve (the source serves one solve)
+                H = crust_stage(ws, H, self.cfg, self._crust)
             fixed = mesh.is_boundary_vert
             init = torch.where(fixed, torch.ones_like(ws.signs), ws.signs)
             field = self._winding_field(ws, level) if self.cfg.winding_weight > 0 else None

@@ -247,7 +247,7 @@ def _corner_tips(a: torch.Tensor, d: torch.Tensor, t: torch.Tensor, prev: torch.
                  stretch: Optional[Callable] = None, long_span: int = 8, max_cos_long: float = 0.8,
                  max_cos_long_smooth: float = 0.68, gap: int = 2, gap_span: int = 10, corner_gap: int = 3,
                  straight_window: float = 0.22, min_loop_sure: int = 64, small_side: int = 11, separate: int = 1,
-                 separate_sides: Sequence[int] = (80, 96, 128)
+                 separate_sides: Sequence[int] = (80, 96, 128), bend: float = 1.5
                  ) -> Tuple[torch.Tensor, Optional[Tuple[torch.Tensor, torch.Tensor, torch.Tensor]]]:
     """Crossing parameters ``t`` with the sharp corners restored: at each corner of the loops
     (a turn of the chords 3 nodes either side with cosine below ``max_cos`` on the crack
@@ -278,6 +278,14 @@ def _corner_tips(a: torch.Tensor, d: torch.Tensor, t: torch.Tensor, prev: torch.
     candidate along the loop. On loops below ``min_loop_sure`` crossings (down to ``min_loop``)
     a corner needs both sides straight over ``small_side`` nodes (a small disc's arcs look
     straight over a few).
+    With ``separate`` (default 1), each accepted corner's side lines are then checked against
+    the pixel classes (:func:`_separating_lines`): the longest window of ``long_sides`` and
+    ``separate_sides`` (within the room to the next candidate) whose foreground and background
+    pixel centres a line separates, one window short of it, and where that is longer than the
+    least-squares window the middle of the separating lines replaces the side's line; only
+    sides whose smoothed crossings lie within ``bend`` px of their line over the first such
+    window are searched (a near-axis side is one run over 24 crossings: its direction is known
+    only across its steps).
 
     Returns ``(t, corners)``: ``corners`` is ``(node (C,), tip (C, 2), convex (C,), moved (C,))``
     of the corners found (for :func:`_insert_tips`; ``moved``: the band vertex ``stretch`` moved
@@ -429,27 +437,53 @@ def _corner_tips(a: torch.Tensor, d: torch.Tensor, t: torch.Tensor, prev: torch.
             excl = 1.42 / den_.abs().clamp(0.3, 1.0)       # the other side may cut a pixel this near the tip
             new = []
             for walk, mu_, v_, L_, reach_ in ((back, mu1, v1, L1, reach[0]), (fwd, mu2, v2, L2, reach[1])):
-                nodes_ = torch.stack(walk[side[0]:ends_s[-1] + 1], 1)                      # (C, K)
+                # only sides with room for a window two steps beyond the least-squares one
+                i0 = torch.searchsorted(Lw, L_.contiguous())
+                i1 = torch.searchsorted(Lw, torch.maximum(reach_, L_).contiguous(), right=True) - 1
+                cand = i1 >= i0 + 2
+                # ... and straight over it: its smoothed crossings within `bend` px of the
+                # least-squares line (a near-axis side is off it by its next step, about a
+                # pixel; a curved side by more; cheap, before the searches)
+                i2 = (i0 + 2).clamp(max=len(ends_s) - 1)
+                n2 = int(Lw[i2[cand]].max()) if bool(cand.any()) else side[0]      # one host read
+                q_ = p[torch.stack(walk[side[0]:n2 + 1], 1)] - mu_[:, None]
+                off_ = (q_[..., 0] * v_[:, None, 1] - q_[..., 1] * v_[:, None, 0]).abs()
+                off_ = torch.where(Ks[None, :n2 + 1 - side[0]] <= Lw[i2][:, None], off_, torch.zeros_like(off_))
+                cand &= off_.amax(1) <= bend
+                sub = cand.nonzero().squeeze(1)
+                if sub.numel() == 0:
+                    new.append((mu_, v_))
+                    continue
+                i0, i1 = i0[sub], i1[sub]
+                Kmax = int(Lw[i1].max()) if sub.numel() else side[0]       # one host read: the stack's depth
+                nodes_ = torch.stack([w_[sub] for w_ in walk[side[0]:Kmax + 1]], 1)                  # (S, K)
                 fgp = a[nodes_]
                 bgp = fgp + d[nodes_]
-                far = torch.minimum((fgp - tip_[:, None]).norm(dim=-1), (bgp - tip_[:, None]).norm(dim=-1)) > excl[:, None]
-                valid = (Ks[None, None] <= Lw[None, :, None]) & far[:, None]               # (C, nW, K)
-                C_, nW = valid.shape[:2]
-                m2, w2, gap_ = _separating_lines(fgp[:, None].expand(C_, nW, -1, 2).reshape(C_ * nW, -1, 2),
-                                                 bgp[:, None].expand(C_, nW, -1, 2).reshape(C_ * nW, -1, 2),
-                                                 valid.reshape(C_ * nW, -1), mu_.repeat_interleave(nW, 0),
-                                                 v_.repeat_interleave(nW, 0))      # v_: along the loop, background on its right
-                allowed = ((gap_.view(C_, nW) > 0) & (valid.sum(2) >= 6) & (Lw[None] >= L_[:, None])
-                           & (Lw[None] <= torch.maximum(reach_, L_)[:, None]))
-                pick = (allowed * torch.arange(1, nW + 1, device=a.device)).argmax(1)
-                good = allowed.any(1)
+                tip_s = tip_[sub]
+                far = torch.minimum((fgp - tip_s[:, None]).norm(dim=-1), (bgp - tip_s[:, None]).norm(dim=-1)) > excl[sub, None]
+                Kr = Ks[:nodes_.shape[1]]
+                mu_s, v_s = mu_[sub], v_[sub]
+
+                def fit(ix):
+                    valid = (Kr[None] <= Lw[ix][:, None]) & far
+                    m2, w2, gap_ = _separating_lines(fgp, bgp, valid, mu_s, v_s)   # v_: along the loop, background on its right
+                    return m2, w2, (gap_ > 0) & (valid.sum(1) >= 6)
+
+                # the longest separable window by bisection (separability only shrinks as a window grows)
+                lo, hi = i0.clone(), i1.clone()
+                for _ in range(max(1, math.ceil(math.log2(len(ends_s))))):
+                    mid = torch.div(lo + hi + 1, 2, rounding_mode="floor")
+                    sep = fit(mid)[2] & (lo < hi)
+                    lo = torch.where(sep, mid, lo)
+                    hi = torch.where(sep | (lo >= hi), hi, mid - 1)
                 # one window short of the longest (past a convex bend the classes stay separable
                 # for a pixel or two), and only where it is longer than the least-squares one
-                longer = pick > torch.searchsorted(Lw, L_.contiguous())
-                pick = torch.where(longer, pick - 1, pick)
-                good = good & allowed.gather(1, pick[:, None]).squeeze(1) & (Lw[pick] > L_)
-                sel = torch.arange(C_, device=a.device) * nW + pick
-                new.append((torch.where(good[:, None], m2[sel], mu_), torch.where(good[:, None], w2[sel], v_)))
+                pick = lo - 1
+                m2, w2, good = fit(pick.clamp(min=0))
+                good = good & (pick > i0)
+                mu_n = mu_.index_copy(0, sub, torch.where(good[:, None], m2, mu_s))
+                v_n = v_.index_copy(0, sub, torch.where(good[:, None], w2, v_s))
+                new.append((mu_n, v_n))
             (mu1, v1), (mu2, v2) = new
         return mu1, v1, mu2, v2
 
@@ -532,7 +566,7 @@ def _corner_tips(a: torch.Tensor, d: torch.Tensor, t: torch.Tensor, prev: torch.
 
 
 def _separating_lines(fgp: torch.Tensor, bgp: torch.Tensor, valid: torch.Tensor, mu: torch.Tensor, v: torch.Tensor,
-                      span: float = 0.3, levels: int = 3, n: int = 33
+                      span: float = 0.3, levels: int = 4, n: int = 17
                       ) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """A line through the middle of those that separate the foreground pixel centres
     ``fgp (C, K, 2)`` from the background ones ``bgp`` (the points ``valid (C, K)``), or the line

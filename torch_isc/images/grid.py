@@ -246,7 +246,8 @@ def _corner_tips(a: torch.Tensor, d: torch.Tensor, t: torch.Tensor, prev: torch.
                  max_radius: float = 5.0, straight_long: float = 0.25, stretch_side: int = 16, long_sides: Sequence[int] = (11, 16, 24, 32, 40, 48, 56, 64),
                  stretch: Optional[Callable] = None, long_span: int = 8, max_cos_long: float = 0.8,
                  max_cos_long_smooth: float = 0.68, gap: int = 2, gap_span: int = 10, corner_gap: int = 3,
-                 straight_window: float = 0.22, min_loop_sure: int = 64, small_side: int = 11
+                 straight_window: float = 0.22, min_loop_sure: int = 64, small_side: int = 11, separate: int = 1,
+                 separate_sides: Sequence[int] = (80, 96, 128), bend: float = 1.5
                  ) -> Tuple[torch.Tensor, Optional[Tuple[torch.Tensor, torch.Tensor, torch.Tensor]]]:
     """Crossing parameters ``t`` with the sharp corners restored: at each corner of the loops
     (a turn of the chords 3 nodes either side with cosine below ``max_cos`` on the crack
@@ -277,6 +278,14 @@ def _corner_tips(a: torch.Tensor, d: torch.Tensor, t: torch.Tensor, prev: torch.
     candidate along the loop. On loops below ``min_loop_sure`` crossings (down to ``min_loop``)
     a corner needs both sides straight over ``small_side`` nodes (a small disc's arcs look
     straight over a few).
+    With ``separate`` (default 1), each accepted corner's side lines are then checked against
+    the pixel classes (:func:`_separating_lines`): the longest window of ``long_sides`` and
+    ``separate_sides`` (within the room to the next candidate) whose foreground and background
+    pixel centres a line separates, one window short of it, and where that is longer than the
+    least-squares window the middle of the separating lines replaces the side's line; only
+    sides whose smoothed crossings lie within ``bend`` px of their line over the first such
+    window are searched (a near-axis side is one run over 24 crossings: its direction is known
+    only across its steps).
 
     Returns ``(t, corners)``: ``corners`` is ``(node (C,), tip (C, 2), convex (C,), moved (C,))``
     of the corners found (for :func:`_insert_tips`; ``moved``: the band vertex ``stretch`` moved
@@ -352,7 +361,7 @@ def _corner_tips(a: torch.Tensor, d: torch.Tensor, t: torch.Tensor, prev: torch.
         from_long = torch.zeros(c.shape[0], dtype=torch.bool, device=c.device)
     if c.numel() == 0:
         return t, None
-    steps = max([side[1], zone, gap_span] + list(long_sides))
+    steps = max([side[1], zone, gap_span] + list(long_sides) + (list(separate_sides) if separate else []))
     back, fwd = [c], [c]
     for _ in range(steps + corner_gap):
         back.append(prev[back[-1]])
@@ -411,6 +420,73 @@ def _corner_tips(a: torch.Tensor, d: torch.Tensor, t: torch.Tensor, prev: torch.
         j = torch.arange(gap_span + 1, steps + corner_gap + 1, device=a.device, dtype=p.dtype)
         return torch.where(hit, j, torch.full_like(j, big)).min(1).values - corner_gap
 
+    def separated(mu1, v1, mu2, v2, L1, L2, reach, back, fwd):
+        # each side's line refitted to the pixel centres its crossings separate: a half-plane
+        # covers half of a pixel exactly when it holds the pixel's centre, so the classes
+        # bound the side's line (beyond the pixels near the corner, which the other side cuts
+        # too). The window is the longest (up to the next corner candidate) whose classes a
+        # line still separates: a near-axis side's direction is only known across its steps
+        ends_s = [L for L in sorted(set(side_ends) | set(separate_sides))]
+        Ks = torch.arange(side[0], ends_s[-1] + 1, device=a.device)
+        Lw = torch.tensor(ends_s, dtype=p.dtype, device=a.device)
+        for _ in range(separate):
+            den_ = v1[:, 0] * v2[:, 1] - v1[:, 1] * v2[:, 0]
+            dm_ = mu2 - mu1
+            sol_ = (dm_[:, 0] * v2[:, 1] - dm_[:, 1] * v2[:, 0]) / torch.where(den_.abs() > 1e-9, den_, torch.ones_like(den_))
+            tip_ = mu1 + sol_[:, None] * v1
+            excl = 1.42 / den_.abs().clamp(0.3, 1.0)       # the other side may cut a pixel this near the tip
+            new = []
+            for walk, mu_, v_, L_, reach_ in ((back, mu1, v1, L1, reach[0]), (fwd, mu2, v2, L2, reach[1])):
+                # only sides with room for a window two steps beyond the least-squares one
+                i0 = torch.searchsorted(Lw, L_.contiguous())
+                i1 = torch.searchsorted(Lw, torch.maximum(reach_, L_).contiguous(), right=True) - 1
+                cand = i1 >= i0 + 2
+                # ... and straight over it: its smoothed crossings within `bend` px of the
+                # least-squares line (a near-axis side is off it by its next step, about a
+                # pixel; a curved side by more; cheap, before the searches)
+                i2 = (i0 + 2).clamp(max=len(ends_s) - 1)
+                n2 = int(Lw[i2[cand]].max()) if bool(cand.any()) else side[0]      # one host read
+                q_ = p[torch.stack(walk[side[0]:n2 + 1], 1)] - mu_[:, None]
+                off_ = (q_[..., 0] * v_[:, None, 1] - q_[..., 1] * v_[:, None, 0]).abs()
+                off_ = torch.where(Ks[None, :n2 + 1 - side[0]] <= Lw[i2][:, None], off_, torch.zeros_like(off_))
+                cand &= off_.amax(1) <= bend
+                sub = cand.nonzero().squeeze(1)
+                if sub.numel() == 0:
+                    new.append((mu_, v_))
+                    continue
+                i0, i1 = i0[sub], i1[sub]
+                Kmax = int(Lw[i1].max()) if sub.numel() else side[0]       # one host read: the stack's depth
+                nodes_ = torch.stack([w_[sub] for w_ in walk[side[0]:Kmax + 1]], 1)                  # (S, K)
+                fgp = a[nodes_]
+                bgp = fgp + d[nodes_]
+                tip_s = tip_[sub]
+                far = torch.minimum((fgp - tip_s[:, None]).norm(dim=-1), (bgp - tip_s[:, None]).norm(dim=-1)) > excl[sub, None]
+                Kr = Ks[:nodes_.shape[1]]
+                mu_s, v_s = mu_[sub], v_[sub]
+
+                def fit(ix):
+                    valid = (Kr[None] <= Lw[ix][:, None]) & far
+                    m2, w2, gap_ = _separating_lines(fgp, bgp, valid, mu_s, v_s)   # v_: along the loop, background on its right
+                    return m2, w2, (gap_ > 0) & (valid.sum(1) >= 6)
+
+                # the longest separable window by bisection (separability only shrinks as a window grows)
+                lo, hi = i0.clone(), i1.clone()
+                for _ in range(max(1, math.ceil(math.log2(len(ends_s))))):
+                    mid = torch.div(lo + hi + 1, 2, rounding_mode="floor")
+                    sep = fit(mid)[2] & (lo < hi)
+                    lo = torch.where(sep, mid, lo)
+                    hi = torch.where(sep | (lo >= hi), hi, mid - 1)
+                # one window short of the longest (past a convex bend the classes stay separable
+                # for a pixel or two), and only where it is longer than the least-squares one
+                pick = lo - 1
+                m2, w2, good = fit(pick.clamp(min=0))
+                good = good & (pick > i0)
+                mu_n = mu_.index_copy(0, sub, torch.where(good[:, None], m2, mu_s))
+                v_n = v_.index_copy(0, sub, torch.where(good[:, None], w2, v_s))
+                new.append((mu_n, v_n))
+            (mu1, v1), (mu2, v2) = new
+        return mu1, v1, mu2, v2
+
     mu1, v1, r1, L1 = longest(back, room(back), -1.0)   # before the corner (travelled toward it)
     mu2, v2, r2, L2 = longest(fwd, room(fwd), 1.0)      # after it
     den = v1[:, 0] * v2[:, 1] - v1[:, 1] * v2[:, 0]                             # > 0: a left turn, convex
@@ -439,6 +515,19 @@ def _corner_tips(a: torch.Tensor, d: torch.Tensor, t: torch.Tensor, prev: torch.
     c, tip, den, v1, v2, reach_tip, ok = c[ok], tip[ok], den[ok], v1[ok], v2[ok], reach_tip[ok], ok[ok]
     # only corners with long straight sides on both hands may reach beyond the band
     sure = torch.minimum(L1[ok_idx], L2[ok_idx]) >= stretch_side
+    if separate:
+        mu1s, v1s, mu2s, v2s = separated(mu1[ok_idx], v1, mu2[ok_idx], v2, L1[ok_idx], L2[ok_idx],
+                                         [room(back), room(fwd)], back, fwd)
+        den_s = v1s[:, 0] * v2s[:, 1] - v1s[:, 1] * v2s[:, 0]
+        dm = mu2s - mu1s
+        sol = (dm[:, 0] * v2s[:, 1] - dm[:, 1] * v2s[:, 0]) / torch.where(den_s.abs() > 1e-9, den_s, torch.ones_like(den_s))
+        tip_s = mu1s + sol[:, None] * v1s
+        # the refit keeps the corner's kind and stays near it
+        keep_s = ((den_s > 0) == (den > 0)) & (den_s.abs() > 0.1) & ((tip_s - p[c]).norm(dim=1) < reach_tip + 0.5)
+        tip = torch.where(keep_s[:, None], tip_s, tip)
+        v1 = torch.where(keep_s[:, None], v1s, v1)
+        v2 = torch.where(keep_s[:, None], v2s, v2)
+        den = torch.where(keep_s, den_s, den)
 
     # the zone's nodes, (C, 2 zone + 1)
     nodes = torch.stack([back[j] for j in range(zone, 0, -1)] + [c] + [fwd[j] for j in range(1, zone + 1)], 1)
@@ -473,6 +562,51 @@ def _corner_tips(a: torch.Tensor, d: torch.Tensor, t: torch.Tensor, prev: torch.
     out = t.clone()
     out[nodes[use]] = tn[use].clamp(0.02, 0.98)
     return out, (c[ok], tip[ok], den[ok] > 0, moved[ok])
+
+
+
+def _separating_lines(fgp: torch.Tensor, bgp: torch.Tensor, valid: torch.Tensor, mu: torch.Tensor, v: torch.Tensor,
+                      span: float = 0.3, levels: int = 4, n: int = 17
+                      ) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A line through the middle of those that separate the foreground pixel centres
+    ``fgp (C, K, 2)`` from the background ones ``bgp`` (the points ``valid (C, K)``), or the line
+    ``(mu (C, 2), v (C, 2))`` itself where it separates them (background on the right of ``v``).
+    A half-plane covers at least half of a pixel exactly when it holds the pixel's centre, so
+    the lines a straight side's mask allows are those that separate its pixel centres. The
+    slopes ``b`` (about ``v``) of the separating lines form an interval, bracketed on grids of
+    ``n`` slopes within ``+-span``, ``levels`` times finer each time; the line takes the middle
+    slope and, at it, the offset midway between the classes. Returns ``(mu', v', margin (C,))``:
+    the margin (half the gap between the classes across the line) is <= 0 where no line
+    separates them."""
+    nrm = torch.stack([v[:, 1], -v[:, 0]], 1)
+    rel_f, rel_b = fgp - mu[:, None], bgp - mu[:, None]
+    uf, wf = (rel_f * v[:, None]).sum(-1), (rel_f * nrm[:, None]).sum(-1)
+    ub, wb = (rel_b * v[:, None]).sum(-1), (rel_b * nrm[:, None]).sum(-1)
+    inf = torch.tensor(float("inf"), dtype=fgp.dtype, device=fgp.device)
+    grid = torch.linspace(-1.0, 1.0, n, dtype=fgp.dtype, device=fgp.device)
+    idx = torch.arange(n, device=fgp.device)
+    lo_b = torch.full((fgp.shape[0],), -span, dtype=fgp.dtype, device=fgp.device)
+    hi_b = -lo_b
+    for _ in range(levels):
+        b = 0.5 * (lo_b + hi_b)[:, None] + 0.5 * (hi_b - lo_b)[:, None] * grid[None]          # (C, n)
+        hi = torch.where(valid[:, None], wf[:, None] - b[..., None] * uf[:, None], -inf).amax(-1)
+        lo = torch.where(valid[:, None], wb[:, None] - b[..., None] * ub[:, None], inf).amin(-1)
+        feas = lo > hi
+        k = (lo - hi).argmax(1)                  # none separates: about the least overlap
+        first = torch.where(feas.any(1), torch.where(feas, idx, n).amin(1), k)
+        last = torch.where(feas.any(1), torch.where(feas, idx, -1).amax(1), k)
+        st = (hi_b - lo_b) / (n - 1)
+        lo_b, hi_b = b.gather(1, first[:, None]).squeeze(1) - st, b.gather(1, last[:, None]).squeeze(1) + st
+    slope = 0.5 * (lo_b + hi_b)
+    hi = torch.where(valid, wf - slope[:, None] * uf, -inf).amax(-1)
+    lo = torch.where(valid, wb - slope[:, None] * ub, inf).amin(-1)
+    margin = 0.5 * (lo - hi) / torch.sqrt(1 + slope * slope)
+    v2 = v + slope[:, None] * nrm
+    v2 = v2 / v2.norm(dim=1, keepdim=True)
+    mu2 = mu + (0.5 * (lo + hi))[:, None] * nrm
+    # the given line kept where it puts every centre on its side
+    fits = (torch.where(valid, wf, -inf).amax(-1) < 0) & (torch.where(valid, wb, inf).amin(-1) > 0)
+    return torch.where(fits[:, None], mu, mu2), torch.where(fits[:, None], v, v2), margin
 
 
 def _walk(step: torch.Tensor, n: int) -> torch.Tensor:

@@ -353,6 +353,44 @@ def score(cases: List[Dict[str, Any]], polylines: List[Any]) -> List[Dict[str, A
     return [metrics.score_case(pl, c["truth"]) for c, pl in zip(cases, polylines)]
 
 
+#: the failure types of :func:`failure_type`, in the order the misses table lists them
+FAILURES = ("extra loop", "merged or missing", "open chain", "off by more than 10%")
+
+
+def failure_type(s: Dict[str, Any]) -> str:
+    """Why a case scored wrong, from its :func:`metrics.score_case` dict: ``"right"``; an open
+    chain; more closed curves than the truth (a stroke cut in two, a speck, a loop at a corner:
+    "extra loop"); fewer (two curves merged, a counter filled, a small component missed:
+    "merged or missing"); or as many as the truth but one of them not matched within 10% of the
+    diagonal (a tip or a stroke cut off, a curve drawn elsewhere)."""
+    if s["topology_ok"]:
+        return "right"
+    if s["n_open"] > 0:
+        return "open chain"
+    if s["n_closed"] > s["n_truth"]:
+        return "extra loop"
+    if s["n_closed"] < s["n_truth"]:
+        return "merged or missing"
+    return "off by more than 10%"
+
+
+def print_misses(cases, scores) -> None:
+    """The wrong cases counted by kind, noise level and :func:`failure_type`."""
+    kinds = list(dict.fromkeys(c["kind"] for c in cases))
+    noises = sorted({c["noise"] for c in cases}, key=lambda s: float(s[1:]))
+    print("## misses by failure type\n")
+    print("cells: extra loop / merged or missing / open chain / off by more than 10% (cases)\n")
+    print("| kind | " + " | ".join(f"noise {n[1:]}%" for n in noises) + " |")
+    print("|---|" + "---:|" * len(noises))
+    for k in kinds + [None]:
+        cells = []
+        for n in noises:
+            ft = [failure_type(s) for c, s in zip(cases, scores) if (k is None or c["kind"] == k) and c["noise"] == n]
+            cells.append("/".join(str(ft.count(f)) for f in FAILURES) if ft else "")
+        print(f"| {'**all**' if k is None else k} | " + " | ".join(cells) + " |")
+    print()
+
+
 def _cell(rows) -> str:
     """``right/n H C``: the right-topology count, median Hausdorff and median Chamfer (% of the
     truth's diagonal) of the scores ``rows``."""
@@ -399,6 +437,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--cases", default=None, help="public cases folder (default: ../shared/cases)")
     ap.add_argument("--peers", action="store_true", help="also score NN-crust and shapely.concave_hull")
     ap.add_argument("--json", default=None, help="write every case's name and score here")
+    ap.add_argument("--misses", action="store_true", help="also count the wrong cases by failure type "
+                                                          "(extra loop, merged or missing, open chain, off by >10%%)")
     add_run_args(ap, "set")
     return ap
 
@@ -436,6 +476,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     seconds = time.perf_counter() - t0
     scores = score(cases, [r.polylines for r in results])
     print_summary("torch_isc", cases, scores, seconds)
+    if args.misses:
+        print_misses(cases, scores)
     if args.peers:
         import evaluate_cases as ev
         for name, fn in ev.PEERS.items():
@@ -448,7 +490,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             print_summary(name, cases, score(cases, pls), time.perf_counter() - t1)
     if args.json:
         rows = [dict(name=c["name"], kind=c["kind"], noise=c["noise"], glyph=c.get("glyph"), font=c.get("font"), topology_ok=bool(s["topology_ok"]),
-                     hausdorff=float(s["hausdorff"]), chamfer=float(s["chamfer"]), n_closed=int(s["n_closed"])) for c, s in zip(cases, scores)]
+                     hausdorff=float(s["hausdorff"]), chamfer=float(s["chamfer"]), n_closed=int(s["n_closed"]),
+                     n_open=int(s["n_open"]), n_truth=int(s["n_truth"]), failure=failure_type(s)) for c, s in zip(cases, scores)]
         torch_isc.io.atomic_write(args.json, json.dumps(rows, indent=1))
     return 0
 

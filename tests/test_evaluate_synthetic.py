@@ -41,3 +41,40 @@ def test_new_kinds(kind, n):
         c0 = np.asarray(c["truth"]["curves"][0]).mean(0)
         c1 = np.asarray(c["truth"]["curves"][1]).mean(0)
         assert math.isclose(np.hypot(*(c1 - c0)) - 2.0, 3 * 2 * math.pi / m, rel_tol=1e-2)
+
+
+def _ring(cx, r, n=64):
+    t = np.linspace(0, 2 * math.pi, n, endpoint=False)
+    return np.stack([cx + r * np.cos(t), r * np.sin(t)], 1)
+
+
+@pytest.mark.parametrize("recon,expected", [
+    ([(0.0, 1.0), (3.0, 1.0)], "right"),
+    ([(0.0, 1.0), (3.0, 1.0), (6.0, 0.3)], "extra loop"),            # a speck beside the two
+    ([(1.5, 2.6)], "merged or missing"),                            # one curve round both
+    ([(0.0, 1.0), (3.0, 1.6)], "off by more than 10%"),             # as many, one drawn elsewhere
+])
+def test_failure_type_of_scored_cases(recon, expected):
+    from torch_isc import metrics
+    truth = {"curves": [_ring(0.0, 1.0).tolist(), _ring(3.0, 1.0).tolist()], "n_components": 2}
+    pls = [{"points": _ring(cx, r), "closed": True} for cx, r in recon]
+    assert es.failure_type(metrics.score_case(pls, truth)) == expected
+
+
+def test_failure_type_open_chain_first():
+    # an open chain is named before the counts (it also makes the closed count short)
+    s = dict(topology_ok=False, n_open=1, n_closed=1, n_truth=2)
+    assert es.failure_type(s) == "open chain"
+    assert es.failure_type(dict(s, n_open=0, n_closed=3)) == "extra loop"
+
+
+def test_print_misses_counts_by_type(capsys):
+    cases = [dict(kind="a", noise="n1")] * 3 + [dict(kind="b", noise="n0")]
+    ok = dict(topology_ok=True, n_open=0, n_closed=1, n_truth=1)
+    scores = [dict(ok, topology_ok=False, n_closed=2), dict(ok, topology_ok=False, n_closed=2), ok,
+              dict(ok, topology_ok=False, n_closed=0)]
+    es.print_misses(cases, scores)
+    rows = {ln.split("|")[1].strip(): [c.strip() for c in ln.split("|")[2:-1]]
+            for ln in capsys.readouterr().out.splitlines() if ln.startswith("| ") and "kind" not in ln}
+    assert rows["a"] == ["", "2/0/0/0"] and rows["b"] == ["0/1/0/0", ""]
+    assert rows["**all**"] == ["0/1/0/0", "2/0/0/0"]

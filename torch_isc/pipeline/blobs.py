@@ -61,6 +61,8 @@ WINDOW = 16
 #: from there to the point is below this (the blob lies off the curve's side, not on its
 #: continuation past a gap); cos 41 degrees
 CONTINUES = 0.75
+#: steps of descent toward the true nearest outside point (the neighbour lists are approximate)
+NEAREST_DESCENT = 4
 
 
 def find_blobs(points: torch.Tensor, point_item: torch.Tensor, k: int, min_points: int,
@@ -180,6 +182,17 @@ def find_blobs(points: torch.Tensor, point_item: torch.Tensor, k: int, min_point
             # band is one-sided and round like a satellite). From each point's own nearest
             # outside point o, whose curve sees a point off its side along its normal
             o = nbr.gather(1, jo[:, None]).squeeze(1)
+            # the approximate neighbour lists can miss the true nearest outside point (a ring of
+            # 8 points 11 spacings off a dense circle gets circle points 12 spacings along): a
+            # few steps of descent along o's own neighbours, which lie on o's curve
+            for _ in range(NEAREST_DESCENT):
+                no = nbr[o]
+                dn = torch.where(fin[o] & (lab[no] != lab[:, None]), ((x[no] - x[:, None, :]) ** 2).sum(-1),
+                                 torch.full_like(d2[o], float("inf")))
+                dmin, j = dn.min(1)
+                closer = dmin < ((xo - x) ** 2).sum(-1)
+                o = torch.where(closer, no.gather(1, j[:, None]).squeeze(1), o)
+                xo = x[o]
             up = x - xo
             up = up / up.norm(dim=1, keepdim=True).clamp_min(torch.finfo(dt).tiny)
             hw = has.to(dt)

@@ -48,7 +48,7 @@ __all__ = ["BandConfig", "band_marks", "wrap_fraction", "spike_vertices", "band_
 class BandConfig:
     """The band stage (flat keys of configs/default.yaml)."""
     #: rounds of refinement around the curve before the final refit; 0 disables the stage
-    band_levels: int = knob(2, ge=0)
+    band_levels: int = knob(1, ge=0)
     #: rings of neighbours of the crossed triangles split with them
     band_rings: int = knob(1, ge=0)
     #: a triangle whose longest edge is below this many noise widths is not split

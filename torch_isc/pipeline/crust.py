@@ -165,8 +165,8 @@ class CrustCache:
 
 def _starts(point_item: torch.Tensor, B: int) -> torch.Tensor:
     """``(B,)`` the first point of each item (points packed item by item)."""
-    cnt = torch.zeros(B, dtype=torch.long, device=point_item.device).index_add_(0, point_item, torch.ones_like(point_item))
-    return torch.cumsum(cnt, 0) - cnt
+    from torch_isc.core.segments import first_index
+    return first_index(torch.zeros(B, dtype=torch.long, device=point_item.device).index_add_(0, point_item, torch.ones_like(point_item)))
 
 
 def crust_parity(ws: "WorkingSet", noise_tolerances: float, max_length: float, noise_spacings: float = 0.1,

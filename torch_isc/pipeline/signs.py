@@ -607,6 +607,7 @@ class IsingSigns:
 
     def __init__(self, topology: TopologyConfig, evidence: "EvidenceConfig", seed: int = 0):
         self.cfg, self.evidence, self.seed = topology, evidence, seed
+        self._crust = None                                # the crust of the current solve (crust.CrustCache)
 
     def signs(self, ws: "WorkingSet", ev: "Evidence", level: int) -> torch.Tensor:
         from torch_isc.pipeline.evidence import local_fits
@@ -623,7 +624,7 @@ class IsingSigns:
                 H = H + cpl
             if self.cfg.crust_weight > 0:
                 from torch_isc.pipeline.crust import CrustCache, crust_stage
-                if level == 0 or getattr(self, "_crust", None) is None:
+                if level == 0 or self._crust is None:
                     self._crust = CrustCache()            # a new solve (the source serves one solve)
                 H = crust_stage(ws, H, self.cfg, self._crust)
             fixed = mesh.is_boundary_vert

@@ -80,6 +80,7 @@ def main(argv=None) -> dict:
         fd = (area_of(p0 + e) - area_of(p0 - e)) / (2 * eps)
         worst = max(worst, abs(fd - float(grad[i, j])) / max(1e-3, abs(fd)))
     # points move the curve outward along their normals: the area grows, so dA/dp points outward
+    # (up to the smoothing's small negative side lobes at concave necks)
     outward = float(((grad * p0).sum(1) > 0).double().mean())
     draw(args.png, p0.numpy(), grad.numpy(), res.polylines)
     total = float(grad.norm(dim=1).sum())
@@ -89,7 +90,7 @@ def main(argv=None) -> dict:
     print(f"area {float(A):.4f}; sum |dA/dp| {total:.3f} (perimeter {perim:.3f}); "
           f"{100 * outward:.0f}% of the gradients point outward; finite differences: worst relative error {worst:.1e} "
           f"over {len(idx)} coordinates; wrote {args.png}")
-    return {"area": float(A), "perimeter": perim, "grad_norm_sum": total, "outward_fraction": outward, "fd_worst_rel": worst, "grad": grad, "png": args.png}
+    return {"area": float(A), "perimeter": perim, "grad_norm_sum": total, "outward_fraction": outward, "fd_worst_rel": worst, "grad": grad, "points": p0, "png": args.png}
 
 
 if __name__ == "__main__":

@@ -30,5 +30,10 @@ def test_area_gradient_example(tmp_path):
     out = load("area_gradient").main([str(png), "--points", "60", "--checks", "6"])
     assert png.exists() and png.stat().st_size > 1000
     assert out["fd_worst_rel"] < 1e-4
-    assert out["outward_fraction"] == 1.0
+    # a smoothed fit's influence of one point can dip slightly below zero where the smoothing
+    # holds the curve off the data (the concave necks): nearly all outward, none inward by much
+    assert out["outward_fraction"] >= 0.95
+    g = out["grad"]
+    radial = (g * out["points"]).sum(1) / out["points"].norm(dim=1)
+    assert float(radial.min()) > -0.25 * float(g.norm(dim=1).median())
     assert out["grad_norm_sum"] == pytest.approx(out["perimeter"], rel=0.1)

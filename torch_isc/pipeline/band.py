@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Optional
 
 import torch
 
@@ -50,6 +50,10 @@ class BandConfig:
     """The band stage (flat keys of configs/default.yaml)."""
     #: rounds of refinement around the curve before the final refit; 0 disables the stage
     band_levels: int = knob(2, ge=0)
+    #: rounds after the first refine only items whose estimated noise is above this fraction of
+    #: their tolerance: on clean data a finer band only puts vertices into the gaps between
+    #: samples, where the curve's side of each is a coin toss the refit then bends round
+    band_noisy: float = knob(0.1, ge=0)
     #: rings of neighbours of the crossed triangles split with them
     band_rings: int = knob(1, ge=0)
     #: a triangle whose longest edge is below this many noise widths is not split
@@ -89,16 +93,21 @@ class BandConfig:
         check_section(self)
 
 
-def band_marks(ws: "WorkingSet", cfg: BandConfig) -> torch.Tensor:
+def band_marks(ws: "WorkingSet", cfg: BandConfig, max_triangles: Optional[int] = None) -> torch.Tensor:
     """``(T,)`` bool: the triangles the zero set crosses plus ``band_rings`` rings of
     neighbours, longer (longest edge) than ``band_min_size`` times the item's noise, in items
-    that have a curve."""
+    that have a curve; none in an item whose mesh could then exceed ``max_triangles`` (a split
+    at most quadruples the marked triangles and their neighbours, as in the loop)."""
     with torch.no_grad():
         m = ws.mesh
         marked = crossed_triangles(m, ws.values, cfg.band_rings)
         longest = m.kernel.longest_edge(m.verts.detach()[m.faces])
         fi = m.face_item
-        return marked & (longest > cfg.band_min_size * ws.noise[fi]) & ~ws.flat[fi]
+        marked = marked & (longest > cfg.band_min_size * ws.noise[fi]) & ~ws.flat[fi]
+        if max_triangles is not None:
+            grow = segment_sum(marked.long() * 9, fi, ws.num_items)
+            marked = marked & ((m.faces_per_item + grow) <= max_triangles)[fi]
+        return marked
 
 
 def wrap_fraction(mesh, values: torch.Tensor) -> torch.Tensor:
@@ -150,10 +159,12 @@ def _flip_spikes(ws: "WorkingSet", values: torch.Tensor, cfg: BandConfig) -> tor
 _DENSE_BUDGET = 2 ** 24
 
 
-def band_stage(ws: "WorkingSet", cfg: BandConfig, geometry: GeometryConfig, slack: torch.Tensor) -> "WorkingSet":
+def band_stage(ws: "WorkingSet", cfg: BandConfig, geometry: GeometryConfig, slack: torch.Tensor,
+               max_triangles: Optional[int] = None) -> "WorkingSet":
     """The working set with its mesh refined around the curve and its magnitudes refitted
     (signs of every old vertex kept; new vertices take the sign of ``f`` where they sit).
-    ``slack (B,)``: the crossing term's dead zone (the tolerance each item was tested at)."""
+    ``slack (B,)``: the crossing term's dead zone (the tolerance each item was tested at);
+    ``max_triangles``: no item's mesh grows beyond it."""
     if cfg.band_levels <= 0 or ws.num_items == 0:
         return ws
     gcfg = dataclasses.replace(geometry, smoothness=cfg.band_smoothness, lbfgs_iterations=cfg.band_iterations)
@@ -165,7 +176,9 @@ def band_stage(ws: "WorkingSet", cfg: BandConfig, geometry: GeometryConfig, slac
             # spike toward it (public circle_n2: Hausdorff 1.2% -> 5.7% without this)
             ws = _with_values(ws, _refit_any(ws, cfg, gcfg, slack))
             fitted = True
-        marked = band_marks(ws, cfg)
+        marked = band_marks(ws, cfg, max_triangles)
+        if level > 0:
+            marked = marked & (ws.noise > cfg.band_noisy * slack)[ws.mesh.face_item]
         if not bool(marked.any()):
             break
         ws = ws.follow(subdivide(ws.mesh, marked))

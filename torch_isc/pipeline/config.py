@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import re
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Dict, Iterable, List, Mapping, Optional, Union
@@ -23,7 +24,7 @@ from typing import Any, Dict, Iterable, List, Mapping, Optional, Union
 from torch_isc._helpers import decode_text, is_regular_file, one_line
 from torch_isc.pipeline.band import BandConfig
 from torch_isc.pipeline.evidence import EvidenceConfig
-from torch_isc.pipeline.knobs import ConfigError, check_bounds, check_section, knob
+from torch_isc.pipeline.knobs import Base60Text, ConfigError, check_bounds, check_section, knob
 from torch_isc.pipeline.noise import NoiseConfig
 from torch_isc.pipeline.relax import RelaxConfig
 from torch_isc.pipeline.signs import TopologyConfig
@@ -33,10 +34,13 @@ from torch_isc.pipeline.values import GeometryConfig
 __all__ = ["ReconstructConfig", "ConfigError", "MeshConfig", "LimitsConfig", "RunConfig", "NoiseConfig",
            "EvidenceConfig", "TopologyConfig", "GeometryConfig", "BandConfig", "TestConfig", "RelaxConfig", "load_config",
            "parse_overrides", "from_dict", "flat_keys", "read_config_mapping", "config_hash", "UPPER_BOUNDS",
-           "MAX_CONFIG_BYTES", "initial_triangles"]
+           "MAX_CONFIG_BYTES", "MAX_CONFIG_NODES", "initial_triangles"]
 
 #: The largest config file read (bytes): a config is a few dozen keys.
 MAX_CONFIG_BYTES = 1 << 20
+#: The most YAML nodes (keys, values, list items) a config may hold: parsing a 1 MiB list of
+#: numbers took 37 s; the defaults hold about 200 nodes.
+MAX_CONFIG_NODES = 10_000
 
 
 @dataclass
@@ -187,6 +191,13 @@ def from_dict(d: Mapping[str, Any], source: str = "config", base: Optional[Recon
     if not isinstance(d, Mapping):
         raise ConfigError(f"{source}: expected a mapping of keys to values, got {type(d).__name__}")
     cur = (base or ReconstructConfig()).to_dict()
+    given: Dict[str, str] = {}         # flat key -> how it was set here: once only
+
+    def _once(key: str, how: str) -> None:
+        if key in given:
+            raise ConfigError(f"{source}: config key '{key}' is set twice ({given[key]} and {how})")
+        given[key] = how
+
     for k, v in d.items():
         if not isinstance(k, str):
             raise ConfigError(f"{source}: config keys must be strings, got {type(k).__name__}")
@@ -196,8 +207,10 @@ def from_dict(d: Mapping[str, Any], source: str = "config", base: Optional[Recon
             for kk, vv in v.items():
                 if FLAT.get(kk) != k:
                     raise ConfigError(f"{source}: unknown config key '{k}.{kk}'")
+                _once(kk, f"as '{k}.{kk}'")
                 cur[k][kk] = vv
         elif k in FLAT:
+            _once(k, "as a flat key")
             cur[FLAT[k]][k] = v
         else:
             raise ConfigError(f"{source}: unknown config key '{k}'")
@@ -213,18 +226,69 @@ class _AliasError(Exception):
     pass
 
 
-def _safe_yaml(text: str):
-    """``yaml.safe_load`` without aliases: ``*name`` references are rejected, so a document
-    cannot expand beyond its own size (the "billion laughs" of nested aliases)."""
+class _TooManyNodes(Exception):
+    pass
+
+
+class _DuplicateKeyError(Exception):
+    def __init__(self, key: Any, line: int):
+        self.key, self.line = key, line
+
+
+#: YAML 1.1 base-60 integers and floats (``1:30``, ``-1:30:00.5``), which PyYAML resolves to numbers
+_BASE60 = re.compile(r"^[-+]?[0-9][0-9_]*(?::[0-5]?[0-9])+(?:\.[0-9_]*)?$")
+_BASE60_TAG = "tag:torch-isc,2026:base60"
+_LOADER = None
+
+
+def _loader_class():
+    """A ``SafeLoader`` without aliases, that refuses duplicate keys (PyYAML keeps the last
+    silently) and keeps base-60 scalars as :class:`Base60Text` (refused with the key named)."""
+    global _LOADER
+    if _LOADER is not None:
+        return _LOADER
     import yaml
 
     class _Loader(yaml.SafeLoader):
+        nodes = 0
+
         def compose_node(self, parent, index):
             if self.check_event(yaml.AliasEvent):
                 raise _AliasError()
+            self.nodes += 1
+            if self.nodes > MAX_CONFIG_NODES:      # PyYAML takes ~70 us a node: bounds the time too
+                raise _TooManyNodes()
             return super().compose_node(parent, index)
 
-    loader = _Loader(text)
+        def construct_mapping(self, node, deep=False):
+            if isinstance(node, yaml.MappingNode):
+                seen = set()
+                for key_node, _ in node.value:
+                    if not isinstance(key_node, yaml.ScalarNode):
+                        continue          # an unhashable key: PyYAML's own error follows
+                    key = self.construct_object(key_node, deep=deep)
+                    try:
+                        dup = key in seen
+                        seen.add(key)
+                    except TypeError:
+                        continue
+                    if dup:
+                        raise _DuplicateKeyError(key, key_node.start_mark.line + 1)
+            return super().construct_mapping(node, deep=deep)
+
+    # the base-60 resolver goes first so that it wins over PyYAML's int and float ones
+    _Loader.yaml_implicit_resolvers = {
+        ch: [(_BASE60_TAG, _BASE60)] + list(v) if ch in "+-0123456789" else list(v)
+        for ch, v in yaml.SafeLoader.yaml_implicit_resolvers.items()}
+    _Loader.add_constructor(_BASE60_TAG, lambda loader, node: Base60Text(loader.construct_scalar(node)))
+    _LOADER = _Loader
+    return _Loader
+
+
+def _safe_yaml(text: str):
+    """``yaml.safe_load`` without aliases: ``*name`` references are rejected, so a document
+    cannot expand beyond its own size (the "billion laughs" of nested aliases)."""
+    loader = _loader_class()(text)
     try:
         return loader.get_single_data()
     finally:
@@ -238,6 +302,10 @@ def _parse_yaml(text: str, where: str):
         return _safe_yaml(text)
     except _AliasError:
         raise ConfigError(f"{where}: YAML aliases (*name) are not allowed in a config") from None
+    except _TooManyNodes:
+        raise ConfigError(f"{where}: more than {MAX_CONFIG_NODES} YAML values (a config is a few dozen keys)") from None
+    except _DuplicateKeyError as e:
+        raise ConfigError(f"{where}: line {e.line}: duplicate key {_short_key(e.key)} (each key may be set once)") from None
     except RecursionError:
         raise ConfigError(f"{where}: YAML nested too deeply") from None
     except yaml.YAMLError as e:
@@ -246,6 +314,11 @@ def _parse_yaml(text: str, where: str):
         # PyYAML's constructors raise these for values of a valid document: "2001-13-45",
         # "!!float abc", "!!timestamp x", an integer of more than 4300 digits
         raise ConfigError(f"{where}: a YAML value cannot be read ({_first_line(one_line(e, type(e).__name__), 120)})") from None
+
+
+def _short_key(k: Any) -> str:
+    r = repr(k)
+    return r if len(r) <= 60 else r[:57] + "..."
 
 
 def _first_line(s: str, limit: int = 200) -> str:
@@ -312,12 +385,16 @@ def parse_overrides(items: Iterable[str]) -> Dict[str, Any]:
         if "=" not in it:
             raise ConfigError(f"--set {shown}: expected key=value")
         k, v = it.split("=", 1)
+        if not k.strip():
+            raise ConfigError(f"--set {shown}: empty key")
+        if not v.strip():          # YAML reads "" as null: say what happened
+            raise ConfigError(f"--set {shown}: empty value")
         if len(v) > MAX_CONFIG_BYTES:
             raise ConfigError(f"--set {shown}: value longer than {MAX_CONFIG_BYTES} characters")
         try:
             out[k.strip()] = _parse_yaml(v, f"--set {shown}")
         except ConfigError as e:
-            if "aliases" in str(e) or "deeply" in str(e) or "cannot be read" in str(e):
+            if "aliases" in str(e) or "deeply" in str(e) or "cannot be read" in str(e) or "duplicate key" in str(e):
                 raise
             raise ConfigError(f"--set {shown}: value is not a YAML scalar") from None
     return out

@@ -11,11 +11,32 @@ import dataclasses
 import math
 from typing import Any, Optional, Sequence
 
-__all__ = ["ConfigError", "knob", "check_section", "check_bounds", "INT_LIMIT"]
+__all__ = ["ConfigError", "knob", "check_section", "check_bounds", "INT_LIMIT", "Base60Text", "non_ascii_digit"]
 
 
 class ConfigError(ValueError):
     """A configuration key or value that cannot be used."""
+
+
+class Base60Text(str):
+    """A YAML 1.1 base-60 scalar (``1:30``), kept as its text by the config loader: PyYAML
+    would read it as 90, which nobody writing a tolerance means. Refused with the key named."""
+
+
+def non_ascii_digit(text: str) -> Optional[str]:
+    """The first digit of ``text`` that is not ASCII 0-9 (Arabic-Indic, full-width, ...), or None.
+    Python's ``float``/``int`` read them; YAML, numpy and other tools do not, so they are refused."""
+    if text.isascii():
+        return None
+    for ch in text:
+        if ch.isdigit() and not ch.isascii():
+            return ch
+    return None
+
+
+def _digit_message(name: str, text: str, ch: str) -> str:
+    return (f"config key '{name}': {_short(text)} has the non-ASCII digit {ch!r} (U+{ord(ch):04X}); "
+            f"write numbers with the digits 0-9")
 
 
 _TYPES = {"int": int, "float": float, "str": str, "bool": bool}
@@ -63,6 +84,13 @@ def check_section(obj: Any) -> None:
     for f in dataclasses.fields(obj):
         v = getattr(obj, f.name)
         want = f.type if isinstance(f.type, type) else _TYPES[f.type]
+        if isinstance(v, Base60Text):
+            raise ConfigError(f"config key '{f.name}': {_short(str(v))} is a YAML 1.1 base-60 number (PyYAML reads it "
+                              f"as a count of minutes or seconds); write the value itself")
+        if v is None:
+            raise ConfigError(f"config key '{f.name}': no value given (expected {want.__name__})")
+        if isinstance(v, str) and want in (int, float) and non_ascii_digit(v):
+            raise ConfigError(_digit_message(f.name, v, non_ascii_digit(v)))
         if type(v).__module__ == "numpy" and getattr(v, "ndim", None) == 0:
             v = v.item()          # a numpy scalar (np.int64 from a parameter sweep): its Python value
         if want is float and isinstance(v, str):          # YAML 1.1 reads 1e-3 as a string

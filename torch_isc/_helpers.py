@@ -170,6 +170,9 @@ def load_npz_arrays(path: Union[str, os.PathLike], error: type, what: str = "an 
             if need > len(data) - fp.tell():
                 raise error(f"{p}: member {printable(info.filename, 60)} is truncated (its header declares "
                             f"{need} bytes)")
+            if need < len(data) - fp.tell():
+                raise error(f"{p}: member {printable(info.filename, 60)} has {len(data) - fp.tell() - need} bytes "
+                            f"after the data its header declares")
             name = info.filename[:-4] if info.filename.endswith(".npy") else info.filename
             out[name] = np.load(io.BytesIO(data), allow_pickle=False)
         return out

@@ -40,6 +40,9 @@ def _check_header(p: Path, raw: bytes) -> None:
     if need > have:
         raise PointFileError(f"{p}: unreadable .npy file (truncated: its header declares shape {tuple(shape)} of {dtype} "
                              f"({need} bytes), the file holds {have} bytes of data)")
+    if need < have:      # np.load ignores them: a concatenation or a wrong header would be read silently
+        raise PointFileError(f"{p}: unreadable .npy file ({have - need} bytes after the data its header declares: "
+                             f"shape {tuple(shape)} of {dtype}, {need} bytes)")
 
 
 def decode_points(p: Path, raw: bytes) -> Tuple[np.ndarray, Optional[np.ndarray]]:

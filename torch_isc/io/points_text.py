@@ -23,6 +23,7 @@ _FIELD_SPLIT = re.compile(r"\s*[,;]\s*|\s+")
 _COMMENT = re.compile(r"#[^\n]*")
 _FIRST_LINE = re.compile(r"^[ \t\f\v]*(\S[^\n]*)$", re.M)
 _QUOTED = re.compile(r'"([^"\n]*)"')
+_NON_ASCII_DIGIT = re.compile(r"(?![0-9])\d")
 _EMPTY_FIELD = re.compile(r"^[ \t]*[,;]|[,;][ \t]*[,;]|[,;][ \t]*$", re.M)
 
 
@@ -58,6 +59,13 @@ def decode_points(p: Path, raw: bytes) -> Tuple[np.ndarray, Optional[np.ndarray]
     if all(tok and not _is_number(tok) for tok in toks):
         # a header line of words: blank it, keeping the line count for messages
         text = text[:first.start(1)] + text[first.end(1):]
+    if not text.isascii():
+        # Python's float reads Arabic-Indic or full-width digits, numpy's parser in part: refused
+        m = _NON_ASCII_DIGIT.search(text)
+        if m is not None:
+            ch = m.group(0)
+            raise PointFileError(f"{p}: line {text.count(chr(10), 0, m.start()) + 1}: non-ASCII digit {ch!r} "
+                                 f"(U+{ord(ch):04X}); write numbers with the digits 0-9")
     pts: Optional[np.ndarray] = None
     if _EMPTY_FIELD.search(text) is None:
         try:

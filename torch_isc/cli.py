@@ -55,6 +55,7 @@ import torch_isc
 
 from torch_isc._helpers import one_line
 from torch_isc.io import chosen_formats
+from torch_isc.pipeline.knobs import non_ascii_digit
 from torch_isc.pipeline.config import ConfigError, flat_keys, load_config, parse_overrides, read_config_mapping
 from torch_isc.images.read import DEFAULT_MAX_PIXELS
 from torch_isc.runner import DEFAULT_MAX_BOUNDARY, ImageOptions, Record, RunError, run_inputs, shown
@@ -74,6 +75,25 @@ class UsageError(Exception):
 
 
 # ============================================================================ parser
+def _number(kind: type):
+    """An argparse type: ``int`` or ``float`` of ASCII text only (Python reads Arabic-Indic and
+    full-width digits; the config, the point files and other tools refuse them)."""
+    def parse(text: str):
+        ch = non_ascii_digit(text)
+        if ch is not None:
+            raise argparse.ArgumentTypeError(f"non-ASCII digit {ch!r} (U+{ord(ch):04X}) in {text!r}; "
+                                             f"write numbers with the digits 0-9")
+        try:
+            return kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"invalid {kind.__name__} value: {text!r}") from None
+    parse.__name__ = kind.__name__
+    return parse
+
+
+_INT, _FLOAT = _number(int), _number(float)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog=PROG,
@@ -95,8 +115,8 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                      help="override one config key, e.g. --set max_level=6 (repeatable; applied after --config)")
     rec.add_argument("--out", default="out", metavar="DIR", help="output folder, created if needed (default: out)")
-    rec.add_argument("--seed", type=int, metavar="N", help="random seed (sets config.seed)")
-    rec.add_argument("--batch-size", type=int, default=64, metavar="N",
+    rec.add_argument("--seed", type=_INT, metavar="N", help="random seed (sets config.seed)")
+    rec.add_argument("--batch-size", type=_INT, default=64, metavar="N",
                      help="point sets reconstructed together (default: 64)")
     rec.add_argument("--formats", default=None, metavar="LIST",
                      help=f"comma-separated output formats among {', '.join(chosen_formats())} (default: {DEFAULT_FORMATS}; "
@@ -106,27 +126,27 @@ def build_parser() -> argparse.ArgumentParser:
                      help="mask: the image is a binary mask, its foreground boundary is the curve, and the mask "
                           "gives inside/outside (default); edges: kornia Canny edges of the grayscale image are the "
                           "points, topology estimated")
-    img.add_argument("--threshold", type=float, default=None, metavar="T",
+    img.add_argument("--threshold", type=_FLOAT, default=None, metavar="T",
                      help="mask mode: foreground is gray > T, gray in [0, 1] (default: midway between the two levels "
                           "of a two-level image, else 0.5)")
-    img.add_argument("--spacing", type=float, default=1.0, metavar="PX",
+    img.add_argument("--spacing", type=_FLOAT, default=1.0, metavar="PX",
                      help="distance in pixels between boundary points along a contour (default: 1)")
     img.add_argument("--no-oracle", action="store_true",
                      help="mask mode: estimate the topology from the points instead of reading it from the mask")
-    img.add_argument("--connectivity", type=int, choices=(8, 4), default=8,
+    img.add_argument("--connectivity", type=_INT, choices=(8, 4), default=8,
                      help="mask mode: connectivity of the foreground (8, OpenCV's, default; or 4)")
     img.add_argument("--canny", default="0.1,0.2", metavar="LOW,HIGH",
                      help="edges mode: Canny hysteresis thresholds on the gradient of the image in [0, 1] "
                           "(default: 0.1,0.2)")
-    img.add_argument("--sigma", type=float, default=1.0, help="edges mode: Gaussian smoothing in pixels (default: 1)")
-    img.add_argument("--max-pixels", type=float, default=float(DEFAULT_MAX_PIXELS), metavar="N",
+    img.add_argument("--sigma", type=_FLOAT, default=1.0, help="edges mode: Gaussian smoothing in pixels (default: 1)")
+    img.add_argument("--max-pixels", type=_FLOAT, default=float(DEFAULT_MAX_PIXELS), metavar="N",
                      help=f"the largest image read, in pixels (width x height, from the header, before decoding; "
                           f"default: {DEFAULT_MAX_PIXELS:.0e}; 0: no limit)")
-    img.add_argument("--max-boundary", type=float, default=float(DEFAULT_MAX_BOUNDARY), metavar="N",
+    img.add_argument("--max-boundary", type=_FLOAT, default=float(DEFAULT_MAX_BOUNDARY), metavar="N",
                      help=f"the longest boundary of an image: pixel edges between foreground and background in mask "
                           f"mode, edge points in edges mode; counted before tracing (default: {DEFAULT_MAX_BOUNDARY:.0e}; "
                           f"0: no limit)")
-    img.add_argument("--zoom", type=int, default=1, metavar="N",
+    img.add_argument("--zoom", type=_INT, default=1, metavar="N",
                      help="overlay.png: an integer zoom, each pixel drawn as an NxN block under the sub-pixel curve "
                           "(vertices marked from 8 on), to see sub-pixel defects; adds overlay.png to the image formats")
     img.add_argument("--region", default=None, metavar="X0,Y0,X1,Y1",
@@ -153,10 +173,10 @@ def build_parser() -> argparse.ArgumentParser:
                          "of actors (pip install 'torch_isc[ray]')")
     ds.add_argument("--address", metavar="ADDR",
                     help="ray: the cluster to use (auto, HOST:6379, ray://HOST:10001); default: start a local one")
-    ds.add_argument("--actors", type=int, default=2, metavar="N", help="ray: solver actors (default: 2)")
-    ds.add_argument("--cpus-per-actor", type=float, default=1.0, metavar="C",
+    ds.add_argument("--actors", type=_INT, default=2, metavar="N", help="ray: solver actors (default: 2)")
+    ds.add_argument("--cpus-per-actor", type=_FLOAT, default=1.0, metavar="C",
                     help="ray: CPUs of each actor, also its torch threads (default: 1)")
-    ds.add_argument("--gpus-per-actor", type=float, default=0.0, metavar="G",
+    ds.add_argument("--gpus-per-actor", type=_FLOAT, default=0.0, metavar="G",
                     help="ray: GPUs of each actor; an actor given one solves on it (default: 0)")
     return parser
 
@@ -243,6 +263,11 @@ def _summary(record: Record) -> str:
 # ============================================================================ command
 def _reconstruct_command(args: argparse.Namespace) -> int:
     # ---- everything that can be a usage error is checked before any work
+    for opt, val in (("--out", args.out), ("--config", args.config), ("--table", args.table),
+                     ("--manifest-column", args.manifest_column), ("--address", args.address),
+                     ("--device", args.device), *(("--manifest", m) for m in args.manifest)):
+        if val is not None and not val.strip():      # Path("") is ".": --out "" wrote into the working folder
+            raise UsageError(f"{opt}: empty value")
     if args.batch_size < 1:
         raise UsageError(f"--batch-size must be >= 1, got {args.batch_size}")
     formats = _parse_formats(args.formats if args.formats is not None else DEFAULT_FORMATS)
@@ -256,6 +281,8 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
     if not 0 <= args.spacing <= 1e6:
         raise UsageError(f"--spacing must be in [0, 1e6] pixels, got {args.spacing}")
     try:
+        if non_ascii_digit(args.canny):
+            raise ValueError
         low, high = (float(v) for v in args.canny.split(","))
     except ValueError:
         raise UsageError(f"--canny expects LOW,HIGH (two numbers), got {args.canny!r}") from None
@@ -268,6 +295,8 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
     region = None
     if args.region is not None:
         try:
+            if non_ascii_digit(args.region):
+                raise ValueError
             region = tuple(int(v) for v in args.region.split(","))
         except ValueError:
             region = ()

@@ -39,7 +39,8 @@ progress bar (tqdm, on stderr) shows on a terminal; elsewhere each batch is one 
 Exit status: 0 every input done (or skipped because its complete outputs exist), 1 some inputs failed
 (each with one ``torch-isc: error: <file>: <problem>`` line on stderr) or an internal error stopped the
 run (one ``internal error`` line; ``--debug`` re-raises it), 2 usage or
-configuration error (nothing was reconstructed). A user mistake never prints a traceback;
+configuration error (nothing was reconstructed), 130 interrupted (SIGINT), 143 terminated (SIGTERM);
+a stopped run leaves only complete output sets (the one being written has no manifest and is redone). A user mistake never prints a traceback;
 ``--debug`` shows the traceback of an unexpected internal error.
 """
 from __future__ import annotations
@@ -108,7 +109,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "an optional header line; or a .npy array of shape (N, 2)), an image (png, jpg, tif, bmp, gif, webp: a "
                     "mask, or a grayscale image with --mode edges), or a folder of such files. Image coordinates "
                     "are pixels: x right, y down, pixel (0, 0) covering [0,1]x[0,1].",
-        epilog="exit status: 0 all done, 1 some inputs failed (or an internal error), 2 usage or configuration error")
+        epilog="exit status: 0 all done, 1 some inputs failed (or an internal error), 2 usage or configuration error, "
+               "130 interrupted, 143 terminated (SIGTERM)")
     rec.add_argument("inputs", nargs="*", metavar="INPUT",
                      help="point files (.xy/.txt/.csv text, or .npy), images (.png/.jpg/.tif/.bmp/.gif/.webp), or folders of them")
     rec.add_argument("--config", metavar="FILE", help="YAML file of ReconstructConfig keys (see configs/default.yaml)")
@@ -417,9 +419,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     except (UsageError, ConfigError) as e:
         _err(one_line(e, type(e).__name__))
         return 2
-    except KeyboardInterrupt:
-        _err("interrupted")
-        return 130
+    except KeyboardInterrupt as e:          # SIGINT, or SIGTERM under the torch-isc command (entry.Terminated)
+        from torch_isc.entry import stop_status
+
+        word, code = stop_status(e)
+        _err(word)
+        return code
     except Exception as e:        # a bug or an environment failure outside any one input: one line, not a traceback
         if getattr(args, "debug", False):
             raise

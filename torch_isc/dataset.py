@@ -395,17 +395,27 @@ class _TableSink:
             self.buf, self.n = [], 0
 
     def close(self, ok: bool) -> None:
+        """Move the table into place (``ok``) or remove the temporary file; it is removed too
+        when the last write or the move fails (a full disk, a second interrupt)."""
         if self.writer is None:
             return
-        self.flush()
-        self.writer.close()
-        if ok:
-            os.replace(self.tmp, self.path)
-        else:
-            try:
-                os.unlink(self.tmp)
-            except OSError:
-                pass
+        writer, self.writer = self.writer, None
+        placed = False
+        try:
+            if ok:
+                self.writer = writer
+                self.flush()
+                self.writer = None
+            writer.close()
+            if ok:
+                os.replace(self.tmp, self.path)
+                placed = True
+        finally:
+            if not placed:
+                try:
+                    os.unlink(self.tmp)
+                except OSError:
+                    pass
 
 
 def _batches_local(worker: BatchReconstructor, inputs, batch_size: int) -> Iterator[Any]:

@@ -47,12 +47,36 @@ def check_values(values: torch.Tensor, num_verts: int, name: str = "values", syn
                                  "nodal values must be nonzero")
 
 
+def _common_dtype(mesh: MeshBatch, values) -> Tuple[MeshBatch, torch.Tensor]:
+    """Positions and values in one floating dtype, promoted as torch promotes ``verts * values``
+    (float32 positions and float64 values: both float64; integer values, e.g. signs, take the
+    positions' dtype). Every later step mixes the two: a mix failed deep inside
+    (``index_add_`` of Double into Float) or silently computed in the lower precision."""
+    if not isinstance(values, torch.Tensor):
+        raise InvalidValuesError(f"values must be a torch.Tensor, got {type(values).__name__}")
+    vd, md = values.dtype, mesh.verts.dtype
+    if vd == md:
+        return mesh, values
+    if vd == torch.bool or vd.is_complex:
+        raise InvalidValuesError(f"values must be real numbers, got dtype {vd}")
+    if values.device != mesh.verts.device:
+        raise InvalidValuesError(f"values are on {values.device}, the mesh on {mesh.verts.device}")
+    common = torch.promote_types(vd, md) if vd.is_floating_point else md
+    if common != md:
+        mesh = mesh.with_verts(mesh.verts.to(common))
+    if common != vd:
+        values = values.to(common)
+    return mesh, values
+
+
 class ImplicitCurve:
     """A batch of implicit simplicial curves.
 
     Args:
         mesh: :class:`MeshBatch`, positively oriented.
-        values: ``(V,)`` nonzero nodal values (may require grad).
+        values: ``(V,)`` nonzero nodal values (may require grad). When their dtype differs from
+            the positions', both are promoted to the wider floating dtype (integer values take
+            the positions' dtype); bool or complex values are an :class:`InvalidValuesError`.
         validate: ``True`` (default): check the mesh and the values with clear errors
             (:class:`InvalidMeshError`, :class:`InvalidValuesError`); on CUDA, when the
             values or positions require grad (the differentiable path), only the checks a
@@ -71,6 +95,7 @@ class ImplicitCurve:
     """
 
     def __init__(self, mesh: MeshBatch, values, validate=True):
+        mesh, values = _common_dtype(mesh, values)
         if validate:
             sync = validate == "sync" or (validate is True and not (
                 values.is_cuda and (values.requires_grad or mesh.verts.requires_grad)))

@@ -42,11 +42,12 @@ def image_list(images: Union[ImageLike, Sequence[ImageLike]], what: str = "image
             if t.shape[0] == 0 or t.shape[1] == 0:
                 raise ImageError(f"{what} {b}: empty image of shape {tuple(t.shape)}")
             out.append(t)
-    # NaN compares false with every threshold: it would silently read as background (one host read)
+    # NaN compares false with every threshold: it would silently read as background; an Inf pixel
+    # is foreground under any threshold and turns Canny's gradients into NaN (one host read)
     floats = [b for b, t in enumerate(out) if t.dtype.is_floating_point]
-    if floats and bool(torch.stack([out[b].isnan().any() for b in floats]).any()):
-        first = next(b for b in floats if bool(out[b].isnan().any()))
-        raise ImageError(f"{what} {first}: has NaN values")
+    if floats and bool(torch.stack([~out[b].isfinite().all() for b in floats]).any()):
+        first = next(b for b in floats if not bool(out[b].isfinite().all()))
+        raise ImageError(f"{what} {first}: has NaN or Inf values")
     return out
 
 

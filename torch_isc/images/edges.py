@@ -8,7 +8,7 @@ import numpy as np  # noqa: F401  (the doctests use it)
 import torch
 
 from torch_isc.images.arrays import ImageError, ImageLike, default_names, image_list
-from torch_isc.images.settings import image_config
+from torch_isc.images.settings import as_image_config, image_config
 from torch_isc.pipeline.config import ReconstructConfig
 
 __all__ = ["edge_points", "reconstruct_edges"]
@@ -60,9 +60,22 @@ def edge_points(images: Union[ImageLike, Sequence[ImageLike]], low_threshold: fl
     """
     import kornia
 
+    for name, v, lo in (("sigma", sigma, 0.0), ("spacing", spacing, -1.0), ("low_threshold", low_threshold, -1.0),
+                        ("high_threshold", high_threshold, -1.0)):
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= lo or v > 1e6:
+            raise ImageError(f"edge_points: {name} must be a finite number{' > 0' if lo == 0 else ''} "
+                             f"(at most 1e6), got {v!r}")
+    if kernel_size is not None and (isinstance(kernel_size, bool) or not isinstance(kernel_size, int)
+                                    or kernel_size < 1 or kernel_size % 2 == 0 or kernel_size > 4001):
+        raise ImageError(f"edge_points: kernel_size must be an odd integer in [1, 4001], got {kernel_size!r}")
     ts = image_list(images, "image")
     out: List[Optional[torch.Tensor]] = [None] * len(ts)
     ks = kernel_size if kernel_size is not None else 2 * int(math.ceil(2 * sigma)) + 1
+    need = max(2, ks // 2 + 1)          # kornia pads the Gaussian by ks // 2 (reflect) on each side
+    for b, t in enumerate(ts):
+        if min(t.shape) < need:
+            raise ImageError(f"image {b}: {t.shape[1]}x{t.shape[0]} px is too small for Canny edges with sigma "
+                             f"{sigma:g} (kernel {ks}): at least {need}x{need} px")
     groups: Dict[Tuple[int, int], List[int]] = {}
     for b, t in enumerate(ts):
         groups.setdefault((int(t.shape[0]), int(t.shape[1])), []).append(b)
@@ -118,7 +131,7 @@ def reconstruct_edges(images: Union[ImageLike, Sequence[ImageLike]], config: Opt
     """
     from torch_isc.pipeline.loop import reconstruct_batch
 
-    cfg = config if config is not None else image_config(mode="edges")
+    cfg = as_image_config(config, "edges")
     ts = image_list(images, "image")
     labels = default_names(names, len(ts), "image")
     pts = edge_points(ts, **edge_kw)

@@ -10,7 +10,7 @@ import torch
 
 from torch_isc._helpers import import_cv2
 from torch_isc.images.arrays import ImageError, ImageLike, as_masks, binarize, default_names, image_list
-from torch_isc.images.settings import image_config
+from torch_isc.images.settings import as_image_config, image_config
 from torch_isc.pipeline.config import ReconstructConfig
 
 __all__ = ["mask_crack_contours", "resample_closed", "mask_to_points", "mask_points", "auto_threshold",
@@ -334,7 +334,7 @@ def reconstruct_masks(masks: Union[ImageLike, Sequence[ImageLike]], config: Opti
     Raises:
         ImageError: a mask with no foreground pixel (naming it).
     """
-    cfg = config if config is not None else image_config()
+    cfg = as_image_config(config, "mask")
     ts = image_list(masks, "mask")
     labels = default_names(names, len(ts), "mask")
     prepared = [mask_points(t, spacing, threshold, lab) for t, lab in zip(ts, labels)]
@@ -370,7 +370,7 @@ def grid_results(masks: Union[ImageLike, Sequence[ImageLike]], names: Optional[S
     for t, lab in zip(ts, labels):
         if not bool(t.any()):
             raise ImageError(f"{lab}: empty mask (no foreground pixel above the threshold)")
-    cfg = config if config is not None else image_config()
+    cfg = as_image_config(config, "mask")
     gc = trace_masks(ts, connectivity, smooth)
     cvs = grid_contours(gc, "tree")
     mesh = gc.mesh

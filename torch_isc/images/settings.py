@@ -1,11 +1,11 @@
 """The reconstruction settings for images, in pixels."""
 from __future__ import annotations
 
-from typing import Any, Dict, Optional, Sequence
+from typing import Any, Dict, Mapping, Optional, Sequence, Union
 
-from torch_isc.pipeline.config import ReconstructConfig, load_config
+from torch_isc.pipeline.config import ConfigError, ReconstructConfig, flat_keys, from_dict, load_config
 
-__all__ = ["MASK_CONFIG", "EDGE_CONFIG", "IMAGE_CONFIG", "image_config"]
+__all__ = ["MASK_CONFIG", "EDGE_CONFIG", "IMAGE_CONFIG", "image_config", "as_image_config"]
 
 #: Reconstruction settings for masks, in pixels (applied by :func:`image_config`): the test
 #: tolerance is half a pixel (the quantization step of a mask's boundary), absolute; and no
@@ -26,7 +26,7 @@ IMAGE_CONFIG = {"mask": MASK_CONFIG, "edges": EDGE_CONFIG}
 
 def image_config(base: Optional[ReconstructConfig] = None, keep: Sequence[str] = (),
                  mode: str = "mask") -> ReconstructConfig:
-    """``base`` (default config when None) with the pixel settings of :data:`MASK_CONFIG`
+    """``base`` (default config when None; a mapping of keys, which are then kept) with the pixel settings of :data:`MASK_CONFIG`
     (``mode="mask"``) or :data:`EDGE_CONFIG` (``mode="edges"``), except the keys in ``keep``
     (e.g. those a user set explicitly).
 
@@ -34,6 +34,25 @@ def image_config(base: Optional[ReconstructConfig] = None, keep: Sequence[str] =
     >>> cfg.test.tolerance, cfg.test.tolerance_mode, cfg.test.noise_factor
     (0.5, 'absolute', 0.0)
     """
+    if mode not in IMAGE_CONFIG:
+        raise ConfigError(f"image mode must be one of {', '.join(IMAGE_CONFIG)}, got {mode!r}")
+    if isinstance(base, Mapping):
+        keep = list(keep) + flat_keys(base)
+        base = from_dict(base)
+    if base is not None and not isinstance(base, ReconstructConfig):
+        raise ConfigError(f"config: expected a ReconstructConfig or a mapping of its keys, got {type(base).__name__}")
     base = base if base is not None else load_config()
     return base.replace(**{k: v for k, v in IMAGE_CONFIG[mode].items() if k not in set(keep)})
+
+
+def as_image_config(config: Union[None, ReconstructConfig, Mapping[str, Any]], mode: str) -> ReconstructConfig:
+    """The config of an image call: :func:`image_config` for None; a mapping (``{"max_level": 2}``)
+    is the pixel settings with those keys changed, as ``--set`` does on the command line (it was
+    the plain defaults, in units of the image's diagonal, and a retry raised AttributeError); a
+    :class:`ReconstructConfig` is used as it is."""
+    if config is None or isinstance(config, Mapping):
+        return image_config(config, mode=mode)
+    if not isinstance(config, ReconstructConfig):
+        raise ConfigError(f"config: expected a ReconstructConfig or a mapping of its keys, got {type(config).__name__}")
+    return config
 

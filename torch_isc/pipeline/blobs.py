@@ -182,17 +182,21 @@ def find_blobs(points: torch.Tensor, point_item: torch.Tensor, k: int, min_point
             # band is one-sided and round like a satellite). From each point's own nearest
             # outside point o, whose curve sees a point off its side along its normal
             o = nbr.gather(1, jo[:, None]).squeeze(1)
+            # o's neighbours outside the point's component: computed once per o, used by the
+            # descent and then by the axis estimate below
+            no = nbr[o]
+            wo = fin[o] & (lab[no] != lab[:, None])
             # the approximate neighbour lists can miss the true nearest outside point (a ring of
             # 8 points 11 spacings off a dense circle gets circle points 12 spacings along): a
             # few steps of descent along o's own neighbours, which lie on o's curve
             for _ in range(NEAREST_DESCENT):
-                no = nbr[o]
-                dn = torch.where(fin[o] & (lab[no] != lab[:, None]), ((x[no] - x[:, None, :]) ** 2).sum(-1),
-                                 torch.full_like(d2[o], float("inf")))
+                dn = torch.where(wo, ((x[no] - x[:, None, :]) ** 2).sum(-1), torch.full_like(d2, float("inf")))
                 dmin, j = dn.min(1)
                 closer = dmin < ((xo - x) ** 2).sum(-1)
                 o = torch.where(closer, no.gather(1, j[:, None]).squeeze(1), o)
                 xo = x[o]
+                no = nbr[o]
+                wo = fin[o] & (lab[no] != lab[:, None])
             up = x - xo
             up = up / up.norm(dim=1, keepdim=True).clamp_min(torch.finfo(dt).tiny)
             hw = has.to(dt)
@@ -200,9 +204,8 @@ def find_blobs(points: torch.Tensor, point_item: torch.Tensor, k: int, min_point
             # denoising fit's, whose radius may take in the blob's own points beside a noise
             # spike) and the major axis of o's neighbours outside the blob (which a sparse curve
             # spreads over other structure); only both along u mean a continuation
-            no = nbr[o]
             qn = x[no] - xo[:, None, :]
-            wn = (fin[o] & (lab[no] != lab[:, None])).to(dt)
+            wn = wo.to(dt)
             cw = wn.sum(1).clamp_min(1)
             qd = qn - ((qn * wn[..., None]).sum(1) / cw[:, None])[:, None, :]
             ca, cb, cd = ((wn * qd[..., 0] ** 2).sum(1) / cw, (wn * qd[..., 0] * qd[..., 1]).sum(1) / cw,

@@ -47,7 +47,7 @@ def image_list(images: Union[ImageLike, Sequence[ImageLike]], what: str = "image
     floats = [b for b, t in enumerate(out) if t.dtype.is_floating_point]
     if floats and bool(torch.stack([~out[b].isfinite().all() for b in floats]).any()):
         first = next(b for b in floats if not bool(out[b].isfinite().all()))
-        raise ImageError(f"{what} {first}: has NaN or Inf values")
+        raise ImageError(f"{what} {first}: has {'NaN' if bool(out[first].isnan().any()) else 'Inf'} values")
     return out
 
 

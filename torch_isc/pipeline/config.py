@@ -24,7 +24,7 @@ from typing import Any, Dict, Iterable, List, Mapping, Optional, Union
 from torch_isc._helpers import decode_text, is_regular_file, one_line
 from torch_isc.pipeline.band import BandConfig
 from torch_isc.pipeline.evidence import EvidenceConfig
-from torch_isc.pipeline.knobs import Base60Text, ConfigError, check_bounds, check_section, knob
+from torch_isc.pipeline.knobs import Base60Text, ConfigError, OctalText, check_bounds, check_section, knob
 from torch_isc.pipeline.noise import NoiseConfig
 from torch_isc.pipeline.relax import RelaxConfig
 from torch_isc.pipeline.signs import TopologyConfig
@@ -238,12 +238,16 @@ class _DuplicateKeyError(Exception):
 #: YAML 1.1 base-60 integers and floats (``1:30``, ``-1:30:00.5``), which PyYAML resolves to numbers
 _BASE60 = re.compile(r"^[-+]?[0-9][0-9_]*(?::[0-5]?[0-9])+(?:\.[0-9_]*)?$")
 _BASE60_TAG = "tag:torch-isc,2026:base60"
+#: YAML 1.1 octal integers (``010`` is 8 there, 10 in YAML 1.2)
+_OCTAL = re.compile(r"^[-+]?0[0-7_]+$")
+_OCTAL_TAG = "tag:torch-isc,2026:octal"
 _LOADER = None
 
 
 def _loader_class():
     """A ``SafeLoader`` without aliases, that refuses duplicate keys (PyYAML keeps the last
-    silently) and keeps base-60 scalars as :class:`Base60Text` (refused with the key named)."""
+    silently) and keeps base-60 and octal scalars as :class:`Base60Text` / :class:`OctalText`
+    (refused with the key named)."""
     global _LOADER
     if _LOADER is not None:
         return _LOADER
@@ -276,11 +280,12 @@ def _loader_class():
                         raise _DuplicateKeyError(key, key_node.start_mark.line + 1)
             return super().construct_mapping(node, deep=deep)
 
-    # the base-60 resolver goes first so that it wins over PyYAML's int and float ones
+    # the base-60 and octal resolvers go first so that they win over PyYAML's int and float ones
     _Loader.yaml_implicit_resolvers = {
-        ch: [(_BASE60_TAG, _BASE60)] + list(v) if ch in "+-0123456789" else list(v)
+        ch: [(_BASE60_TAG, _BASE60), (_OCTAL_TAG, _OCTAL)] + list(v) if ch in "+-0123456789" else list(v)
         for ch, v in yaml.SafeLoader.yaml_implicit_resolvers.items()}
     _Loader.add_constructor(_BASE60_TAG, lambda loader, node: Base60Text(loader.construct_scalar(node)))
+    _Loader.add_constructor(_OCTAL_TAG, lambda loader, node: OctalText(loader.construct_scalar(node)))
     _LOADER = _Loader
     return _Loader
 

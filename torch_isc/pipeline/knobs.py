@@ -11,7 +11,7 @@ import dataclasses
 import math
 from typing import Any, Optional, Sequence
 
-__all__ = ["ConfigError", "knob", "check_section", "check_bounds", "INT_LIMIT", "Base60Text", "non_ascii_digit"]
+__all__ = ["ConfigError", "knob", "check_section", "check_bounds", "INT_LIMIT", "Base60Text", "OctalText", "non_ascii_digit"]
 
 
 class ConfigError(ValueError):
@@ -21,6 +21,11 @@ class ConfigError(ValueError):
 class Base60Text(str):
     """A YAML 1.1 base-60 scalar (``1:30``), kept as its text by the config loader: PyYAML
     would read it as 90, which nobody writing a tolerance means. Refused with the key named."""
+
+
+class OctalText(str):
+    """A YAML 1.1 octal scalar (``010``), kept as its text: PyYAML reads it as 8, YAML 1.2 and
+    most tools as 10. Refused with the key named."""
 
 
 def non_ascii_digit(text: str) -> Optional[str]:
@@ -87,6 +92,9 @@ def check_section(obj: Any) -> None:
         if isinstance(v, Base60Text):
             raise ConfigError(f"config key '{f.name}': {_short(str(v))} is a YAML 1.1 base-60 number (PyYAML reads it "
                               f"as a count of minutes or seconds); write the value itself")
+        if isinstance(v, OctalText):
+            raise ConfigError(f"config key '{f.name}': {_short(str(v))} has a leading zero (YAML 1.1 reads it as an "
+                              f"octal number, YAML 1.2 as decimal); write it without the leading zero")
         if v is None:
             raise ConfigError(f"config key '{f.name}': no value given (expected {want.__name__})")
         if isinstance(v, str) and want in (int, float) and non_ascii_digit(v):

@@ -305,3 +305,14 @@ def test_yaml_octal_numbers(tmp_path):
     with pytest.raises(ConfigError, match=r"'seed': '-07' has a leading zero"):
         load_config(None, parse_overrides(["seed=-07"]))
     assert load_config(None, parse_overrides(["max_level=10", "seed=0", "tolerance=0.05"])).limits.max_level == 10
+
+
+def test_set_errors_name_the_set_not_the_file(tmp_path, capsys):
+    # the file was named for a bad --set value: "ok.yaml: config key 'tolerance': must be > 0"
+    f = tmp_path / "ok.yaml"
+    f.write_text("tolerance: 0.01\n")
+    code, out, err = _run(capsys, _circle_file(tmp_path / "a.xy"), "--out", tmp_path / "o", "--config", f,
+                          "--set", "tolerance=-1")
+    assert code == 2 and err.startswith("torch-isc: error: --set: config key 'tolerance'") and "ok.yaml" not in err
+    with pytest.raises(ConfigError, match=r"^overrides: config key 'max_level'"):
+        load_config(f, {"max_level": 0}, "overrides")

@@ -277,7 +277,7 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
     overrides = parse_overrides(args.overrides)
     if args.seed is not None:
         overrides["seed"] = args.seed
-    config = load_config(args.config, overrides)
+    config = load_config(args.config, overrides, "--set" if args.overrides else "--seed")
     if args.threshold is not None and not (0.0 <= args.threshold < 1.0):
         raise UsageError(f"--threshold must be in [0, 1), got {args.threshold}")
     if not 0 <= args.spacing <= 1e6:

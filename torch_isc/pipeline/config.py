@@ -358,17 +358,18 @@ def read_config_mapping(path: Union[str, Path]) -> Dict[str, Any]:
     return loaded
 
 
-def load_config(path: Optional[Union[str, Path]] = None, overrides: Optional[Mapping[str, Any]] = None) -> ReconstructConfig:
+def load_config(path: Optional[Union[str, Path]] = None, overrides: Optional[Mapping[str, Any]] = None,
+                overrides_label: str = "config") -> ReconstructConfig:
     """Load a YAML file (sections or flat keys of :class:`ReconstructConfig`), then apply ``overrides``.
 
-    The file is read with bounds (:func:`read_config_mapping`: size, UTF-8, no YAML aliases)."""
-    src = "config"
+    The file is read with bounds (:func:`read_config_mapping`: size, UTF-8, no YAML aliases).
+    An error in ``overrides`` starts with ``overrides_label`` (the CLI's ``--set``), not with
+    the file's name: the file did not hold the value."""
     cfg = ReconstructConfig()
     if path is not None:
-        src = str(path)
-        cfg = from_dict(read_config_mapping(path), src)
+        cfg = from_dict(read_config_mapping(path), str(path))
     if overrides:
-        cfg = from_dict(overrides, src, base=cfg)
+        cfg = from_dict(overrides, overrides_label, base=cfg)
     return cfg
 
 

@@ -246,7 +246,7 @@ def _corner_tips(a: torch.Tensor, d: torch.Tensor, t: torch.Tensor, prev: torch.
                  max_radius: float = 5.0, straight_long: float = 0.25, stretch_side: int = 16, long_sides: Sequence[int] = (11, 16, 24, 32, 40, 48, 56, 64),
                  stretch: Optional[Callable] = None, long_span: int = 8, max_cos_long: float = 0.8,
                  max_cos_long_smooth: float = 0.68, gap: int = 2, gap_span: int = 10, corner_gap: int = 3,
-                 straight_window: float = 0.22, min_loop_sure: int = 64, small_side: int = 7, separate: int = 1,
+                 straight_window: float = 0.22, min_loop_sure: int = 64, small_side: int = 11, separate: int = 1,
                  separate_sides: Sequence[int] = (80, 96, 128), bend: float = 1.5
                  ) -> Tuple[torch.Tensor, Optional[Tuple[torch.Tensor, torch.Tensor, torch.Tensor]]]:
     """Crossing parameters ``t`` with the sharp corners restored: at each corner of the loops

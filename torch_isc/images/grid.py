@@ -242,7 +242,7 @@ def _smooth(a: torch.Tensor, d: torch.Tensor, prev: torch.Tensor, nxt: torch.Ten
 def _corner_tips(a: torch.Tensor, d: torch.Tensor, t: torch.Tensor, prev: torch.Tensor, nxt: torch.Tensor,
                  n_loop: torch.Tensor, side: Tuple[int, int] = (2, 7), zone: int = 3, radius: float = 2.0,
                  straight: float = 0.16, min_turn: float = 0.35, max_cos: float = 0.5,
-                 min_loop: int = 64, min_side: float = 2.0, max_cos_smooth: float = 0.8,
+                 min_loop: int = 24, min_side: float = 2.0, max_cos_smooth: float = 0.8,
                  max_radius: float = 5.0, straight_long: float = 0.25, stretch_side: int = 16, long_sides: Sequence[int] = (11, 16, 24, 32, 40, 48, 56, 64),
                  stretch: Optional[Callable] = None, long_span: int = 8, max_cos_long: float = 0.8,
                  max_cos_long_smooth: float = 0.68, gap: int = 2, gap_span: int = 10, corner_gap: int = 3,

@@ -80,13 +80,56 @@ def axis_walks(mesh: MeshBatch, signs: torch.Tensor, direction: torch.Tensor, co
     return torch.minimum(F, cap), torch.minimum(Bk, cap)
 
 
+def wall_offsets(mesh: MeshBatch, direction: torch.Tensor, points: torch.Tensor, face: torch.Tensor):
+    """``(upper, lower)`` ``(V,)``: the mean offset along the normal of ``direction`` of the star's
+    points on the positive side of the vertex, and on the negative side (0 where none)."""
+    V = mesh.verts.shape[0]
+    dt = direction.dtype
+    ok = (face >= 0).to(dt)[:, None]
+    corners = mesh.faces[face.clamp_min(0)]
+    nrm = torch.stack([-direction[:, 1], direction[:, 0]], 1)[corners]
+    y = ((points.to(dt)[:, None, :] - mesh.verts.detach().to(dt)[corners]) * nrm).sum(-1)
+    c = corners.reshape(-1)
+    z = torch.zeros(V, dtype=dt, device=direction.device)
+    pos, neg = (y > 0).to(dt) * ok, (y < 0).to(dt) * ok
+    up = z.index_add(0, c, (pos * y).reshape(-1)) / z.index_add(0, c, pos.reshape(-1)).clamp_min(1)
+    lo = z.index_add(0, c, (neg * y).reshape(-1)) / z.index_add(0, c, neg.reshape(-1)).clamp_min(1)
+    return up, lo
+
+
+def enclosed_across(mesh: MeshBatch, signs: torch.Tensor, direction: torch.Tensor, upper: torch.Tensor,
+                    lower: torch.Tensor) -> torch.Tensor:
+    """``(V,)`` bool: beyond both walls (the neighbours whose offset along the normal passes
+    ``upper``, and those below ``lower``) the vertex's neighbours are mostly of the other sign:
+    the vertex lies in a gap between two curves, not in a band of data."""
+    e = mesh.edges
+    V = signs.shape[0]
+    dt = direction.dtype
+    v = mesh.verts.detach().to(dt)
+    src = torch.cat([e[:, 0], e[:, 1]])
+    dst = torch.cat([e[:, 1], e[:, 0]])
+    nrm = torch.stack([-direction[:, 1], direction[:, 0]], 1)
+    y = ((v[dst] - v[src]) * nrm[src]).sum(1)
+    other = (signs[dst] != signs[src]).to(dt)
+    z = torch.zeros(V, dtype=dt, device=direction.device)
+    above = (y > upper[src]).to(dt)
+    below = (y < lower[src]).to(dt)
+    n_up, o_up = z.index_add(0, src, above), z.index_add(0, src, above * other)
+    n_lo, o_lo = z.index_add(0, src, below), z.index_add(0, src, below * other)
+    return (n_up > 0) & (2 * o_up > n_up) & (n_lo > 0) & (2 * o_lo > n_lo)
+
+
 def channel_vertices(mesh: MeshBatch, signs: torch.Tensor, direction: torch.Tensor, eligible: torch.Tensor,
-                     max_length: torch.Tensor, cone_deg: float, rounds: int) -> torch.Tensor:
+                     max_length: torch.Tensor, cone_deg: float, rounds: int,
+                     enclosed: "torch.Tensor | None" = None) -> torch.Tensor:
     """``(V,)`` bool: the ``eligible`` vertices whose forward and backward walks
-    (:func:`axis_walks`) both reach the other sign, together within ``max_length (V,)``."""
-    cap = 2.0 * max_length.to(direction.dtype) + 1.0
+    (:func:`axis_walks`) both reach the other sign, together within ``max_length (V,)``, and that
+    are not ``enclosed`` across (:func:`enclosed_across`)."""
+    L = max_length.to(direction.dtype)
+    cap = 2.0 * L + 1.0
     f, b = axis_walks(mesh, signs, direction, cone_deg, cap, rounds)
-    return eligible & (f < cap) & (b < cap) & (f + b <= max_length.to(direction.dtype))
+    out = eligible & (f < cap) & (b < cap) & (f + b <= L)
+    return out if enclosed is None else out & ~enclosed
 
 
 def channel_stage(ws: "WorkingSet", signs: torch.Tensor, pinned: torch.Tensor, cfg: "TopologyConfig") -> torch.Tensor:
@@ -102,9 +145,11 @@ def channel_stage(ws: "WorkingSet", signs: torch.Tensor, pinned: torch.Tensor, c
         noisy = ((ws.noise > ws.tol) & (ws.noise >= MIN_NOISE))[vi]
         eligible = (~pinned & between & noisy & (coh >= cfg.channel_coherence)
                     & (n >= cfg.channel_min_points))
+        up, lo = wall_offsets(mesh, direction, ws.points, ws.face)
         length = torch.maximum(cfg.channel_noise_widths * ws.noise, cfg.channel_tolerances * ws.tol)[vi]
-        for sgn in (1.0, -1.0):
+        for sgn in ((1.0, -1.0) if cfg.channel_bridges else (1.0,)):
+            enc = enclosed_across(mesh, signs, direction, up, lo)
             fill = channel_vertices(mesh, signs, direction, eligible & (signs == sgn), length,
-                                    cfg.channel_cone, cfg.channel_rounds)
+                                    cfg.channel_cone, cfg.channel_rounds, enc)
             signs = torch.where(fill, -signs, signs)
         return signs

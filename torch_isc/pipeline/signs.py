@@ -106,7 +106,7 @@ class TopologyConfig:
     #: over its own sign, reach the other sign both ways within this many noise widths in all
     #: takes that sign (a stroke cut or two curves bridged by a short run across the data)
     channel_fill: bool = knob(True)
-    channel_noise_widths: float = knob(8.0, ge=0)
+    channel_noise_widths: float = knob(15.0, ge=0)
     #: ...or this many tolerances, where that is longer
     channel_tolerances: float = knob(0.0, ge=0)
     #: ...where the star's tangents agree at least this much ((l1 - l2)/(l1 + l2))
@@ -114,9 +114,11 @@ class TopologyConfig:
     #: ...its star holds at least this many points
     channel_min_points: int = knob(3, ge=1)
     #: ...each step within this many degrees of the walking vertex's direction
-    channel_cone: float = knob(35.0, gt=0, lt=90)
+    channel_cone: float = knob(55.0, gt=0, lt=90)
     #: ...and at most this many steps each way
     channel_rounds: int = knob(8, ge=1)
+    #: ...and whether runs of the inside sign (bridges) are cut too, after the cuts are filled
+    channel_bridges: bool = knob(False)
     #: weight of the crust parity coupling (pipeline/crust.py): an edge crossing the samples'
     #: nearest-neighbour crust an odd number of times couples its ends to opposite signs, an
     #: even (nonzero) number to equal signs; only on clean items; 0 disables (2: broad suite

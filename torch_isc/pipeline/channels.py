@@ -16,8 +16,10 @@ curves do not.
 Only where the data at the vertex run one way (coherent tangents) and lie on both sides of it
 (:func:`~torch_isc.pipeline.notches.between_walls`: inside a stroke or a gap, not beside one
 curve), and only on noisy items. A genuine gap between two curves runs along the data, so walks
-along the data stay in it: it is never a channel. Cuts (the outside sign) are filled first,
-then bridges (the inside sign) are cut, each against the signs as they then are.
+along it stay in it; where bridges interrupt it, the walks do reach the other sign, but beyond
+both walls (across the data) its neighbours have the other sign too (:func:`enclosed_across`),
+while a cut across one band opens onto its own sign there: a gap is never filled. Cuts (the
+outside sign) are filled; bridges (the inside sign) are cut only with ``channel_bridges``.
 
 The walks are ``rounds`` rounds of Bellman-Ford relaxation over the directed edges within
 ``cone`` degrees of the walking vertex's axis (fixed shapes, no host read). An axis has no sign,
@@ -38,7 +40,7 @@ if TYPE_CHECKING:
     from torch_isc.pipeline.signs import TopologyConfig
     from torch_isc.pipeline.workset import WorkingSet
 
-__all__ = ["axis_walks", "channel_vertices", "channel_stage"]
+__all__ = ["axis_walks", "wall_offsets", "enclosed_across", "channel_vertices", "channel_stage"]
 
 
 def axis_walks(mesh: MeshBatch, signs: torch.Tensor, direction: torch.Tensor, cone_deg: float, cap: torch.Tensor,
@@ -133,8 +135,8 @@ def channel_vertices(mesh: MeshBatch, signs: torch.Tensor, direction: torch.Tens
 
 
 def channel_stage(ws: "WorkingSet", signs: torch.Tensor, pinned: torch.Tensor, cfg: "TopologyConfig") -> torch.Tensor:
-    """Fill the channels of the working set's ``signs`` (:func:`channel_vertices`): first those of
-    the outside sign (cuts), then those of the inside sign (bridges)."""
+    """Fill the channels of the working set's ``signs`` (:func:`channel_vertices`) of the outside
+    sign (cuts), then, with ``channel_bridges``, those of the inside sign (bridges)."""
     from torch_isc.pipeline.notches import MIN_NOISE, between_walls, vertex_orientation
     with torch.no_grad():
         mesh = ws.mesh

@@ -437,6 +437,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--cases", default=None, help="public cases folder (default: ../shared/cases)")
     ap.add_argument("--peers", action="store_true", help="also score NN-crust and shapely.concave_hull")
     ap.add_argument("--json", default=None, help="write every case's name and score here")
+    ap.add_argument("--only-noise", type=float, default=None, metavar="PCT",
+                    help="keep only the generated shapes at this noise level (the same shapes as in the full run)")
     ap.add_argument("--misses", action="store_true", help="also count the wrong cases by failure type "
                                                           "(extra loop, merged or missing, open chain, off by >10%%)")
     add_run_args(ap, "set")
@@ -460,6 +462,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     cases = [make_case(i, kinds, rng, args.glyphs, noises, args.font_glyphs) for i in range(count)]
     if args.rotations > 0:
         cases += rotated_public(resolve_dir(args.cases, REPO / ".." / "shared" / "cases"), args.rotations)
+    if args.only_noise is not None:
+        cases = [c for c in cases if c["noise"] == f"n{args.only_noise:g}"]
     if args.filter:
         cases = [c for c in cases if args.filter in c["name"]]
     if not cases:

@@ -49,7 +49,7 @@ __all__ = ["BandConfig", "band_marks", "wrap_fraction", "spike_vertices", "band_
 class BandConfig:
     """The band stage (flat keys of configs/default.yaml)."""
     #: rounds of refinement around the curve before the final refit; 0 disables the stage
-    band_levels: int = knob(2, ge=0)
+    band_levels: int = knob(1, ge=0)
     #: rounds after the first refine only items whose estimated noise is above this fraction of
     #: their tolerance: on clean data a finer band only puts vertices into the gaps between
     #: samples, where the curve's side of each is a coin toss the refit then bends round
@@ -168,17 +168,14 @@ def band_stage(ws: "WorkingSet", cfg: BandConfig, geometry: GeometryConfig, slac
     if cfg.band_levels <= 0 or ws.num_items == 0:
         return ws
     gcfg = dataclasses.replace(geometry, smoothness=cfg.band_smoothness, lbfgs_iterations=cfg.band_iterations)
-    fitted, refits = False, 0
+    fitted = False
     for level in range(cfg.band_levels):
         if level > 0:
             # refit before the next split: split again on the loop's interpolated f, a
             # new vertex next to the data inherits a tiny |f| and the final fit draws a
             # spike toward it (public circle_n2: Hausdorff 1.2% -> 5.7% without this)
-            # (a lighter fit: it only places the next split; one spike round, half the iterations)
-            ws = _with_values(ws, _refit_any(ws, dataclasses.replace(cfg, spike_rounds=min(cfg.spike_rounds, 1)),
-                                             dataclasses.replace(gcfg, lbfgs_iterations=cfg.band_iterations // 2),
-                                             slack))
-            fitted, refits = True, refits + 1
+            ws = _with_values(ws, _refit_any(ws, cfg, gcfg, slack))
+            fitted = True
         marked = band_marks(ws, cfg, max_triangles)
         if level > 0:
             marked = marked & (ws.noise > cfg.band_noisy * slack)[ws.mesh.face_item]
@@ -187,10 +184,7 @@ def band_stage(ws: "WorkingSet", cfg: BandConfig, geometry: GeometryConfig, slac
         ws = ws.follow(subdivide(ws.mesh, marked))
         fitted = False
     if not fitted:
-        # the fit between the splits ran one of the spike rounds
-        left = max(cfg.spike_rounds - refits, min(cfg.spike_rounds, 1))
-        final = cfg if refits == 0 else dataclasses.replace(cfg, spike_rounds=left)
-        ws = _with_values(ws, _refit_any(ws, final, gcfg, slack))
+        ws = _with_values(ws, _refit_any(ws, cfg, gcfg, slack))
     if cfg.band_snap:
         ws = _with_values(ws, snap_crossings(ws, ws.values, cfg))
     return ws

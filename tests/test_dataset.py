@@ -42,7 +42,7 @@ def _mask(path, holes=False, r=12):
 @pytest.fixture(scope="module")
 def mixed(tmp_path_factory):
     """Points, masks and broken files; sorted: a_ring, b_broken, c_disc, d_corrupt, e_ring, f_annulus,
-    g_black, h_ring."""
+    g_empty, h_ring."""
     d = tmp_path_factory.mktemp("in")
     _ring(d / "a_ring.xy")
     (d / "b_broken.xy").write_text("1 2\n3 x\n")
@@ -50,7 +50,7 @@ def mixed(tmp_path_factory):
     (d / "d_corrupt.png").write_bytes(b"not a png")
     _ring(d / "e_ring.csv", r=2.0, seed=1)
     _mask(d / "f_annulus.png", holes=True, r=15)
-    cv2.imwrite(str(d / "g_black.png"), np.zeros((20, 20), np.uint8))
+    (d / "g_empty.png").write_bytes(b"")
     _ring(d / "h_ring.xy", r=0.5, n=90, seed=2)
     return d
 

@@ -12,8 +12,8 @@ import torch
 
 from torch_isc import images, metrics
 from torch_isc.images import (ImageError, MaskOracle, edge_points, find_contours, load_contours, mask_crack_contours,
-                              mask_to_points, read_image, reconstruct_edges, reconstruct_masks, resample_closed,
-                              to_cv_contours)
+                              grid_results, mask_to_points, read_image, reconstruct_edges, reconstruct_masks,
+                              resample_closed, to_cv_contours)
 from torch_isc.io import render_overlay, write_contours
 
 SHIFT = 8
@@ -354,9 +354,14 @@ def test_read_image_errors_are_one_line(tmp_path, kind, expect):
     assert msg.startswith(str(p)) and expect in msg and "\n" not in msg
 
 
-def test_empty_mask_is_rejected_and_full_mask_gives_the_frame():
-    with pytest.raises(ImageError, match="^mask 0: empty mask"):
-        reconstruct_masks([np.zeros((20, 20), np.uint8)])
+def test_empty_mask_has_no_curve_and_full_mask_gives_the_frame():
+    # as cv2.findContours: an empty mask has no contour; the other masks of the batch are solved
+    ring = np.zeros((30, 30), np.uint8)
+    ring[5:25, 5:25], ring[12:18, 12:18] = 255, 0
+    assert len(cv2.findContours(np.zeros((20, 20), np.uint8), cv2.RETR_TREE, cv2.CHAIN_APPROX_NONE)[0]) == 0
+    for solve in (reconstruct_masks, grid_results):
+        e, r = solve([np.zeros((20, 20), np.uint8), ring], names=["empty", "ring"])
+        assert (e.name, e.num_closed, e.num_open, r.num_closed, r.num_open) == ("empty", 0, 0, 2, 0)
     r = reconstruct_masks([np.full((20, 30), 255, np.uint8)], names=["white"])[0]
     assert (r.num_closed, r.num_open) == (1, 0)
     x0, y0, x1, y1 = r.bbox()

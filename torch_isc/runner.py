@@ -499,7 +499,12 @@ class _Run:
             thr = o.threshold if o.threshold is not None else images.auto_threshold(gray)
             mask = torch.from_numpy(gray > thr).to(self.device)
             if not bool(mask.any()):
-                raise images.ImageError(f"{job.source}: empty mask: no pixel above threshold {thr:.3g} (all black)")
+                # a valid mask with no border (cv2.findContours: no contour): an output set without
+                # curves, so a rerun skips it and the run does not fail
+                self.note(f"note: {shown(job.source)}: empty mask (no pixel above threshold {thr:.3g}, all "
+                          f"black): no curve")
+                job.points, job.n_boundaries, job.mask = None, 0, mask
+                return
             if o.max_boundary:
                 n = boundary_length(mask)
                 if n > o.max_boundary:
@@ -676,7 +681,9 @@ class _Run:
     def process(self, batch: List[_Job]) -> None:
         self.batches += 1
         self.on_batch("start", self.batches, len(batch), self.done, self.total)
-        masks = [j for j in batch if j.is_image and j.mask is not None and self.opts.use_oracle]
+        # empty masks take the grid path whatever the oracle setting: they have no boundary points
+        masks = [j for j in batch if j.is_image and j.mask is not None
+                 and (self.opts.use_oracle or j.n_boundaries == 0)]
         others = [j for j in batch if j not in masks]
         solved = {}
         for group, kind in ((others, "plain"), (masks, "mask")):

@@ -331,15 +331,27 @@ def reconstruct_masks(masks: Union[ImageLike, Sequence[ImageLike]], config: Opti
     Returns:
         one :class:`~torch_isc.pipeline.result.ReconstructionResult` per mask, in pixel coordinates.
 
-    Raises:
-        ImageError: a mask with no foreground pixel (naming it).
+    A mask with no foreground pixel has no boundary to sample: its result has no curve (that
+    of :func:`grid_results`), as ``cv2.findContours`` gives no contour.
     """
     cfg = as_image_config(config, "mask")
     ts = image_list(masks, "mask")
     labels = default_names(names, len(ts), "mask")
-    prepared = [mask_points(t, spacing, threshold, lab) for t, lab in zip(ts, labels)]
-    return solve_masks([p for p, _ in prepared], ts, [n for _, n in prepared], cfg, labels, threshold,
-                       use_oracle, interpolation, retry)
+    empty = [not bool(binarize(t, threshold).any()) for t in ts]
+    keep = [b for b, e in enumerate(empty) if not e]
+    out: list = [None] * len(ts)
+    if keep:
+        prepared = [mask_points(ts[b], spacing, threshold, labels[b]) for b in keep]
+        solved = solve_masks([p for p, _ in prepared], [ts[b] for b in keep], [n for _, n in prepared], cfg,
+                             [labels[b] for b in keep], threshold, use_oracle, interpolation, retry)
+        for b, r in zip(keep, solved):
+            out[b] = r
+    if len(keep) < len(ts):
+        idx = [b for b, e in enumerate(empty) if e]
+        for b, r in zip(idx, grid_results([ts[b] for b in idx], [labels[b] for b in idx], threshold=threshold,
+                                          config=cfg)):
+            out[b] = r
+    return out
 
 
 
@@ -356,9 +368,8 @@ def grid_results(masks: Union[ImageLike, Sequence[ImageLike]], names: Optional[S
     ``result.count_ok`` whether the curve has as many closed curves (always, by construction;
     a flag for the outputs), ``result.cv_contours`` the ``(contours, hierarchy)`` of
     :func:`~torch_isc.images.find_contours` (RETR_TREE, float32) for the contours file.
-
-    Raises:
-        ImageError: a mask with no foreground pixel (naming it).
+    A mask with no foreground pixel gives a result with no curve (``boundaries`` 0, hierarchy
+    None), as ``cv2.findContours`` gives no contour.
     """
     from torch_isc.core.curve import ImplicitCurve
     from torch_isc.images.contours import grid_contours
@@ -367,9 +378,6 @@ def grid_results(masks: Union[ImageLike, Sequence[ImageLike]], names: Optional[S
 
     ts = [binarize(t, threshold) for t in image_list(masks, "mask")]
     labels = default_names(names, len(ts), "mask")
-    for t, lab in zip(ts, labels):
-        if not bool(t.any()):
-            raise ImageError(f"{lab}: empty mask (no foreground pixel above the threshold)")
     cfg = as_image_config(config, "mask")
     gc = trace_masks(ts, connectivity, smooth)
     cvs = grid_contours(gc, "tree")

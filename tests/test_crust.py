@@ -57,24 +57,45 @@ def _brute_counts(mesh, p, q):
 
 
 def test_crossing_counts_match_brute_force():
+    """The walk through the mesh follows every segment that stays inside it, however many
+    triangles it passes (the earlier four-probe sampling dropped those that skipped one), and its
+    counts are the brute-force intersections; where each edge is crossed is returned too."""
     mesh = _mesh(7)
     g = torch.Generator().manual_seed(3)
-    p = (torch.rand(60, 2, generator=g, dtype=torch.float64) - 0.5) * 0.9
-    ang = torch.rand(60, generator=g, dtype=torch.float64) * 2 * math.pi
-    # segments up to about one cell long: every one is followed through at most 4 triangles
-    length = 0.12 * torch.rand(60, generator=g, dtype=torch.float64)
+    p = (torch.rand(80, 2, generator=g, dtype=torch.float64) - 0.5) * 0.9
+    ang = torch.rand(80, generator=g, dtype=torch.float64) * 2 * math.pi
+    # segments up to about three cells long
+    length = 0.45 * torch.rand(80, generator=g, dtype=torch.float64)
     q = p + length[:, None] * torch.stack([ang.cos(), ang.sin()], 1)
-    item = torch.zeros(60, dtype=torch.long)
+    item = torch.zeros(80, dtype=torch.long)
     fp, _ = locate_grid(mesh, p, item)
     fq, _ = locate_grid(mesh, q, item)
-    got, followed = crossing_counts(mesh, p, q, item, fp, fq)
-    # a segment whose sampled triangles skip one is left out whole (no partial counts)
-    assert followed.float().mean() > 0.8
-    assert torch.equal(got, _brute_counts(mesh, p[followed], q[followed]))
-    assert got.sum() > 20                                  # the test crosses edges at all
-    # ...and the followed ones are exactly those whose triangles the brute force finds in order
-    lost = _brute_counts(mesh, p[~followed], q[~followed])
-    assert lost.sum() > 0
+    inside = (fp >= 0) & (fq >= 0)
+    assert (~inside).any() and inside.sum() > 60
+    got, followed, span = crossing_counts(mesh, p, q, item, fp, fq, extent=True)
+    assert torch.equal(followed, inside)                     # every segment inside the mesh
+    assert torch.equal(got, _brute_counts(mesh, p[inside], q[inside]))
+    assert got.max() >= 2 and got.sum() > 60
+    # the crossing of a once-crossed edge, by hand: where the segment meets the edge's line
+    v = mesh.verts
+    one = (got == 1).nonzero().squeeze(1)
+    for ei in one[:20].tolist():
+        a, b = v[mesh.edges[ei, 0]], v[mesh.edges[ei, 1]]
+        hits = []
+        for P, Q in zip(p[inside], q[inside]):
+            d, e, w = Q - P, b - a, a - P
+            den = d[0] * e[1] - d[1] * e[0]
+            t = (w[0] * e[1] - w[1] * e[0]) / den
+            u = (w[0] * d[1] - w[1] * d[0]) / den
+            if 0 < t < 1 and 0 < u < 1:
+                hits.append(float(u))
+        assert len(hits) == 1
+        assert abs(float(span[ei, 0]) - hits[0]) < 1e-9 and abs(float(span[ei, 1]) - hits[0]) < 1e-9
+    # a segment that leaves the mesh counts for nothing
+    far = torch.tensor([[0.0, 0.0]], dtype=torch.float64), torch.tensor([[2.0, 0.0]], dtype=torch.float64)
+    f0, _ = locate_grid(mesh, far[0], item[:1])
+    cnt, fol = crossing_counts(mesh, far[0], far[1], item[:1], f0, torch.full_like(f0, -1))
+    assert not fol.any() and cnt.sum() == 0
 
 
 def _ws(points, noise, tol=0.004, res=12):
@@ -134,6 +155,58 @@ def test_two_circles_three_spacings_apart_stay_two():
         c = pl["points"].mean(0)
         d = (pl["points"] - c).norm(dim=1)
         assert (d - 1.0).abs().max() < 0.05
+
+
+def _close2(m, a):
+    h = 2 * math.pi / m
+    pts = torch.cat([_circle(m, 1.0, -1 - 1.5 * h, 0.0, 0.0), _circle(m, 1.0, 1 + 1.5 * h, 0.0, 0.0)])
+    R = torch.tensor([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]], dtype=torch.float64)
+    return pts @ R.T
+
+
+def test_dense_close_circles_are_refined_apart():
+    """Noise-free close2 with dense samples (the gap, 3 spacings, is 0.7-1.3% of the diagonal:
+    below 4 tolerances): the signs contradicted the crust where the island rule flipped the gap's
+    one vertex, and edges across both walls joined the circles. ``crust_refine`` splits there
+    (on the default): two circles at every angle; without it they merge at most angles."""
+    sets = [_close2(300, a) for a in (0.1, 0.7, 1.0)] + [_close2(540, 0.1)]
+    off = torch_isc.reconstruct_batch(sets, ReconstructConfig().replace(crust_refine=0.0))
+    assert sum(r.num_closed == 1 for r in off) >= 2
+    for r in torch_isc.reconstruct_batch(sets, ReconstructConfig()):
+        assert r.num_closed == 2 and r.num_open == 0 and r.limit is None
+        for pl in r.polylines:
+            P = pl["points"]
+            c = 0.5 * (P.max(0).values + P.min(0).values)          # the vertices crowd at the gap
+            assert ((P - c).norm(dim=1) - 1.0).abs().max() < 0.05      # 1% of the diagonal
+
+
+def test_contradictions_mark_odd_edges_with_equal_signs_and_edges_across_a_gap():
+    """By hand on a square mesh of cells 0.275 wide. One vertical chain of samples: an edge
+    crossing it is marked when its ends have equal signs, not when they differ. Two chains 0.1
+    apart inside one column of cells (a gap of 3 spacings): an edge crossing both is marked
+    whatever its signs. Nothing is marked below the size floor."""
+    from torch_isc.pipeline.crust import crust_contradictions
+    ys = torch.linspace(-0.5, 0.5, 31, dtype=torch.float64)             # spacing 1/30
+
+    def chain(x0):
+        return torch.stack([torch.full_like(ys, x0), ys], 1)
+    ws = _ws(chain(0.1), noise=0.0, res=4)
+    x = ws.mesh.verts[:, 0]
+    e, fe = ws.mesh.edges, ws.mesh.face_edges
+    xa, xb = x[e[:, 0]], x[e[:, 1]]
+    crosses = (xa - 0.1) * (xb - 0.1) < 0
+    assert crosses.sum() >= 8
+    right = torch.where(x > 0.1, -1.0, 1.0).to(torch.float64)
+    assert not crust_contradictions(ws, right, 1.0, 0.1, 3.0, 0.1).any()
+    flat = torch.ones_like(right)
+    assert torch.equal(crust_contradictions(ws, flat, 1.0, 0.1, 3.0, 0.1), crosses[fe].any(1))
+    assert not crust_contradictions(ws, flat, 100.0, 0.1, 3.0, 0.1).any()   # the floor
+    # two chains at x = 0.09 and 0.19: no vertex in the gap; the column's edges cross both
+    ws = _ws(torch.cat([chain(0.09), chain(0.19)]), noise=0.0, res=4)
+    both = (torch.minimum(xa, xb) < 0.09) & (torch.maximum(xa, xb) > 0.19)
+    assert both.sum() >= 4
+    for signs in (flat, -flat):
+        assert torch.equal(crust_contradictions(ws, signs, 1.0, 0.1, 3.0, 0.1), both[fe].any(1))
 
 
 def test_coupling_of_an_item_does_not_depend_on_its_batch():

@@ -26,7 +26,8 @@ if TYPE_CHECKING:
     from torch_isc.core.mesh import MeshBatch
     from torch_isc.pipeline.workset import WorkingSet
 
-__all__ = ["crust_segments", "crossing_counts", "crust_parity", "crust_coupling", "crust_stage", "CrustCache"]
+__all__ = ["crust_segments", "crossing_counts", "crust_parity", "crust_contradictions", "crust_coupling", "crust_stage",
+           "CrustCache"]
 
 #: neighbours looked at for the nearest one on the other side of a sample
 CRUST_NEIGHBOURS = 8
@@ -81,42 +82,85 @@ def _orient(a: torch.Tensor, b: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
     return (b[..., 0] - a[..., 0]) * (c[..., 1] - a[..., 1]) - (b[..., 1] - a[..., 1]) * (c[..., 0] - a[..., 0])
 
 
-def crossing_counts(mesh: "MeshBatch", p: torch.Tensor, q: torch.Tensor, item: torch.Tensor,
-                    fp: torch.Tensor, fq: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
-    """``(E,)`` how many of the segments ``p (S, 2) → q (S, 2)`` (of items ``item``, their ends in
-    triangles ``fp``, ``fq``) cross each mesh edge. A segment is followed through the triangles
-    holding its points at 0, 1/3, 2/3 and 1 of its length; one whose consecutive triangles are
-    neither equal nor edge neighbours passes through triangles it cannot see, and counts for
-    nothing (so no edge gets a partial count of it). Also ``(S,)`` bool: the segments followed."""
-    from torch_isc.core.locate import locate_grid
-    E = mesh.edges.shape[0]
-    dt = mesh.dtype
-    out = torch.zeros(E, dtype=torch.long, device=mesh.device)
-    S = p.shape[0]
-    if S == 0:
-        return out, torch.zeros(0, dtype=torch.bool, device=mesh.device)
-    p, q = p.to(dt), q.to(dt)
-    mid = torch.cat([p + (q - p) / 3.0, p + (q - p) * (2.0 / 3.0)])
-    fm, _ = locate_grid(mesh, mid, torch.cat([item, item]))
-    faces = torch.stack([fp, fm[:S], fm[S:], fq], 1)                          # (S,4)
-    ok = (faces >= 0).all(1)
-    f = faces.clamp_min(0)
-    nb = mesh.face_neighbors
-    for k in range(3):
-        same = f[:, k] == f[:, k + 1]
-        adj = (nb[f[:, k]] == f[:, k + 1, None]).any(1)
-        ok &= same | adj
-    cand = mesh.face_edges[f].reshape(S, 12)
-    cand, _ = torch.sort(cand, 1)
-    first = torch.ones_like(cand, dtype=torch.bool)
-    first[:, 1:] = cand[:, 1:] != cand[:, :-1]                                 # each edge once per segment
+#: crossings of the chain closer than this many sample spacings to an edge's end, or to each
+#: other, mark nothing (:func:`crust_contradictions`)
+CONTRADICTION_MARGIN = 0.5
+#: triangles a crust segment may pass through before it is given up (it then counts for nothing)
+WALK_STEPS = 32
+
+
+def _walk(mesh: "MeshBatch", p: torch.Tensor, q: torch.Tensor, fp: torch.Tensor, fq: torch.Tensor, steps: int):
+    """Walk each segment ``p (S, 2) → q (S, 2)`` from triangle ``fp`` through the triangles it
+    passes, leaving each by the edge it meets last (the exit of a line through a convex cell),
+    until it ends inside one. Returns ``(S, steps)`` the edges left by (-1 past the end), where
+    each is crossed as a fraction of the way from its lower vertex index to its higher, and
+    ``(S,)`` bool: the walk ended (not at the boundary, not stalled through a vertex, within
+    ``steps``). Fixed shapes: ``steps`` rounds over every segment, the ended ones masked."""
+    S, dt, dev = p.shape[0], mesh.dtype, mesh.device
     v = mesh.verts.detach()
-    e = mesh.edges[cand]                                                     # (S,12,2)
-    ea, eb = v[e[..., 0]], v[e[..., 1]]
-    P_, Q_ = p[:, None, :], q[:, None, :]
-    cross = ((_orient(P_, Q_, ea) * _orient(P_, Q_, eb) < 0) & (_orient(ea, eb, P_) * _orient(ea, eb, Q_) < 0))
-    cross &= first & ok[:, None]
-    return out.index_add_(0, cand.reshape(-1), cross.reshape(-1).long()), ok
+    d = q - p
+    alive = (fp >= 0) & (fq >= 0)
+    done = torch.zeros(S, dtype=torch.bool, device=dev)
+    cur = fp.clamp_min(0)
+    last = torch.full((S,), -float("inf"), dtype=dt, device=dev)
+    crossed = torch.full((S, steps), -1, dtype=torch.long, device=dev)
+    where = torch.zeros((S, steps), dtype=dt, device=dev)
+    fe, nb, faces = mesh.face_edges, mesh.face_neighbors, mesh.faces
+    for k in range(steps):
+        f = faces[cur]                                                   # (S,3)
+        ia, ib = f.roll(-1, 1), f.roll(1, 1)                             # the edge opposite corner j
+        a, b = v[ia], v[ib]
+        e = b - a
+        w = a - p[:, None, :]
+        den = d[:, None, 0] * e[..., 1] - d[:, None, 1] * e[..., 0]
+        ok = den != 0
+        sden = torch.where(ok, den, torch.ones_like(den))
+        t = (w[..., 0] * e[..., 1] - w[..., 1] * e[..., 0]) / sden       # along the segment
+        u = (w[..., 0] * d[:, None, 1] - w[..., 1] * d[:, None, 0]) / sden   # along the edge, from a
+        t = torch.where(ok & (u >= 0) & (u <= 1), t, torch.full_like(t, -float("inf")))
+        te, j = t.max(1)
+        run = alive & ~done
+        ends = run & (te >= 1)                                            # q lies in this triangle
+        done |= ends
+        go = run & ~ends
+        nxt = nb[cur, j]
+        alive &= ~(go & (~(te > last) | (nxt < 0)))                       # stalled, or left the mesh
+        go &= alive
+        uj = u.gather(1, j[:, None]).squeeze(1)
+        uj = torch.where(ia.gather(1, j[:, None]).squeeze(1) < ib.gather(1, j[:, None]).squeeze(1), uj, 1 - uj)
+        crossed[:, k] = torch.where(go, fe[cur, j], crossed[:, k])
+        where[:, k] = torch.where(go, uj, where[:, k])
+        last = torch.where(go, te, last)
+        cur = torch.where(go, nxt, cur)
+    return crossed, where, alive & done
+
+
+def crossing_counts(mesh: "MeshBatch", p: torch.Tensor, q: torch.Tensor, item: torch.Tensor,
+                    fp: torch.Tensor, fq: torch.Tensor, steps: int = WALK_STEPS, extent: bool = False):
+    """``(E,)`` how many of the segments ``p (S, 2) → q (S, 2)`` (of items ``item``, their ends in
+    triangles ``fp``, ``fq``) cross each mesh edge, each segment walked through the mesh
+    (:func:`_walk`); a segment whose walk does not end (the mesh boundary, a stall through a
+    vertex, more than ``steps`` triangles) counts for nothing, so no edge gets a partial count of
+    it. Also ``(S,)`` bool: the segments followed. With ``extent``, also ``(E, 2)`` the first
+    and last crossing along each edge (fractions from its lower vertex index; 1, 0 where none)."""
+    E = mesh.edges.shape[0]
+    dev = mesh.device
+    out = torch.zeros(E, dtype=torch.long, device=dev)
+    S = p.shape[0]
+    span = torch.stack([torch.ones(E, dtype=mesh.dtype, device=dev), torch.zeros(E, dtype=mesh.dtype, device=dev)], 1)
+    if S == 0:
+        none = torch.zeros(0, dtype=torch.bool, device=dev)
+        return (out, none, span) if extent else (out, none)
+    crossed, where, followed = _walk(mesh, p.to(mesh.dtype), q.to(mesh.dtype), fp, fq, steps)
+    keep = (crossed >= 0) & followed[:, None]
+    hit = crossed[keep]
+    out.index_add_(0, hit, torch.ones_like(hit))
+    if not extent:
+        return out, followed
+    at = where[keep]
+    span[:, 0].scatter_reduce_(0, hit, at, "amin")
+    span[:, 1].scatter_reduce_(0, hit, at, "amax")
+    return out, followed, span
 
 
 class CrustCache:
@@ -170,28 +214,32 @@ def _starts(point_item: torch.Tensor, B: int) -> torch.Tensor:
 
 
 def crust_parity(ws: "WorkingSet", noise_tolerances: float, max_length: float, noise_spacings: float = 0.1,
-                 cache: "CrustCache | None" = None) -> Tuple[torch.Tensor, torch.Tensor]:
+                 cache: "CrustCache | None" = None, extent: bool = False):
     """``(E,)`` int8: ``1`` where a mesh edge crosses the crust an odd number of times (its ends
     on opposite sides), ``-1`` where an even, nonzero number, ``0`` elsewhere; and ``(B,)`` the
     items' sample spacing (0 where the rule is off). Only on items whose noise is at most
     ``noise_tolerances`` times their tolerance and ``noise_spacings`` times their sample spacing.
-    ``cache``: a :class:`CrustCache` shared by the levels of one solve (the same result)."""
+    ``cache``: a :class:`CrustCache` shared by the levels of one solve (the same result).
+    ``extent``: also ``(E, 2)`` the first and last crossing along each edge (fractions from its
+    lower vertex index; 1, 0 where none)."""
     mesh = ws.mesh
     E = mesh.edges.shape[0]
     par = torch.zeros(E, dtype=torch.int8, device=mesh.device)
     spacing = torch.zeros(ws.num_items, dtype=mesh.dtype, device=mesh.device)
+    span = torch.stack([torch.ones(E, dtype=mesh.dtype, device=mesh.device), torch.zeros(E, dtype=mesh.dtype, device=mesh.device)], 1)
+    result = (lambda *r: (*r, span)) if extent else (lambda *r: r)
     with torch.no_grad():
         clean = ws.noise <= noise_tolerances * ws.tol
         if cache is not None:
             got = cache.get(ws, clean, max_length)
             if got is None:
-                return par, spacing
+                return result(par, spacing)
             seg, sp = got
             pts, it, face = ws.points, ws.point_item, ws.face
         else:
             sel = clean[ws.point_item].nonzero().squeeze(1)                     # one host read
             if sel.numel() < 2:
-                return par, spacing
+                return result(par, spacing)
             pts = ws.points[sel]
             it = ws.point_item[sel]
             face = ws.face[sel]
@@ -202,10 +250,48 @@ def crust_parity(ws: "WorkingSet", noise_tolerances: float, max_length: float, n
         seg = seg[clean[it[seg[:, 0]]]]
         spacing = torch.where(clean, sp.to(mesh.dtype), spacing)
         if seg.shape[0] == 0:
-            return par, spacing
-        k, _ = crossing_counts(mesh, pts[seg[:, 0]], pts[seg[:, 1]], it[seg[:, 0]], face[seg[:, 0]], face[seg[:, 1]])
+            return result(par, spacing)
+        k, _, span = crossing_counts(mesh, pts[seg[:, 0]], pts[seg[:, 1]], it[seg[:, 0]], face[seg[:, 0]], face[seg[:, 1]],
+                                     extent=True)
         par = torch.where(k % 2 == 1, torch.ones_like(par), torch.where(k > 0, -torch.ones_like(par), par))
-        return par, spacing
+        return result(par, spacing)
+
+
+def crust_contradictions(ws: "WorkingSet", values: torch.Tensor, spacings: float, noise_tolerances: float,
+                         max_length: float, noise_spacings: float = 0.1, cache: "CrustCache | None" = None
+                         ) -> torch.Tensor:
+    """``(T,)`` bool: the triangles whose longest edge is above ``spacings`` sample spacings and
+    that have an edge the crust (:func:`crust_parity`) says the mesh gets wrong: crossed an odd
+    number of times with equal signs at its ends, or an even, nonzero number of times (both
+    walls of a feature thinner than the edge: whatever its ends' signs, the mesh cannot draw
+    both there). Crossings within :data:`CONTRADICTION_MARGIN` sample spacings of the edge's
+    ends, or of each other, do not count.
+
+    On clean data the chain of samples says which edges the curve crosses. Where the signs
+    disagree, a later rule flipped a region the samples enclose (the one-vertex gap between two
+    close curves, read as a speck) or the mesh is too coarse for the energy to follow the chain;
+    an edge across both walls of a gap joins the two curves whatever the signs. Either way the
+    mesh must be finer there (issue 13: two circles three sample spacings apart merged)."""
+    mesh = ws.mesh
+    with torch.no_grad():
+        par, spacing, span = crust_parity(ws, noise_tolerances, max_length, noise_spacings, cache, extent=True)
+        neg = values.detach() < 0
+        e = mesh.edges
+        differ = neg[e[:, 0]] != neg[e[:, 1]]
+        v = mesh.verts.detach()
+        L = (v[e[:, 0]] - v[e[:, 1]]).norm(dim=1)
+        margin = CONTRADICTION_MARGIN * spacing[mesh.edge_item]
+        # a crossing within the margin of an edge's end (a vertex between the chain's chord and
+        # the curve's arc) or two within the margin of each other (the chain's corner at a
+        # sample) say nothing a finer mesh could resolve
+        clear = torch.minimum(span[:, 0], 1 - span[:, 1]) * L > margin
+        wide = (span[:, 1] - span[:, 0]) * L > margin
+        # an edge crossing the chain twice (or 2k times) spans a feature thinner than itself:
+        # whatever its ends' signs, the mesh cannot draw both walls there
+        bad = ((par == 1) & ~differ & clear) | ((par == -1) & wide)
+        hit = bad[mesh.face_edges].any(1)
+        longest = mesh.kernel.longest_edge(v[mesh.faces])
+        return hit & (longest > spacings * spacing[mesh.face_item])
 
 
 def crust_coupling(ws: "WorkingSet", weight: float, noise_tolerances: float, max_length: float,

@@ -132,6 +132,10 @@ class TopologyConfig:
     crust_noise_spacings: float = knob(0.1, ge=0)
     #: ...segments at most this many median sample spacings long
     crust_max_length: float = knob(3.0, gt=0)
+    #: split the triangles with an edge the crust says the mesh gets wrong (its signs contradict
+    #: the crust's parity, or it crosses both walls of a gap), while their longest edge is above
+    #: this many sample spacings (:func:`~torch_isc.pipeline.crust.crust_contradictions`); 0 disables
+    crust_refine: float = knob(1.0, ge=0, le=100)
 
     def __post_init__(self):
         check_section(self)
@@ -693,7 +697,12 @@ class IsingSigns:
         return rows[ws.items]
 
     def marks(self, ws: "WorkingSet", values: torch.Tensor, min_len: torch.Tensor) -> Optional[torch.Tensor]:
-        return None
+        if self.cfg.crust_refine <= 0 or self.cfg.crust_weight <= 0 or self._crust is None:
+            return None
+        from torch_isc.pipeline.crust import crust_contradictions
+        c = self.cfg
+        return crust_contradictions(ws, values, c.crust_refine, c.crust_noise_tolerances, c.crust_max_length,
+                                    c.crust_noise_spacings, self._crust)
 
 
 class OracleSigns:

@@ -39,6 +39,47 @@ def test_crust_drops_an_outliers_long_link_and_keeps_items_apart():
     assert seg.shape[0] == 40 + 30
 
 
+def test_crust_keeps_a_sparse_components_chain_and_drops_outlier_pairs():
+    """A dense circle (200 samples, spacing 0.0094) with an 8-sample circle of radius 0.1 beside
+    it (spacing 0.077: 8 spacings of the item) and two outliers 0.05 apart: the small circle's
+    chain is kept whole (each segment about 1x both ends' neighbour distances, two segments at
+    each end), the outliers' link is not (each has one segment), nor any link to them."""
+    big = _circle(200, 0.3)
+    small = _circle(8, 0.1, cx=0.8, phase=0.2)
+    pair = torch.tensor([[-0.8, 0.5], [-0.75, 0.5]], dtype=torch.float64)
+    p = torch.cat([big, small, pair])
+    seg, sp = crust_segments(p, torch.zeros(p.shape[0], dtype=torch.long), 1, 3.0)
+    got = set(map(tuple, seg.tolist()))
+    ring = {tuple(sorted((200 + i, 200 + (i + 1) % 8))) for i in range(8)}
+    assert ring <= got
+    assert not (seg >= 208).any()
+    assert seg.shape[0] == 200 + 8
+    assert abs(float(sp[0]) - 2 * 0.3 * math.sin(math.pi / 200)) < 1e-9
+
+
+def _satellites(a0, rs, n_small, n_big=300):
+    t = torch.arange(n_big, dtype=torch.float64) * 2 * math.pi / n_big
+    pts = [torch.stack([t.cos(), t.sin()], 1)]
+    for k in range(6):
+        c = (1.5 * math.cos(a0 + k * math.pi / 3), 1.5 * math.sin(a0 + k * math.pi / 3))
+        pts.append(_circle(n_small, rs, c[0], c[1], 0.3 * k))
+    return torch.cat(pts)
+
+
+def test_sparse_satellites_are_each_one_loop(monkeypatch):
+    """Noise-free: a unit circle of 300 samples and six circles of radius 0.12-0.18 with 7-9
+    samples at distance 1.5 (issue 13's satellites). The small circles' chains now count in the
+    crust (their segments are 8-12 of the item's spacings, over its limit of 3), so their signs
+    follow the samples: 7 loops each. Without them (``CHAIN_RATIO`` 0) satellites were cut in
+    two or lost (9, 10, 12 loops on these sets)."""
+    import torch_isc.pipeline.crust as crust
+    sets = [_satellites(0.5, 0.12, 9), _satellites(0.5, 0.18, 7), _satellites(0.5, 0.18, 9), _satellites(0.1, 0.12, 7)]
+    for r in torch_isc.reconstruct_batch(sets, ReconstructConfig()):
+        assert r.num_closed == 7 and r.num_open == 0
+    monkeypatch.setattr(crust, "CHAIN_RATIO", 0.0)
+    assert sum(r.num_closed != 7 for r in torch_isc.reconstruct_batch(sets, ReconstructConfig())) >= 2
+
+
 def _brute_counts(mesh, p, q):
     """Crossings per edge by exact orientation tests over every (segment, edge) pair, in Python."""
     v = mesh.verts.tolist()

@@ -423,8 +423,13 @@ def test_reconstruct_finds_satellites_of_eight_points():
         c = 1.5 * torch.tensor([math.cos(1.0 + 2.1 * k), math.sin(1.0 + 2.1 * k)], dtype=torch.float64)
         d = [float((torch.as_tensor(pl["points"]) - c).norm(dim=1).max()) for pl in loops]
         assert min(d) < 0.25
-    # off: the enclosure rule and the blob rule (pipeline/blobs.py finds these satellites too)
-    off = torch_isc.reconstruct(pts, config=torch_isc.ReconstructConfig().replace(enclose_chord=0.0, blob_min_points=0))
+    # off: the enclosure rule, the blob rule (pipeline/blobs.py finds these satellites too) and
+    # the crust (its sparse chains find them too, pipeline/crust.py)
+    off = torch_isc.reconstruct(pts, config=torch_isc.ReconstructConfig().replace(enclose_chord=0.0, blob_min_points=0,
+                                                                                crust_weight=0.0))
     assert len(off.polylines) < 4
+    crust_only = torch_isc.reconstruct(pts, config=torch_isc.ReconstructConfig().replace(enclose_chord=0.0,
+                                                                                       blob_min_points=0))
+    assert len(crust_only.polylines) == 4
     blob_only = torch_isc.reconstruct(pts, config=torch_isc.ReconstructConfig().replace(enclose_chord=0.0))
     assert len(blob_only.polylines) == 4

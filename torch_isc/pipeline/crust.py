@@ -33,14 +33,20 @@ __all__ = ["crust_segments", "crossing_counts", "crust_parity", "crust_contradic
 CRUST_NEIGHBOURS = 8
 #: candidates on each side along each Morton order (8 missed neighbours along a glyph's straight wall)
 CRUST_WINDOW = 24
+#: a segment longer than the item's limit is kept when at most this many times both its ends'
+#: nearest-neighbour distances (the samples of a sparse small component: evenly spaced samples
+#: have chain segments about 1x theirs; scattered outliers inside a curve chained at 3x)
+CHAIN_RATIO = 1.5
 
 
 def crust_segments(points: torch.Tensor, item: torch.Tensor, num_items: int, max_length: float
                    ) -> Tuple[torch.Tensor, torch.Tensor]:
     """The NN-crust of each item's ``points (P, 2)``: ``(S, 2)`` long index pairs ``i < j``, each
     segment once, at most ``max_length`` times its item's median nearest-neighbour distance
-    (returned too, ``(num_items,)``: the sample spacing). A point is joined to its nearest neighbour ``q`` and to
-    its nearest neighbour ``r`` with ``(r − p)·(q − p) < 0`` (among its approximate
+    (returned too, ``(num_items,)``: the sample spacing), or at most :data:`CHAIN_RATIO` times
+    both its ends' nearest-neighbour distances with two kept segments at each end (the chain of
+    a sparse component). A point is joined to its nearest neighbour ``q`` and to its nearest
+    neighbour ``r`` with ``(r − p)·(q − p) < 0`` (among its approximate
     :data:`CRUST_NEIGHBOURS` nearest)."""
     from torch_isc.pipeline.noise import approximate_knn
     P = points.shape[0]
@@ -68,10 +74,22 @@ def crust_segments(points: torch.Tensor, item: torch.Tensor, num_items: int, max
     d1 = torch.where(ok[:, 0], d2[:, 0], torch.zeros_like(d2[:, 0])).sqrt()
     spacing = segment_median(d1, item, num_items)
     length = (points[a] - points[b]).norm(dim=1)
-    keep &= (length <= max_length * spacing[item[a]]) & (a != b)
+    keep &= a != b
+    near = keep & (length <= max_length * spacing[item[a]])
     lo, hi = torch.minimum(a, b), torch.maximum(a, b)
+    # a sparse component (a few samples on a small circle beside a dense curve) has its own
+    # spacing: a longer segment is kept when it is at most CHAIN_RATIO times both its ends'
+    # nearest-neighbour distances (a jump from a curve to an outlier, or across a sampling gap,
+    # has an end whose neighbour is near) and both ends have two kept segments (a chain, not a
+    # pair of outliers)
+    local = keep & ~near & (length <= CHAIN_RATIO * torch.minimum(d1[a], d1[b]))
+    both = torch.unique(torch.where(near | local, lo * P + hi, torch.full_like(lo, -1)))
+    both = both[both >= 0]
+    deg = torch.zeros(P, dtype=torch.long, device=dev)
+    deg.index_add_(0, torch.cat([both // P, both % P]), torch.ones(2 * both.shape[0], dtype=torch.long, device=dev))
+    local &= (deg[lo] >= 2) & (deg[hi] >= 2)
     # each segment once: the parity of crossings must not count a pair twice
-    key = torch.where(keep, lo * P + hi, torch.full_like(lo, -1))
+    key = torch.where(near | local, lo * P + hi, torch.full_like(lo, -1))
     key = torch.unique(key)
     key = key[key >= 0]
     seg = torch.stack([key // P, key % P], 1)
@@ -85,6 +103,8 @@ def _orient(a: torch.Tensor, b: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
 #: crossings of the chain closer than this many sample spacings to an edge's end, or to each
 #: other, mark nothing (:func:`crust_contradictions`)
 CONTRADICTION_MARGIN = 0.5
+#: rounds of the walk between host reads of whether any segment still walks
+WALK_CHECK = 8
 #: triangles a crust segment may pass through before it is given up (it then counts for nothing)
 WALK_STEPS = 32
 
@@ -107,6 +127,8 @@ def _walk(mesh: "MeshBatch", p: torch.Tensor, q: torch.Tensor, fp: torch.Tensor,
     where = torch.zeros((S, steps), dtype=dt, device=dev)
     fe, nb, faces = mesh.face_edges, mesh.face_neighbors, mesh.faces
     for k in range(steps):
+        if k % WALK_CHECK == 0 and k > 0 and not bool((alive & ~done).any()):
+            break                                                        # one host read per WALK_CHECK rounds
         f = faces[cur]                                                   # (S,3)
         ia, ib = f.roll(-1, 1), f.roll(1, 1)                             # the edge opposite corner j
         a, b = v[ia], v[ib]
@@ -258,8 +280,8 @@ def crust_parity(ws: "WorkingSet", noise_tolerances: float, max_length: float, n
 
 
 def crust_contradictions(ws: "WorkingSet", values: torch.Tensor, spacings: float, noise_tolerances: float,
-                         max_length: float, noise_spacings: float = 0.1, cache: "CrustCache | None" = None
-                         ) -> torch.Tensor:
+                         max_length: float, noise_spacings: float = 0.1, cache: "CrustCache | None" = None,
+                         parity=None) -> torch.Tensor:
     """``(T,)`` bool: the triangles whose longest edge is above ``spacings`` sample spacings and
     that have an edge the crust (:func:`crust_parity`) says the mesh gets wrong: crossed an odd
     number of times with equal signs at its ends, or an even, nonzero number of times (both
@@ -271,10 +293,15 @@ def crust_contradictions(ws: "WorkingSet", values: torch.Tensor, spacings: float
     disagree, a later rule flipped a region the samples enclose (the one-vertex gap between two
     close curves, read as a speck) or the mesh is too coarse for the energy to follow the chain;
     an edge across both walls of a gap joins the two curves whatever the signs. Either way the
-    mesh must be finer there (issue 13: two circles three sample spacings apart merged)."""
+    mesh must be finer there (issue 13: two circles three sample spacings apart merged).
+    ``parity``: ``(mesh, par, spacing, span)`` of :func:`crust_parity` with ``extent``, reused
+    when made on this mesh (the sign source's, from earlier in the level)."""
     mesh = ws.mesh
     with torch.no_grad():
-        par, spacing, span = crust_parity(ws, noise_tolerances, max_length, noise_spacings, cache, extent=True)
+        if parity is not None and parity[0] is mesh:
+            par, spacing, span = parity[1:]                              # this level's, from the signs
+        else:
+            par, spacing, span = crust_parity(ws, noise_tolerances, max_length, noise_spacings, cache, extent=True)
         neg = values.detach() < 0
         e = mesh.edges
         differ = neg[e[:, 0]] != neg[e[:, 1]]

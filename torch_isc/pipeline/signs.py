@@ -646,10 +646,14 @@ class IsingSigns:
                 cpl, far = support_coupling(ws, self.cfg.unsupported_weight, self.cfg.unsupported_noise_widths)
                 H = H + cpl
             if self.cfg.crust_weight > 0:
-                from torch_isc.pipeline.crust import CrustCache, crust_stage
+                from torch_isc.pipeline.crust import CrustCache, crust_parity
                 if level == 0 or self._crust is None:
                     self._crust = CrustCache()            # a new solve (the source serves one solve)
-                H = crust_stage(ws, H, self.cfg, self._crust)
+                c = self.cfg
+                par, spacing, span = crust_parity(ws, c.crust_noise_tolerances, c.crust_max_length,
+                                                  c.crust_noise_spacings, self._crust, extent=True)
+                self._parity = (mesh, par, spacing, span)  # for marks() on the same mesh
+                H = H + float(c.crust_weight) * par.to(H.dtype)     # crust_stage's coupling
             fixed = mesh.is_boundary_vert
             init = torch.where(fixed, torch.ones_like(ws.signs), ws.signs)
             field = self._winding_field(ws, level) if self.cfg.winding_weight > 0 else None
@@ -702,7 +706,7 @@ class IsingSigns:
         from torch_isc.pipeline.crust import crust_contradictions
         c = self.cfg
         return crust_contradictions(ws, values, c.crust_refine, c.crust_noise_tolerances, c.crust_max_length,
-                                    c.crust_noise_spacings, self._crust)
+                                    c.crust_noise_spacings, self._crust, getattr(self, "_parity", None))
 
 
 class OracleSigns:

@@ -26,8 +26,7 @@ if TYPE_CHECKING:
     from torch_isc.core.mesh import MeshBatch
     from torch_isc.pipeline.workset import WorkingSet
 
-__all__ = ["crust_segments", "crossing_counts", "crust_parity", "crust_contradictions", "crust_coupling", "crust_stage",
-           "CrustCache"]
+__all__ = ["crust_segments", "crossing_counts", "crust_parity", "crust_contradictions", "crust_coupling", "CrustCache"]
 
 #: neighbours looked at for the nearest one on the other side of a sample
 CRUST_NEIGHBOURS = 8
@@ -94,10 +93,6 @@ def crust_segments(points: torch.Tensor, item: torch.Tensor, num_items: int, max
     key = key[key >= 0]
     seg = torch.stack([key // P, key % P], 1)
     return seg, spacing
-
-
-def _orient(a: torch.Tensor, b: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
-    return (b[..., 0] - a[..., 0]) * (c[..., 1] - a[..., 1]) - (b[..., 1] - a[..., 1]) * (c[..., 0] - a[..., 0])
 
 
 #: crossings of the chain closer than this many sample spacings to an edge's end, or to each
@@ -236,32 +231,31 @@ def _starts(point_item: torch.Tensor, B: int) -> torch.Tensor:
 
 
 def crust_parity(ws: "WorkingSet", noise_tolerances: float, max_length: float, noise_spacings: float = 0.1,
-                 cache: "CrustCache | None" = None, extent: bool = False):
+                 cache: "CrustCache | None" = None) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``(E,)`` int8: ``1`` where a mesh edge crosses the crust an odd number of times (its ends
     on opposite sides), ``-1`` where an even, nonzero number, ``0`` elsewhere; and ``(B,)`` the
     items' sample spacing (0 where the rule is off). Only on items whose noise is at most
     ``noise_tolerances`` times their tolerance and ``noise_spacings`` times their sample spacing.
     ``cache``: a :class:`CrustCache` shared by the levels of one solve (the same result).
-    ``extent``: also ``(E, 2)`` the first and last crossing along each edge (fractions from its
-    lower vertex index; 1, 0 where none)."""
+    Also ``(E, 2)`` the first and last crossing along each edge (fractions from its lower vertex
+    index; 1, 0 where none)."""
     mesh = ws.mesh
     E = mesh.edges.shape[0]
     par = torch.zeros(E, dtype=torch.int8, device=mesh.device)
     spacing = torch.zeros(ws.num_items, dtype=mesh.dtype, device=mesh.device)
     span = torch.stack([torch.ones(E, dtype=mesh.dtype, device=mesh.device), torch.zeros(E, dtype=mesh.dtype, device=mesh.device)], 1)
-    result = (lambda *r: (*r, span)) if extent else (lambda *r: r)
     with torch.no_grad():
         clean = ws.noise <= noise_tolerances * ws.tol
         if cache is not None:
             got = cache.get(ws, clean, max_length)
             if got is None:
-                return result(par, spacing)
+                return par, spacing, span
             seg, sp = got
             pts, it, face = ws.points, ws.point_item, ws.face
         else:
             sel = clean[ws.point_item].nonzero().squeeze(1)                     # one host read
             if sel.numel() < 2:
-                return result(par, spacing)
+                return par, spacing, span
             pts = ws.points[sel]
             it = ws.point_item[sel]
             face = ws.face[sel]
@@ -272,11 +266,11 @@ def crust_parity(ws: "WorkingSet", noise_tolerances: float, max_length: float, n
         seg = seg[clean[it[seg[:, 0]]]]
         spacing = torch.where(clean, sp.to(mesh.dtype), spacing)
         if seg.shape[0] == 0:
-            return result(par, spacing)
+            return par, spacing, span
         k, _, span = crossing_counts(mesh, pts[seg[:, 0]], pts[seg[:, 1]], it[seg[:, 0]], face[seg[:, 0]], face[seg[:, 1]],
                                      extent=True)
         par = torch.where(k % 2 == 1, torch.ones_like(par), torch.where(k > 0, -torch.ones_like(par), par))
-        return result(par, spacing)
+        return par, spacing, span
 
 
 def crust_contradictions(ws: "WorkingSet", values: torch.Tensor, spacings: float, noise_tolerances: float,
@@ -294,14 +288,14 @@ def crust_contradictions(ws: "WorkingSet", values: torch.Tensor, spacings: float
     close curves, read as a speck) or the mesh is too coarse for the energy to follow the chain;
     an edge across both walls of a gap joins the two curves whatever the signs. Either way the
     mesh must be finer there (issue 13: two circles three sample spacings apart merged).
-    ``parity``: ``(mesh, par, spacing, span)`` of :func:`crust_parity` with ``extent``, reused
+    ``parity``: ``(mesh, par, spacing, span)`` of :func:`crust_parity`, reused
     when made on this mesh (the sign source's, from earlier in the level)."""
     mesh = ws.mesh
     with torch.no_grad():
         if parity is not None and parity[0] is mesh:
             par, spacing, span = parity[1:]                              # this level's, from the signs
         else:
-            par, spacing, span = crust_parity(ws, noise_tolerances, max_length, noise_spacings, cache, extent=True)
+            par, spacing, span = crust_parity(ws, noise_tolerances, max_length, noise_spacings, cache)
         neg = values.detach() < 0
         e = mesh.edges
         differ = neg[e[:, 0]] != neg[e[:, 1]]
@@ -326,14 +320,5 @@ def crust_coupling(ws: "WorkingSet", weight: float, noise_tolerances: float, max
     """``(E,)`` couplings added to ``H_e``: ``+weight`` on an edge that crosses the crust an odd
     number of times (its ends on opposite sides), ``−weight`` on one that crosses it an even,
     nonzero number of times, 0 elsewhere (:func:`crust_parity`)."""
-    par, _ = crust_parity(ws, noise_tolerances, max_length, noise_spacings, cache)
+    par = crust_parity(ws, noise_tolerances, max_length, noise_spacings, cache)[0]
     return float(weight) * par.to(ws.mesh.dtype)
-
-
-def crust_stage(ws: "WorkingSet", H: torch.Tensor, cfg, cache: "CrustCache | None" = None) -> torch.Tensor:
-    """``H`` plus :func:`crust_coupling` with ``cfg``'s settings (``TopologyConfig``); ``cache``
-    keeps the crust of a solve from level to level."""
-    if cfg.crust_weight <= 0:
-        return H
-    return H + crust_coupling(ws, cfg.crust_weight, cfg.crust_noise_tolerances, cfg.crust_max_length,
-                              cfg.crust_noise_spacings, cache).to(H.dtype)

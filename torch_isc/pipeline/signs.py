@@ -631,6 +631,7 @@ class IsingSigns:
     def __init__(self, topology: TopologyConfig, evidence: "EvidenceConfig", seed: int = 0):
         self.cfg, self.evidence, self.seed = topology, evidence, seed
         self._crust = None                                # the crust of the current solve (crust.CrustCache)
+        self._parity = None                               # the current level's crust_parity, with its mesh
 
     def signs(self, ws: "WorkingSet", ev: "Evidence", level: int) -> torch.Tensor:
         from torch_isc.pipeline.evidence import local_fits
@@ -651,9 +652,9 @@ class IsingSigns:
                     self._crust = CrustCache()            # a new solve (the source serves one solve)
                 c = self.cfg
                 par, spacing, span = crust_parity(ws, c.crust_noise_tolerances, c.crust_max_length,
-                                                  c.crust_noise_spacings, self._crust, extent=True)
+                                                  c.crust_noise_spacings, self._crust)
                 self._parity = (mesh, par, spacing, span)  # for marks() on the same mesh
-                H = H + float(c.crust_weight) * par.to(H.dtype)     # crust_stage's coupling
+                H = H + float(c.crust_weight) * par.to(H.dtype)     # crust_coupling's
             fixed = mesh.is_boundary_vert
             init = torch.where(fixed, torch.ones_like(ws.signs), ws.signs)
             field = self._winding_field(ws, level) if self.cfg.winding_weight > 0 else None
@@ -706,7 +707,7 @@ class IsingSigns:
         from torch_isc.pipeline.crust import crust_contradictions
         c = self.cfg
         return crust_contradictions(ws, values, c.crust_refine, c.crust_noise_tolerances, c.crust_max_length,
-                                    c.crust_noise_spacings, self._crust, getattr(self, "_parity", None))
+                                    c.crust_noise_spacings, self._crust, self._parity)
 
 
 class OracleSigns:

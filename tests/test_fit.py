@@ -1637,6 +1637,49 @@ def test_estimate_noise_circle_noise_wider_than_spacing(seed, device):
     assert 0.78 * sigma < est < 1.25 * sigma
 
 
+@pytest.mark.parametrize("k,gap", [(2, 2.5), (3, 3.0), (5, 4.0)])
+def test_estimate_noise_of_clean_strands_a_few_spacings_apart(k, gap, device):
+    """Clean concentric circles ``gap`` spacings apart: eight neighbours reach the next circle
+    and read a noisy band (1.5-4% of the radius); four see one circle each, a thousand times
+    less, so the estimate is theirs. A noisy pair of circles (noise 1% of the radius, 10 noise
+    widths apart) is left to the eight (the four read 0.2-1 of them): the same estimate as
+    with the strand test off, within 25% of the noise."""
+    import torch_isc.pipeline.noise as noise_mod
+    n = 300
+    h = 2 * math.pi / n
+    rings = []
+    for j in range(k):
+        r = 1 - j * gap * h
+        m = int(round(n * r))
+        t = torch.arange(m, dtype=torch.float64) * (2 * math.pi / m) + 0.37 * j
+        rings.append(torch.stack([r * t.cos(), r * t.sin()], 1))
+    p = torch.cat(rings) / (2 * math.sqrt(2))
+    item = torch.zeros(p.shape[0], dtype=torch.long, device=device)
+    est = float(estimate_noise(p.to(device), item, 1)[0]) * 2 * math.sqrt(2)
+    old = noise_mod.STRAND_RATIOS
+    try:
+        noise_mod.STRAND_RATIOS = (1e-300, 2e-300)          # the strand test off: eight neighbours
+        band = float(estimate_noise(p.to(device), item, 1)[0]) * 2 * math.sqrt(2)
+    finally:
+        noise_mod.STRAND_RATIOS = old
+    assert est < 1e-4 and band > 0.01
+    g = torch.Generator().manual_seed(k)
+    sigma = 0.01
+    t = torch.rand(2 * n, generator=g, dtype=torch.float64) * 2 * math.pi
+    r = torch.where(torch.arange(2 * n) < n, 1.0, 0.9).to(torch.float64)
+    q = torch.stack([r * t.cos(), r * t.sin()], 1) + sigma * torch.randn(2 * n, 2, generator=g, dtype=torch.float64)
+    q = q / (2 * math.sqrt(2))
+    item = torch.zeros(2 * n, dtype=torch.long, device=device)
+    got = float(estimate_noise(q.to(device), item, 1)[0])
+    assert abs(got * 2 * math.sqrt(2) - sigma) < 0.25 * sigma
+    old = noise_mod.STRAND_RATIOS
+    try:
+        noise_mod.STRAND_RATIOS = (1e-300, 2e-300)
+        assert float(estimate_noise(q.to(device), item, 1)[0]) == got
+    finally:
+        noise_mod.STRAND_RATIOS = old
+
+
 def test_segment_median_against_loop(device):
     g = torch.Generator().manual_seed(0)
     n, B = 500, 9

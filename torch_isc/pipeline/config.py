@@ -157,7 +157,7 @@ UPPER_BOUNDS: Dict[str, float] = {
     "anneal_warm_t_start": 1e6, "anneal_replicas": 1_024, "anneal_greedy_sweeps": 1_000_000,
     "min_island_vertices": 2 ** 31 - 1, "unsupported_weight": 1e6, "unsupported_noise_widths": 1e6, "cluster_rounds": 1_000,
     "open_noise_widths": 1e6, "open_tolerances": 1e6, "open_rounds": 100_000, "enclose_noise_widths": 1e6, "enclose_rings": 16, "enclose_min_points": 2 ** 31 - 1, "blob_min_points": 2 ** 31 - 1, "blob_max_points": 1_000, "blob_neighbours": 64,
-    "winding_weight": 1e6, "winding_neighbours": 64, "winding_sync_iterations": 100_000, "winding_smoothing": 1e6, "notch_rounds": 1_000, "crust_weight": 1e6, "crust_noise_tolerances": 1e6, "crust_max_length": 1e6, "crust_noise_spacings": 1e6, "notch_min_points": 2 ** 31 - 1,
+    "winding_weight": 1e6, "winding_neighbours": 64, "winding_sync_iterations": 100_000, "winding_smoothing": 1e6, "notch_rounds": 1_000, "crust_weight": 1e6, "crust_noise_tolerances": 1e6, "crust_max_length": 1e6, "crust_noise_spacings": 1e6, "crust_refine": 100, "crust_sides": 1e6, "notch_min_points": 2 ** 31 - 1,
     "channel_noise_widths": 1e6, "channel_tolerances": 1e6, "channel_min_points": 2 ** 31 - 1, "channel_rounds": 1_000,
     "noise_factor": 1e6, "min_points_split": 2 ** 31 - 1, "thin_feature_factor": 1e6, "min_split_size": 1e6,
     "transverse_split_size": 1e6, "far_cluster_points": 1_000, "far_cluster_factor": 1e6, "far_cluster_ratio": 1e6,

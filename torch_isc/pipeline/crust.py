@@ -26,7 +26,8 @@ if TYPE_CHECKING:
     from torch_isc.core.mesh import MeshBatch
     from torch_isc.pipeline.workset import WorkingSet
 
-__all__ = ["crust_segments", "crossing_counts", "crust_parity", "crust_contradictions", "crust_coupling", "CrustCache"]
+__all__ = ["crust_segments", "crossing_counts", "crust_parity", "crust_sides", "crust_contradictions", "crust_coupling",
+           "CrustCache"]
 
 #: neighbours looked at for the nearest one on the other side of a sample
 CRUST_NEIGHBOURS = 8
@@ -271,6 +272,46 @@ def crust_parity(ws: "WorkingSet", noise_tolerances: float, max_length: float, n
                                      extent=True)
         par = torch.where(k % 2 == 1, torch.ones_like(par), torch.where(k > 0, -torch.ones_like(par), par))
         return par, spacing, span
+
+
+def crust_sides(mesh: "MeshBatch", par: torch.Tensor, spacing: torch.Tensor) -> torch.Tensor:
+    """``(V,)``: each vertex's side of the crust by the even-odd rule, ``+1`` outside and ``-1``
+    inside, on the items whose crust is closed; ``0`` elsewhere.
+
+    The side of a vertex is the boundary's (outside) times ``-1`` per odd edge of any mesh path
+    to it (``par`` of :func:`crust_parity`). Where every crust chain closes, every path gives
+    the same answer; an open chain (a sampling gap, an outlier's spur, a segment the walk did not
+    finish) makes a loop of edges around its end odd. So the parities are solved as components
+    of the doubled graph (a vertex's two sides, joined across even edges side to side and
+    across odd edges crosswise), and an item counts only where no vertex's two sides meet.
+    ``spacing (B,)``: the items' sample spacing, 0 where the crust is off (no side there)."""
+    with torch.no_grad():
+        from torch_isc.core.segments import edge_components, segment_any, segment_min
+        V = mesh.verts.shape[0]
+        e = mesh.edges
+        odd = par == 1
+        # a triangle whose edges cross the crust an odd number of times in all holds a chain's
+        # end, or a chain passes through one of its corners (relaxation puts vertices on the
+        # samples, and the crossings at a corner are then counted on one edge and not the
+        # other). The second come in pairs of triangles around that corner, so the edges of
+        # their corners are left out; a chain's end still leaves its item inconsistent
+        defect = odd[mesh.face_edges].sum(1) % 2 == 1
+        near = torch.zeros(V, dtype=torch.bool, device=e.device)
+        near[mesh.faces[defect].reshape(-1)] = True
+        join = ~(near[e[:, 0]] | near[e[:, 1]])
+        a = torch.cat([e[:, 0], e[:, 0] + V])
+        b = torch.cat([torch.where(odd, e[:, 1] + V, e[:, 1]), torch.where(odd, e[:, 1], e[:, 1] + V)])
+        lab = edge_components(2 * V, torch.stack([a, b], 1), torch.cat([join, join]))
+        plus, minus = lab[:V], lab[V:]
+        item = mesh.vert_item
+        B = mesh.num_items
+        bad = segment_any(plus == minus, item, B)
+        # the outside's component: that of the item's boundary vertices (all one when closed)
+        big = torch.iinfo(lab.dtype).max
+        out = segment_min(torch.where(mesh.is_boundary_vert, plus, torch.full_like(plus, big)), item, B, fill=big)
+        ok = ~bad & (spacing > 0) & (out < big)
+        side = torch.where(plus == out[item], 1, torch.where(minus == out[item], -1, 0))
+        return torch.where(ok[item], side, torch.zeros_like(side)).to(mesh.dtype)
 
 
 def crust_contradictions(ws: "WorkingSet", values: torch.Tensor, spacings: float, noise_tolerances: float,

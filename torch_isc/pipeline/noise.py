@@ -326,11 +326,47 @@ def noise_and_frames(points: torch.Tensor, point_item: torch.Tensor, num_items: 
             fr = torch.tensor([1.0, 0.0, 0.0], dtype=dt, device=dev).expand(P, 3).clone()
             return NoiseEstimate(z, fr)
         var0, asp, _, frames = _noise_at_scale(points, point_item, num_items, k, window)
+        # two clean strands closer than the neighbourhood (nested rings a few spacings apart)
+        # read as a noisy band at k neighbours; the nearest few see one strand each
+        k_s = max(3, k // 2)
+        var_s, _, _, frames_s = _noise_at_scale(points, point_item, num_items, k_s, window)
+        w_s = _strand_ramp(var_s, var0)
+        if bool((w_s > 0).any()):
+            frames = torch.where((w_s >= 0.5)[point_item][:, None], frames_s, frames)
+        level = _blob_refit(points, point_item, num_items, var0, asp, source, k, window, min_points,
+                            blob_aspect, line_aspect)
+        return NoiseEstimate((w_s * var_s + (1 - w_s) * level).sqrt(), frames)
+
+
+#: The strand test's ramp over the ratio of the noise read at half the neighbours to the noise
+#: read at all of them: 1 (believe the half) below the first, 0 above the second. A noisy curve
+#: gives 0.2-1 (the fewer neighbours fit the noise a little more closely), a clean one 0.02-0.06
+#: (both are rounding and the parabola's misfit), two clean strands a few spacings apart 1e-3
+#: or less (the larger neighbourhood spans both).
+STRAND_RATIOS = (0.003, 0.01)
+
+
+def _strand_ramp(var_s: torch.Tensor, var0: torch.Tensor) -> torch.Tensor:
+    """``(B,)`` in [0, 1]: the weight of the fewer neighbours' variance ``var_s`` against the
+    full one ``var0``, a ramp in the log of their noise ratio over :data:`STRAND_RATIOS`."""
+    lo, hi = STRAND_RATIOS
+    r = (var_s.double().clamp_min(0) / var0.double().clamp_min(1e-300)).sqrt().clamp_min(1e-300)
+    w = (math.log(hi) - torch.log(r)) / (math.log(hi) - math.log(lo))
+    return torch.where(var0 > 0, w.clamp(0.0, 1.0), torch.zeros_like(w)).to(var0.dtype)
+
+
+def _blob_refit(points: torch.Tensor, point_item: torch.Tensor, num_items: int, var0: torch.Tensor,
+                asp: torch.Tensor, source: Optional[torch.Tensor], k: int, window: int, min_points: int,
+                blob_aspect: float, line_aspect: float) -> torch.Tensor:
+    """``(B,)`` the noise variance of each item from its full-density variance ``var0`` and
+    median aspect ``asp``, refitted on hashed subsets where the item is a blob (see
+    :func:`noise_and_frames`)."""
+    with torch.no_grad():
         # every threshold is a ramp over a band of aspects (blend weights, not a switch): a
         # perturbation far below the noise moves the estimate by about as much, never by a scale
         w = _aspect_ramp(asp, blob_aspect)
         if bool((w >= 1).all()):
-            return NoiseEstimate(var0.sqrt(), frames)
+            return var0
         est = w * var0
         left = 1.0 - w                                   # the weight still to place, per item
         cnt = segment_count(point_item, num_items)
@@ -355,6 +391,6 @@ def noise_and_frames(points: torch.Tensor, point_item: torch.Tensor, num_items: 
             w2 = torch.where(use, _aspect_ramp(a2, line_aspect), torch.zeros_like(left))
             est = est + left * w2 * torch.where(use, v2, torch.zeros_like(v2))
             left = left * (1.0 - w2)
-        return NoiseEstimate((est + left * var0).sqrt(), frames)
+        return est + left * var0
 
 

@@ -136,6 +136,11 @@ class TopologyConfig:
     #: the crust's parity, or it crosses both walls of a gap), while their longest edge is above
     #: this many sample spacings (:func:`~torch_isc.pipeline.crust.crust_contradictions`); 0 disables
     crust_refine: float = knob(1.0, ge=0, le=100)
+    #: weight of the crust's sides as a field on every vertex, on the items whose crust is
+    #: closed (:func:`~torch_isc.pipeline.crust.crust_sides`): the even-odd rule says which
+    #: side each vertex is on, so nested curves a few spacings apart keep their alternation where
+    #: the couplings only fix it edge by edge; 0 disables
+    crust_sides: float = knob(2.0, ge=0)
 
     def __post_init__(self):
         check_section(self)
@@ -641,7 +646,7 @@ class IsingSigns:
             H = edge_weights(mesh, fits.L, fits.eps, ev.moments.count, self.evidence.min_points_fit,
                              self.cfg.empty_weight, pooled_count=fits.support, reach=fits.reach,
                              noise2=ws.noise ** 2)
-            far = None
+            far, sides = None, None
             if self.cfg.unsupported_weight > 0 or self.cfg.cluster_rounds > 0:
                 from torch_isc.pipeline.support import support_coupling
                 cpl, far = support_coupling(ws, self.cfg.unsupported_weight, self.cfg.unsupported_noise_widths)
@@ -655,9 +660,15 @@ class IsingSigns:
                                                   c.crust_noise_spacings, self._crust)
                 self._parity = (mesh, par, spacing, span)  # for marks() on the same mesh
                 H = H + float(c.crust_weight) * par.to(H.dtype)     # crust_coupling's
+                if c.crust_sides > 0 and bool((spacing > 0).any()):
+                    from torch_isc.pipeline.crust import crust_sides
+                    # the field's sign: the energy's g_v F_v is lowest at F_v = -sign(g_v)
+                    sides = -float(c.crust_sides) * crust_sides(mesh, par, spacing)
             fixed = mesh.is_boundary_vert
             init = torch.where(fixed, torch.ones_like(ws.signs), ws.signs)
             field = self._winding_field(ws, level) if self.cfg.winding_weight > 0 else None
+            if sides is not None:
+                field = sides if field is None else field + sides
             s = anneal(mesh, H, init, fixed, self.cfg, self.seed, warm=level > 0, field=field)
             if self.cfg.cluster_rounds > 0:
                 from torch_isc.pipeline.simplify import descend_clusters

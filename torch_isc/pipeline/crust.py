@@ -284,24 +284,19 @@ def crust_sides(mesh: "MeshBatch", par: torch.Tensor, spacing: torch.Tensor) -> 
     finish) makes a loop of edges around its end odd. So the parities are solved as components
     of the doubled graph (a vertex's two sides, joined across even edges side to side and
     across odd edges crosswise), and an item counts only where no vertex's two sides meet.
+    Any odd triangle (a chain's end, or a sample on a vertex, where one segment's walk ends in
+    another triangle than the next one starts from) turns the whole item off: leaving out only
+    the edges around such triangles let the inside of a randomly sampled star (many chain ends
+    at the coarse levels) join the outside through a sampling gap, consistently and wrongly.
     ``spacing (B,)``: the items' sample spacing, 0 where the crust is off (no side there)."""
     with torch.no_grad():
         from torch_isc.core.segments import edge_components, segment_any, segment_min
         V = mesh.verts.shape[0]
         e = mesh.edges
         odd = par == 1
-        # a triangle whose edges cross the crust an odd number of times in all holds a chain's
-        # end, or a chain passes through one of its corners (relaxation puts vertices on the
-        # samples, and the crossings at a corner are then counted on one edge and not the
-        # other). The second come in pairs of triangles around that corner, so the edges of
-        # their corners are left out; a chain's end still leaves its item inconsistent
-        defect = odd[mesh.face_edges].sum(1) % 2 == 1
-        near = torch.zeros(V, dtype=torch.bool, device=e.device)
-        near[mesh.faces[defect].reshape(-1)] = True
-        join = ~(near[e[:, 0]] | near[e[:, 1]])
         a = torch.cat([e[:, 0], e[:, 0] + V])
         b = torch.cat([torch.where(odd, e[:, 1] + V, e[:, 1]), torch.where(odd, e[:, 1], e[:, 1] + V)])
-        lab = edge_components(2 * V, torch.stack([a, b], 1), torch.cat([join, join]))
+        lab = edge_components(2 * V, torch.stack([a, b], 1), torch.ones_like(a, dtype=torch.bool))
         plus, minus = lab[:V], lab[V:]
         item = mesh.vert_item
         B = mesh.num_items

@@ -331,8 +331,7 @@ def noise_and_frames(points: torch.Tensor, point_item: torch.Tensor, num_items: 
         k_s = max(3, k // 2)
         var_s, _, _, frames_s = _noise_at_scale(points, point_item, num_items, k_s, window)
         w_s = _strand_ramp(var_s, var0)
-        if bool((w_s > 0).any()):
-            frames = torch.where((w_s >= 0.5)[point_item][:, None], frames_s, frames)
+        frames = torch.where((w_s >= 0.5)[point_item][:, None], frames_s, frames)
         level = _blob_refit(points, point_item, num_items, var0, asp, source, k, window, min_points,
                             blob_aspect, line_aspect)
         return NoiseEstimate((w_s * var_s + (1 - w_s) * level).sqrt(), frames)

@@ -127,9 +127,9 @@ class TopologyConfig:
     #: noise-free 44/41/43 -> 46/43/45 of 48 on seeds 0/1/2, noisy levels unchanged)
     crust_weight: float = knob(2.0, ge=0)
     #: ...items whose estimated noise is at most this many tolerances
-    crust_noise_tolerances: float = knob(0.1, ge=0)
+    crust_noise_tolerances: float = knob(10.0, ge=0)
     #: ...and at most this many median sample spacings
-    crust_noise_spacings: float = knob(0.1, ge=0)
+    crust_noise_spacings: float = knob(0.3, ge=0)
     #: ...segments at most this many median sample spacings long
     crust_max_length: float = knob(3.0, gt=0)
     #: split the triangles with an edge the crust says the mesh gets wrong (its signs contradict

@@ -364,3 +364,29 @@ def test_nested_curves_a_few_spacings_apart_keep_their_alternation():
         assert r.num_closed == 3 and r.num_open == 0
     off = torch_isc.reconstruct_batch(sets, ReconstructConfig().replace(crust_sides=0.0))
     assert sum(r.num_closed != 3 for r in off) >= 2
+
+
+def test_crust_gate_reads_the_noise_against_the_spacing():
+    """Two noise-free sets of the broad suite (seed 1) whose noise estimate reads a thin feature
+    as a little noise: a dumbbell whose neck came back as two loops and a DejaVuSerif 9 with an
+    extra loop. The old gate (0.1 of the configured tolerance, 0.1 spacings) kept the crust off;
+    the new one (10 tolerances, 0.3 spacings) lets it on, and both are right."""
+    import sys
+    from pathlib import Path
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+    import evaluate_synthetic as es
+    suite = es.SUITES["broad"]
+    kinds = suite["kinds"].split(",")
+    noises = tuple(float(x) for x in suite["noises"].split(","))
+    rng = np.random.default_rng(1)
+    cases = [es.make_case(i, kinds, rng, es.GLYPHS, noises, es.FONT_GLYPHS) for i in range(108)]
+    cases = [c for c in cases if c["name"] in ("dumbbell_7", "font_107")]
+    assert [c["noise"] for c in cases] == ["n0", "n0"]
+    pts = [torch.as_tensor(c["points"], dtype=torch.float64) for c in cases]
+    want = [len(c["truth"]["curves"]) for c in cases]
+    assert want == [1, 2]
+    now = torch_isc.reconstruct_batch(pts, ReconstructConfig())
+    assert [r.num_closed for r in now] == want and all(r.num_open == 0 for r in now)
+    old = torch_isc.reconstruct_batch(pts, ReconstructConfig().replace(crust_noise_tolerances=0.1,
+                                                                       crust_noise_spacings=0.1))
+    assert all(r.num_closed != w for r, w in zip(old, want))

@@ -567,3 +567,27 @@ def test_level_cap_reports_unmet_tolerance():
     stats = json.loads(json_dumps(result_json_dict(res)))["stats"]
     assert stats["limit"] == "max_level" and stats["converged"] is False
     assert stats["levels"][-1]["max_error"] > stats["levels"][-1]["tolerance"]
+
+
+def test_foreign_manifest_nested_or_huge_is_redone(tmp_path, capsys):
+    """A ``<stem>.manifest.json`` in the output folder that is deeply nested JSON (json raises
+    RecursionError) or larger than any manifest (sparse, 2 GB) is not a finished output set:
+    the input is redone and the run exits 0, the other input written too; with --overwrite the
+    same. Before, the nested one stopped the whole run with an internal error."""
+    a = _write_xy(tmp_path / "a.xy", circle(80))
+    b = _write_xy(tmp_path / "b.xy", 2 * circle(80))
+    for content in ("[" * 3000 + "]" * 3000, None):
+        o = tmp_path / ("o_nested" if content else "o_huge")
+        o.mkdir()
+        man = o / "a.manifest.json"
+        if content:
+            man.write_text(content)
+        else:
+            with open(man, "wb") as fh:
+                fh.truncate(2 << 30)
+        for extra in ([], ["--overwrite"]):
+            code, out, err = _run(capsys, "reconstruct", a, b, "--out", o, *FAST, *extra)
+            assert code == 0, err
+            assert "internal error" not in err and "Traceback" not in err
+            assert json.loads((o / "a.json").read_text())["num_components"] == 1
+            assert (o / "b.json").exists()

@@ -383,6 +383,10 @@ def manifest_path(out_dir: PathLike, stem: str) -> Path:
     return Path(out_dir) / f"{stem}.manifest.json"
 
 
+#: a manifest larger than this is foreign (ours list a few files in a few hundred bytes): it is
+#: not read, so a huge file under that name cannot exhaust memory
+MANIFEST_MAX_BYTES = 1 << 20
+
 def manifest_matches(out_dir: PathLike, stem: str, input_sha256: str, config_sha256: str,
                      formats: Sequence[str]) -> bool:
     """Whether ``<stem>.manifest.json`` says the outputs of ``stem`` are complete and were made
@@ -390,6 +394,8 @@ def manifest_matches(out_dir: PathLike, stem: str, input_sha256: str, config_sha
     try:
         mp = manifest_path(out_dir, stem)
         if not is_regular_file(mp):             # a FIFO under that name would block the run
+            return False
+        if mp.stat().st_size > MANIFEST_MAX_BYTES:  # ours are a few hundred bytes: a foreign file
             return False
         m = json.loads(mp.read_text(encoding="utf-8"))
         if (m.get("manifest_format") != MANIFEST_FORMAT or m["input"]["sha256"] != input_sha256
@@ -400,19 +406,19 @@ def manifest_matches(out_dir: PathLike, stem: str, input_sha256: str, config_sha
             return False
         return all(is_regular_file(Path(out_dir) / f["name"]) and file_sha256(Path(out_dir) / f["name"]) == f["sha256"]
                    for f in files)
-    except (OSError, ValueError, KeyError, TypeError, AttributeError):
-        return False
+    except (OSError, ValueError, KeyError, TypeError, AttributeError, RecursionError, MemoryError):
+        return False                            # deeply nested JSON: json raises RecursionError
 
 
 def _listed_outputs(man: Path, stem: str) -> set:
     """The output files an existing manifest lists, restricted to ``<stem>.<format>`` names of
     known formats that are regular files (a manifest is never trusted to name other files)."""
     try:
-        if not is_regular_file(man) or man.stat().st_size > (1 << 20):
+        if not is_regular_file(man) or man.stat().st_size > MANIFEST_MAX_BYTES:
             return set()
         files = json.loads(man.read_text(encoding="utf-8"))["files"]
         names = {f["name"] for f in files if isinstance(f, dict) and isinstance(f.get("name"), str)}
-    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+    except (OSError, ValueError, KeyError, TypeError, AttributeError, RecursionError, MemoryError):
         return set()
     known = {f"{stem}.{f}" for f in EXPORTERS}
     return {n for n in names & known if is_regular_file(man.parent / n)}

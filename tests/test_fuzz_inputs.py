@@ -160,10 +160,13 @@ def test_output_never_overwrites_another_input(tmp_path, capsys):
     np.savetxt(out / "a.xy", _circle())
     np.savetxt(out / "a.xy.json", _circle(r=2))       # stem "a.xy": its json output is this very file
     before = _sha(out / "a.xy.json")
-    code, _, err = _run(capsys, out / "a.xy", out / "a.xy.json", "--out", out, *FAST)
+    code, _, err = _run(capsys, out / "a.xy.json", "--out", out, *FAST)
     assert code == 1 and _sha(out / "a.xy.json") == before
     assert len(_errors(err)) == 1 and "would overwrite the input itself" in err
-    assert (out / "a.json").exists()
+    # beside a.xy the stem "a.xy" is a's followed by a dot: renamed, so both are written
+    code, _, err = _run(capsys, out / "a.xy", out / "a.xy.json", "--out", out, *FAST)
+    assert code == 0 and _sha(out / "a.xy.json") == before and "would share file names" in err
+    assert (out / "a.json").exists() and len(list(out.glob("a.xy_*.json"))) == 2     # its json and manifest
 
 
 # ============================================================================ 3. manifests and table

@@ -10,6 +10,20 @@ from typing import Optional, Union
 __all__ = ["one_line", "import_cv2", "read_file_bytes", "decode_text", "MAX_FILE_BYTES", "is_regular_file", "printable", "load_npz_arrays", "npy_header"]
 
 
+def finite_real(v: object) -> bool:
+    """Whether ``v`` is a real number (Python or numpy; not a bool) that float64 holds as a
+    finite value: an integer like ``2**70`` is, ``10**400`` (beyond float64) is not."""
+    import math
+    import numbers
+
+    if isinstance(v, bool) or not isinstance(v, numbers.Real):
+        return False
+    try:
+        return math.isfinite(float(v))
+    except (OverflowError, ValueError, TypeError):
+        return False
+
+
 def one_line(msg: object, default: str = "") -> str:
     """The first line of ``str(msg)`` stripped, or ``default`` when it is empty.
 
@@ -62,6 +76,8 @@ def read_file_bytes(path: Union[str, os.PathLike], error: type, what: str, limit
     try:
         fd = os.open(p, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_BINARY", 0))
     except FileNotFoundError:
+        if os.path.islink(p):
+            raise error(f"{p}: a dangling symbolic link (to {os.readlink(p)!r}), not {what}") from None
         raise error(f"{p}: no such file") from None
     except IsADirectoryError:
         raise error(f"{p}: is a directory, not {what}") from None

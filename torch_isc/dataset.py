@@ -45,6 +45,7 @@ Example:
 from __future__ import annotations
 
 import csv
+import fnmatch
 import functools
 import glob
 import io
@@ -155,6 +156,55 @@ def _names(names: Sequence[str], limit: int = 10) -> str:
     return ", ".join(shown_names) + (f", ... ({len(names)} columns)" if len(names) > limit else "")
 
 
+def _match_parts(parts: Sequence[str], pats: Sequence[str]) -> bool:
+    """Whether the path components ``parts`` match the glob components ``pats`` (``**``: zero or
+    more folders); as :mod:`glob`, a name starting with ``.`` is matched only by a pattern
+    component starting with ``.``, and never by ``**``."""
+    if not pats:
+        return not parts
+    if pats[0] == "**":
+        for i in range(len(parts) + 1):
+            if _match_parts(parts[i:], pats[1:]):
+                return True
+            if i < len(parts) and parts[i].startswith("."):
+                return False
+        return False
+    if not parts or (parts[0].startswith(".") and not pats[0].startswith(".")):
+        return False
+    return fnmatch.fnmatchcase(parts[0], pats[0]) and _match_parts(parts[1:], pats[1:])
+
+
+def glob_files(pattern: str) -> List[str]:
+    """The files matching ``pattern``, sorted. ``**`` spans folders and follows symlinked
+    folders, but each real folder once: ``glob.glob`` walked a link to ``.`` once per level
+    (duplicated inputs) and two such links for 2^depth paths (the run hung)."""
+    if "**" not in pattern:
+        return sorted(h for h in glob.glob(pattern) if os.path.isfile(h))
+    parts = pattern.split(os.sep)
+    k = next(i for i, c in enumerate(parts) if _GLOB_CHARS & set(c))
+    top = os.sep.join(parts[:k]) if k else ""
+    if pattern.startswith(os.sep) and not top:
+        top = os.sep
+    pats = [c for c in parts[k:] if c]
+    hits: List[str] = []
+    seen = set()
+    for root, dirs, files in os.walk(top or ".", followlinks=True):
+        real = os.path.realpath(root)
+        if real in seen:
+            dirs[:] = []
+            continue
+        seen.add(real)
+        dirs.sort()
+        rel = os.path.relpath(root, top or ".")
+        base = [] if rel == "." else rel.split(os.sep)
+        for f in files:
+            if _match_parts(base + [f], pats):
+                path = os.path.join(root, f) if top else os.path.normpath(os.path.join(root, f))
+                if os.path.isfile(path):
+                    hits.append(path)
+    return sorted(hits)
+
+
 def resolve_inputs(inputs: Iterable[PathLike], manifest: Union[None, PathLike, Sequence[PathLike]] = None,
                    manifest_column: str = "path", errors: Optional[Dict[str, str]] = None) -> List[str]:
     """Every input file of a run, in order: each input as :func:`~torch_isc.runner.expand_inputs`
@@ -171,7 +221,7 @@ def resolve_inputs(inputs: Iterable[PathLike], manifest: Union[None, PathLike, S
     for src in inputs:
         s = os.fspath(src)
         if _GLOB_CHARS & set(s) and not os.path.exists(s):
-            hits = sorted(h for h in glob.glob(s, recursive=True) if os.path.isfile(h))
+            hits = glob_files(s)
             if not hits:
                 raise RunError(f"{s}: no file matches")
             out.extend(hits)

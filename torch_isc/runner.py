@@ -226,9 +226,17 @@ def _message(source: str, e: BaseException) -> str:
     return one_line(shown(text) if "\n" not in text else text, type(e).__name__)
 
 
+def _is_dir(p: Path) -> bool:
+    try:
+        return p.is_dir()
+    except OSError:
+        return False
+
+
 def expand_inputs(sources: Iterable[PathLike], errors: Optional[Dict[str, str]] = None) -> List[str]:
     """A folder stands for its point and image files (by :data:`~torch_isc.io.LOADERS` suffix,
-    sorted by name, not recursive); anything else is kept as given (a missing file is reported
+    sorted by name, not recursive; FIFOs, devices and dangling links of those suffixes too, so
+    that they are reported when read); anything else is kept as given (a missing file is reported
     when it is read).
 
     A folder that cannot be listed (no read permission) raises :class:`RunError`, unless
@@ -249,7 +257,9 @@ def expand_inputs(sources: Iterable[PathLike], errors: Optional[Dict[str, str]] 
             is_dir = False
         if is_dir:
             try:
-                files = sorted(str(f) for f in p.iterdir() if f.suffix.lower() in LOADERS and f.is_file())
+                # every entry with a known suffix but folders: a FIFO or a dangling link among
+                # them is an input that fails in one line, not one skipped silently
+                files = sorted(str(f) for f in p.iterdir() if f.suffix.lower() in LOADERS and not _is_dir(f))
             except OSError as e:
                 msg = f"{shown(src)}: cannot list the folder ({e.strerror or type(e).__name__})"
                 if errors is None:
@@ -282,8 +292,10 @@ def unique_stems(sources: Sequence[str], note: Optional[Callable[[str], None]] =
 
     1. the file stem (``a.xy`` -> ``a``) when no other input has the same one;
     2. else the stem and the suffix (``a.xy`` -> ``a_xy``, ``a.npy`` -> ``a_npy``);
-    3. where that still clashes (``d1/a.xy`` and ``d2/a.xy``, or another input's name), also the
-       first 8 hex digits of the sha256 of the input's absolute path (``a_xy_1f2e3d4c``);
+    3. where that still clashes (``d1/a.xy`` and ``d2/a.xy``, or another input's name), or where
+       it is another stem followed by a dot and more (``a.manifest.xy`` beside ``a.xy``: its JSON
+       would be ``a``'s manifest), also the first 8 hex digits of the sha256 of the input's
+       absolute path (``a_xy_1f2e3d4c``, ``a.manifest_0c1d2e3f``);
     4. the same path given twice: ``_2``, ``_3``... on the repeats;
     5. a stem longer than :data:`MAX_STEM_BYTES` (200 bytes of UTF-8) is cut and ends with 8
        hex digits of the sha256 of the whole stem (a 250-character name overflowed the file
@@ -305,8 +317,12 @@ def unique_stems(sources: Sequence[str], note: Optional[Callable[[str], None]] =
         else:
             names.append(f"{stem}_{Path(src).suffix.lower().lstrip('.') or 'noext'}")
     n_names = Counter(names)
+    # a stem that is another one's followed by a dot and more shares file names with it
+    # (a.manifest.xy's JSON is a.xy's a.manifest.json, m.contours.xy's npz is m.png's contours)
+    taken = set(names)
+    dotted = [any(n[:k] in taken for k in range(1, len(n)) if n[k] == ".") for n in names]
     for i, src in enumerate(sources):
-        if n_names[names[i]] > 1:
+        if n_names[names[i]] > 1 or dotted[i]:
             h = hashlib.sha256(os.path.abspath(src).encode("utf-8", "surrogateescape")).hexdigest()[:8]
             names[i] = f"{names[i]}_{h}"
     seen: Counter = Counter()
@@ -317,8 +333,11 @@ def unique_stems(sources: Sequence[str], note: Optional[Callable[[str], None]] =
     renamed = [name != stem for stem, name in zip(plain, names)]
     names = [_fit_stem(n) for n in names]
     if note is not None:
-        for src, stem, name, clash in zip(sources, plain, names, renamed):
-            if clash:
+        for src, stem, name, clash, dot in zip(sources, plain, names, renamed, dotted):
+            if dot and n_plain[stem] == 1:
+                note(f"note: {shown(src)}: the outputs of '{shown(stem)}' would share file names with another "
+                     f"input's (a stem followed by '.'), written as '{shown(name)}'")
+            elif clash:
                 note(f"note: another input is also named '{shown(stem)}': {shown(src)} is written as '{shown(name)}'")
             elif name != stem:
                 note(f"note: {shown(src)}: name too long for an output file, written as '{shown(name)}'")

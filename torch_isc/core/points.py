@@ -64,6 +64,9 @@ def check_points(x: PointsLike, label: str, finite: bool = True) -> torch.Tensor
         x = torch.from_numpy(a)
     if x.dim() != 2 or x.shape[1] != 2:
         raise PointSetError(f"{label}: expected points of shape (N, 2), got {tuple(x.shape)}")
+    if x.dtype.is_floating_point and x.element_size() == 1:
+        # float8: a storage format torch does not promote or reduce; its values are exact in float32
+        x = x.float()
     if not (x.dtype.is_floating_point or x.dtype in (torch.int16, torch.int32, torch.int64, torch.uint8, torch.int8)):
         raise PointSetError(f"{label}: expected real coordinates, got dtype {x.dtype}")
     if x.shape[0] == 0:
@@ -136,6 +139,58 @@ def _distinct_packed(x: torch.Tensor, item: torch.Tensor, B: int, labels: Sequen
     first = segment_min(o, gid, G, fill=x.shape[0])
     keep = first.sort().values                       # item-major, first occurrence within an item
     return x[keep], item[keep], counts, keep - start[item[keep]]
+
+
+#: points of one item closer than this fraction of its diagonal are repeats too (about 8 float32
+#: ulps of the normalized coordinates, 1/8 of the finest tolerance float32 resolves): a set given
+#: twice with a 1e-9 jitter has its nearest-neighbour spacings collapsed to the jitter, so the
+#: crust (segments of a few median spacings) and the noise estimate see nothing of the curve
+NEAR_REPEAT = 2.0 ** -20
+
+
+def merge_near_repeats(norm64: torch.Tensor, point_item: torch.Tensor, counts: torch.Tensor,
+                       source: torch.Tensor, B: int, labels: Sequence[str], radius: float = NEAR_REPEAT):
+    """Merge the points of an item that share a cell of side ``radius`` of the normalized
+    ``norm64 (P, 2)`` (float64, each item's bounding box centred, diagonal 1), on four grids
+    offset by half a cell in x, y or both: two points less than ``radius / 2`` apart on each
+    axis share a cell of at least one of them. Each cell keeps its first point (in the item's
+    order), so a dense scan is thinned to one point per cell, never collapsed along a chain.
+    Returns ``(norm64, point_item, counts, source)`` of the points kept (the inputs when
+    nothing merges; a host read per grid)."""
+    if norm64.shape[0] == 0:
+        return norm64, point_item, counts, source
+    keep = torch.arange(norm64.shape[0], device=norm64.device)
+    one_key = B < (1 << 21)                     # item, cell x, cell y in one int64
+    for shift in ((0.0, 0.0), (0.5, 0.0), (0.0, 0.5), (0.5, 0.5)):
+        off = torch.tensor(shift, dtype=norm64.dtype, device=norm64.device)
+        q = torch.floor(norm64[keep] / radius + off).long() + (1 << 20)    # |x| <= 0.5: 0 < q < 2^21
+        it = point_item[keep]
+        cell = (q[:, 0] << 21) | q[:, 1]
+        if one_key:
+            key = (it << 42) | cell
+            o = torch.argsort(key)
+            ks = key[o]
+            new = torch.ones(o.shape[0], dtype=torch.bool, device=o.device)
+            new[1:] = ks[1:] != ks[:-1]
+        else:
+            o = torch.argsort(cell)
+            o = o[torch.argsort(it[o], stable=True)]
+            new = torch.ones(o.shape[0], dtype=torch.bool, device=o.device)
+            new[1:] = (it[o][1:] != it[o][:-1]) | (cell[o][1:] != cell[o][:-1])
+        gid = torch.cumsum(new.long(), 0) - 1
+        G = int(gid[-1]) + 1
+        if G < o.shape[0]:
+            keep = keep[segment_min(o, gid, G, fill=o.shape[0]).sort().values]
+    if keep.shape[0] == norm64.shape[0]:
+        return norm64, point_item, counts, source
+    item = point_item[keep]
+    new_counts = segment_count(item, B)
+    few = new_counts < 3
+    if bool(few.any()):
+        b = int(few.nonzero()[0, 0])
+        raise PointSetError(f"{labels[b]}: needs at least 3 distinct points, got {int(new_counts[b])} "
+                            f"(points closer than {radius:.2g} of the diagonal are one point)")
+    return norm64[keep], item, new_counts, source[keep]
 
 
 #: far outliers: points farther from the item's median centre than this many times the median
@@ -330,6 +385,7 @@ def prepare_points(point_sets: Sequence[PointsLike], names: Optional[Sequence[Op
         # points on one line (up to the rounding of the input: each coordinate is off by at most
         # half a step, the fitted axis by about as much) enclose no region: such an item stops at
         # level 0 with no curve (limit "no_curve"), not with a loop the data cannot support
+        norm64, point_item, counts, source = merge_near_repeats(norm64, point_item, counts, source, B, labels)
         flat = collinear_items(norm64, point_item, B, 1e-12 + 2 * step / scale64)
         return PointBatch(norm64.to(dtype), point_item, counts, center64, scale64, flat, raw, labels, source, far)
 

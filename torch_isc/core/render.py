@@ -85,6 +85,11 @@ def pixel_centers(height: int, width: int, extent: torch.Tensor) -> torch.Tensor
     return torch.stack([x[:, None, :].expand(B, height, width), y[:, :, None].expand(B, height, width)], -1)
 
 
+#: the most pixels one :func:`rasterize` call renders (all items together): each costs tens of
+#: bytes of intermediate tensors, and a size like 2**40 must be a clear error, not an allocation
+MAX_RASTER_PIXELS = 1 << 31
+
+
 def rasterize(curve, height: int, width: int, tau: float,
               extent: Union[None, Sequence[float], torch.Tensor] = None, mode: str = "distance") -> torch.Tensor:
     """``(B, H, W)`` soft occupancy images of every item of a packed batch.
@@ -118,6 +123,10 @@ def rasterize(curve, height: int, width: int, tau: float,
     _check_tau(tau)
     mesh = curve.mesh
     B, dt, dev = mesh.num_items, mesh.dtype, mesh.device
+    if B * height * width > MAX_RASTER_PIXELS:
+        big = [f"{v}" if v < 10 ** 12 else f"about 10^{len(str(v)) - 1}" for v in (height, width)]
+        raise ValueError(f"height x width x items = {big[0]} x {big[1]} x {B}: more than {MAX_RASTER_PIXELS} pixels "
+                         f"(render fewer items or a smaller image at a time)")
     if extent is None:
         ext = mesh.item_bbox()
     else:

@@ -7,6 +7,8 @@ from typing import List, Optional, Sequence, Union
 import numpy as np
 import torch
 
+from torch_isc._helpers import finite_real
+
 __all__ = ["ImageLike", "ImageError", "as_masks", "image_list", "binarize", "default_names"]
 
 ImageLike = Union[np.ndarray, torch.Tensor]
@@ -89,14 +91,18 @@ def binarize(t: torch.Tensor, threshold: Optional[float]) -> torch.Tensor:
     float mask above 0.5."""
     if t.dtype == torch.bool:
         return t
-    if threshold is not None and not (isinstance(threshold, (int, float, np.integer, np.floating))
-                                      and not isinstance(threshold, bool) and np.isfinite(threshold)):
+    if threshold is not None and not finite_real(threshold):
         raise ImageError(f"threshold must be a finite number or None, got {threshold!r:.50}")
     if threshold is None:
         return t > 0.5 if t.dtype.is_floating_point else t != 0
-    if isinstance(threshold, bool) or not isinstance(threshold, (int, float, np.integer, np.floating)):
-        raise ImageError(f"threshold must be a number, got {threshold!r}")
-    return t > threshold
+    if not t.dtype.is_floating_point:
+        # beyond the pixel type's range every pixel is on one side (torch cannot cast 2**70 to uint8)
+        info = torch.iinfo(t.dtype)
+        if threshold >= info.max:
+            return torch.zeros_like(t, dtype=torch.bool)
+        if threshold < info.min:
+            return torch.ones_like(t, dtype=torch.bool)
+    return t > float(threshold) if t.dtype.is_floating_point else t > threshold
 
 
 def as_masks(masks: Union[ImageLike, Sequence[ImageLike]], threshold: Optional[float] = None) -> List[torch.Tensor]:

@@ -8,7 +8,7 @@ from typing import Dict, List, Optional, Tuple, Union
 
 import numpy as np
 
-from torch_isc._helpers import load_npz_arrays
+from torch_isc._helpers import finite_real, load_npz_arrays
 from torch_isc.images.arrays import ImageError, ImageLike
 from torch_isc.images.polylines import closed_polygons
 
@@ -212,7 +212,7 @@ def _check_contour_options(offset, min_area, epsilon, smooth, dtype) -> None:
     """The numeric options of :func:`find_contours_batch`, checked with the option named (a
     smoothing of 10**12 iterations never ended; a NaN offset gave NaN contours)."""
     def real(v):
-        return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool) and np.isfinite(v)
+        return finite_real(v)
 
     if offset is not None:
         try:

@@ -28,6 +28,10 @@ def _bilinear(img: torch.Tensor, b: torch.Tensor, q: torch.Tensor) -> torch.Tens
     return acc
 
 
+#: the smallest Gaussian sigma of the edge detector, in pixels (narrower is no blur at all)
+MIN_SIGMA = 1e-3
+
+
 def edge_points(images: Union[ImageLike, Sequence[ImageLike]], low_threshold: float = 0.1,
                 high_threshold: float = 0.2, sigma: float = 1.0, kernel_size: Optional[int] = None,
                 spacing: float = 1.0, subpixel: bool = True) -> List[torch.Tensor]:
@@ -65,6 +69,8 @@ def edge_points(images: Union[ImageLike, Sequence[ImageLike]], low_threshold: fl
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= lo or v > 1e6:
             raise ImageError(f"edge_points: {name} must be a finite number{' > 0' if lo == 0 else ''} "
                              f"(at most 1e6), got {v!r}")
+    if sigma < MIN_SIGMA:           # kornia's float32 kernel: 1e-300 is 0 there
+        raise ImageError(f"edge_points: sigma must be at least {MIN_SIGMA} pixels, got {sigma!r}")
     if kernel_size is not None and (isinstance(kernel_size, bool) or not isinstance(kernel_size, int)
                                     or kernel_size < 1 or kernel_size % 2 == 0 or kernel_size > 4001):
         raise ImageError(f"edge_points: kernel_size must be an odd integer in [1, 4001], got {kernel_size!r}")

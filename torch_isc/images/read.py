@@ -10,6 +10,7 @@ more than 2**30 pixels).
 """
 from __future__ import annotations
 
+import operator
 import os
 import struct
 import sys
@@ -333,6 +334,14 @@ def decode_image(data: bytes, name: object = "image", max_pixels: Optional[int] 
     >>> decode_image(cv2.imencode(".png", np.full((2, 3), 255, np.uint8))[1].tobytes()).tolist()
     [[1.0, 1.0, 1.0], [1.0, 1.0, 1.0]]
     """
+    if max_pixels is not None:
+        try:
+            ok = operator.index(max_pixels) >= 0 and not isinstance(max_pixels, bool)
+        except TypeError:
+            ok = False
+        if not ok:
+            raise ImageError(f"max_pixels must be None or an integer >= 0 (0: no limit), got {max_pixels!r:.30}")
+        max_pixels = operator.index(max_pixels) or None
     cv2 = import_cv2()
     p = name
     raw = np.frombuffer(data, dtype=np.uint8)

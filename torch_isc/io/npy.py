@@ -31,8 +31,11 @@ def _check_header(p: Path, raw: bytes) -> None:
         raise PointFileError(f"{p}: unreadable .npy file ({one_line(e) or type(e).__name__})") from None
     if dtype.hasobject:
         raise PointFileError(f"{p}: unreadable .npy file (an object array: pickles are not read)")
-    if not (np.issubdtype(dtype, np.integer) or np.issubdtype(dtype, np.floating)):
+    # by kind: numpy counts timedelta64 as an integer type, but durations are not coordinates
+    if dtype.kind not in "iuf":
         raise PointFileError(f"{p}: expected a numeric (integer or float) array, got dtype {dtype}")
+    if any(int(n) < 0 for n in shape):
+        raise PointFileError(f"{p}: unreadable .npy file (its header declares a negative shape {tuple(shape)})")
     if len(shape) != 2 or shape[1] != 2:
         raise PointFileError(f"{p}: expected an array of shape (N, 2), got shape {tuple(shape)}")
     need = int(shape[0]) * int(shape[1]) * int(dtype.itemsize)
@@ -63,7 +66,7 @@ def decode_points(p: Path, raw: bytes) -> Tuple[np.ndarray, Optional[np.ndarray]
         raise PointFileError(f"{p}: unreadable .npy file ({one_line(e) or type(e).__name__})") from None
     if not isinstance(arr, np.ndarray):  # pragma: no cover - np.load of a .npy gives an array
         raise PointFileError(f"{p}: not a .npy array")
-    if not (np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)):
+    if arr.dtype.kind not in "iuf":
         raise PointFileError(f"{p}: expected a numeric (integer or float) array, got dtype {arr.dtype}")
     if arr.ndim != 2 or arr.shape[1] != 2:
         raise PointFileError(f"{p}: expected an array of shape (N, 2), got shape {tuple(arr.shape)}")

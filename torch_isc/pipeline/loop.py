@@ -99,6 +99,11 @@ def _sequence(x, what: str) -> list:
 def _as_lists(point_sets, names, sign_oracles):
     """The arguments of :func:`reconstruct_batch` as lists (a generator is read once), checked
     at the boundary: every oracle callable or None."""
+    shape = getattr(point_sets, "shape", None)
+    if shape is not None and len(shape) == 2:
+        # a tensor or array is iterated by rows: each (2,) row would be read as a point set
+        raise PointSetError(f"point_sets: one {tuple(shape)} array, not a sequence of point sets: pass "
+                            f"[points] (or call reconstruct(points)); a (B, N, 2) stack is B sets")
     point_sets = _sequence(point_sets, "point_sets")
     if names is not None:
         names = _sequence(names, "names")

@@ -1,0 +1,280 @@
+"""Fuzzing, sixth round (issue 18, the session-15 fuzzing report): one fast regression test per
+failure found, in the style of ``tests/test_fuzz_fifth.py``.
+
+=====================================================  ==========================================
+case (what happened before)                            tests
+=====================================================  ==========================================
+``'d/**/*.xy'`` over a folder with a link to ``.``:     test_glob_walks_each_real_folder_once
+each file once per level (82 inputs for 2); two such
+links: 2^depth paths, the run hung
+a FIFO or a dangling link in an input folder was       test_folder_fifo_and_dangling_link_fail_alone
+skipped without a word
+``a.xy`` with ``a.manifest.xy``, ``m.png`` with         test_output_names_never_shared,
+``m.contours.xy``: one input's JSON overwrote the       test_cli_dotted_stems_keep_their_own_outputs
+other's manifest or contours, exit 0
+a point set given twice with a 1e-9 jitter: the        test_near_repeats_are_one_point,
+spacings collapsed to the jitter, two loops or         test_set_given_twice_with_a_jitter
+``converged`` with ``max_error`` inf
+``find_contours(min_area=10**400)``, ``threshold=      test_huge_numbers_in_image_arguments
+2**70``, ``read_image(max_pixels='x')``, ``rasterize``
+of 2**40 rows: builtin TypeError / OverflowError or
+an allocation
+float8 points: a raw RuntimeError (no promotion)       test_float8_points
+``reconstruct_batch`` of one (N, 2) tensor: "point     test_batch_of_one_array_is_named
+set 0: expected (N, 2), got (2,)"
+``--device hpu``: "internal error"                     test_device_without_backend_is_a_usage_error
+``--sigma 1e-300``: kornia's "sigma must be positive,  test_sigma_below_float32
+got tensor(...)" for every image
+a timedelta64 ``.npy`` read as numbers; a negative     test_npy_durations_and_negative_shapes
+shape in a header: "-48 bytes"
+=====================================================  ==========================================
+"""
+from __future__ import annotations
+
+import glob
+import io
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+import torch_isc
+from torch_isc import cli
+from torch_isc.core.points import NEAR_REPEAT, PointSetError, merge_near_repeats
+from torch_isc.dataset import glob_files
+from torch_isc.images import ImageError, find_contours, read_image
+from torch_isc.runner import unique_stems
+
+
+def _run(capsys, *argv):
+    code = cli.main(["reconstruct"] + [str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def _circle(n: int = 40, r: float = 1.0) -> np.ndarray:
+    t = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    return np.c_[r * np.cos(t), r * np.sin(t)]
+
+
+# ------------------------------------------------------------------ inputs
+def test_glob_walks_each_real_folder_once(tmp_path, monkeypatch):
+    """Against ``glob.glob`` on the same tree without the links (an independent route): the
+    same files, each once, and no hang with two links to ``.`` (2^depth paths before)."""
+    d = tmp_path / "d"
+    (d / "sub").mkdir(parents=True)
+    (d / ".hidden").mkdir()
+    for f in ("a.xy", "sub/b.xy", ".hidden/h.xy", "sub/.c.xy", "sub/n.png"):
+        (d / f).write_text("0 0\n")
+    monkeypatch.chdir(tmp_path)
+    ref = sorted(h for h in glob.glob("d/**/*.xy", recursive=True) if os.path.isfile(h))
+    assert ref == ["d/a.xy", "d/sub/b.xy"]
+    assert glob_files("d/**/*.xy") == ref
+    assert glob_files(str(d) + "/**/.*.xy") == sorted(glob.glob(str(d) + "/**/.*.xy", recursive=True))
+    (d / "loop1").symlink_to(".")
+    (d / "sub" / "loop2").symlink_to("..")
+    assert glob_files("d/**/*.xy") == ref
+    # a link to a folder outside the pattern's root is followed, once
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "o.xy").write_text("0 0\n")
+    (d / "link").symlink_to(other)
+    (other / "back").symlink_to(d)
+    assert glob_files("d/**/*.xy") == sorted(ref + ["d/link/o.xy"])
+
+
+def test_folder_fifo_and_dangling_link_fail_alone(tmp_path, capsys):
+    src = tmp_path / "in"
+    src.mkdir()
+    np.savetxt(src / "a.xy", _circle())
+    os.mkfifo(src / "f.xy")
+    (src / "d.xy").symlink_to("nowhere.xy")
+    code, out, err = _run(capsys, src, "--out", tmp_path / "o", "--formats", "json")
+    assert code == 1
+    assert (tmp_path / "o" / "a.json").is_file()
+    lines = [ln for ln in err.splitlines() if "error:" in ln]
+    assert any("f.xy: not a regular file (a FIFO)" in ln for ln in lines), err
+    assert any("d.xy: a dangling symbolic link (to 'nowhere.xy')" in ln for ln in lines), err
+    assert "1 of 3 input(s) ok, 2 failed" in err
+
+
+# ------------------------------------------------------------------ output names
+FORMATS = ("json", "npz", "svg", "png", "contours.npz", "overlay.png", "manifest.json")
+
+
+@pytest.mark.parametrize("sources", [
+    ["a.xy", "a.manifest.xy", "m.png", "m.contours.xy"],
+    ["x/a.b.c.xy", "a.b.xy", "a.xy", "y/a.xy", "a.b.png"],
+    ["m.overlay.xy", "m.png", "m.xy"],
+])
+def test_output_names_never_shared(sources):
+    """Every file name any format could give: disjoint between inputs, whatever their order."""
+    names = unique_stems(sources)
+    files = [{f"{s}.{f}" for f in FORMATS} for s in names]
+    for i in range(len(files)):
+        for j in range(i + 1, len(files)):
+            assert not files[i] & files[j], (sources[i], sources[j], files[i] & files[j])
+    back = unique_stems(sources[::-1])[::-1]
+    assert back == names
+    # an input without such a neighbour keeps its plain stem
+    assert unique_stems(["a.manifest.xy", "b.xy"]) == ["a.manifest", "b"]
+
+
+def test_cli_dotted_stems_keep_their_own_outputs(tmp_path, capsys):
+    src = tmp_path / "in"
+    src.mkdir()
+    np.savetxt(src / "a.xy", _circle())
+    np.savetxt(src / "a.manifest.xy", _circle(30, 3.0))
+    out = tmp_path / "o"
+    code, _, err = _run(capsys, src, "--out", out, "--formats", "json")
+    assert code == 0, err
+    assert "would share file names" in err
+    man = __import__("json").loads((out / "a.manifest.json").read_text())
+    assert "formats" in man and "polylines" not in man          # a's manifest, not the other's curve
+    other = [p for p in out.glob("a.manifest_*.json") if not p.name.endswith(".manifest.json")]
+    assert len(other) == 1
+    code, so, err = _run(capsys, src, "--out", out, "--formats", "json")
+    assert code == 0 and (so + err).count("skipped") == 2, so + err
+
+
+# ------------------------------------------------------------------ near repeats
+def _naive_cells(norm, item, radius, shift):
+    """The first point of each (item, cell) of the grid offset by ``shift`` cells, by dict."""
+    seen, keep = set(), []
+    for i, (p, b) in enumerate(zip(norm.tolist(), item.tolist())):
+        key = (b, int(np.floor(p[0] / radius + shift[0])), int(np.floor(p[1] / radius + shift[1])))
+        if key not in seen:
+            seen.add(key)
+            keep.append(i)
+    return keep
+
+
+def test_near_repeats_are_one_point():
+    """Against a per-point dict of grid cells (four grids, half a cell apart in x, y or both):
+    the same points kept; every pair far below the radius merges, even across cell
+    boundaries; points a few radii apart never merge, so a dense scan is thinned, not
+    collapsed."""
+    g = torch.Generator().manual_seed(0)
+    base = torch.rand(300, 2, generator=g, dtype=torch.float64) - 0.5
+    pts = torch.cat([base, base + 1e-3 * NEAR_REPEAT * torch.randn(300, 2, generator=g, dtype=torch.float64),
+                     base[:50] + 3.0 * NEAR_REPEAT])
+    # pairs across a cell's side, across a corner of the first grid, and across a corner of the others
+    e = 1e-9 * NEAR_REPEAT
+    edge = torch.tensor([[3 * NEAR_REPEAT - e, 0.1], [3 * NEAR_REPEAT + e, 0.1],
+                         [-7 * NEAR_REPEAT - e, -5 * NEAR_REPEAT - e], [-7 * NEAR_REPEAT + e, -5 * NEAR_REPEAT + e],
+                         [-6.5 * NEAR_REPEAT - e, 0.5 * NEAR_REPEAT + e], [-6.5 * NEAR_REPEAT + e, 0.5 * NEAR_REPEAT - e]],
+                        dtype=torch.float64)
+    pts = torch.cat([pts, edge])
+    item = torch.zeros(pts.shape[0], dtype=torch.long)
+    item[300:] = 0
+    counts = torch.tensor([pts.shape[0]])
+    norm, it, cnt, src = merge_near_repeats(pts, item, counts, torch.arange(pts.shape[0]), 1, ["s"])
+    want = list(range(pts.shape[0]))
+    for shift in ((0.0, 0.0), (0.5, 0.0), (0.0, 0.5), (0.5, 0.5)):
+        want = [want[k] for k in _naive_cells(pts[want], item[want], NEAR_REPEAT, shift)]
+    assert src.tolist() == want
+    assert cnt.tolist() == [len(want)] == [300 + 50 + 3]
+    assert torch.equal(norm, pts[want])
+    # nothing to merge: the same tensors back
+    n2, _, c2, s2 = merge_near_repeats(base, item[:300], torch.tensor([300]), torch.arange(300), 1, ["s"])
+    assert n2 is base and c2.tolist() == [300]
+    # all but two points within the radius of one of them
+    tri = torch.tensor([[-0.5, 0.0], [0.5, 0.0], [0.5, 1e-9]], dtype=torch.float64)
+    with pytest.raises(PointSetError, match="s: needs at least 3 distinct points, got 2"):
+        merge_near_repeats(tri, torch.zeros(3, dtype=torch.long), torch.tensor([3]), torch.arange(3), 1, ["s"])
+
+
+@pytest.mark.parametrize("jitter", [1e-9, 1e-7])
+def test_set_given_twice_with_a_jitter(jitter):
+    """A quarter arc given twice, the copy jittered far below the tolerance: the arc's own
+    points (the copy merged) and one loop, not two loops or ``converged`` with points at an
+    infinite distance. (The frame still moves by the jitter; how far the curve follows such a
+    move is the stability question of ``tests/test_stability.py``.)"""
+    t = np.linspace(0, np.pi / 2, 100)
+    arc = np.c_[np.cos(t), np.sin(t)]
+    rng = np.random.default_rng(0)
+    twice = np.concatenate([arc, arc + jitter * rng.standard_normal(arc.shape)])
+    from torch_isc.core.points import prepare_points
+
+    pb = prepare_points([torch.tensor(twice)])
+    assert pb.counts.tolist() == [100] and pb.source.tolist() == list(range(100))
+    alone, both = torch_isc.reconstruct(arc), torch_isc.reconstruct(twice)
+    assert both.num_components == alone.num_components == 1
+    assert both.converged and np.isfinite(both.stats[-1].max_error)
+
+
+# ------------------------------------------------------------------ API arguments
+def test_huge_numbers_in_image_arguments():
+    m = np.zeros((20, 20), np.uint8)
+    m[5:15, 5:15] = 1
+    for kw in ({"min_area": 10 ** 400}, {"epsilon": 10 ** 400}, {"min_area": -2 ** 70}):
+        with pytest.raises(ImageError, match=f"{next(iter(kw))} must be a finite number >= 0"):
+            find_contours(m, "tree", "simple", **kw)
+    with pytest.raises(ImageError, match="threshold must be a finite number or None"):
+        find_contours(m, "tree", "none", threshold=10 ** 400)
+    # beyond the pixel type's range: every pixel on one side, as for any threshold there
+    assert len(find_contours(m, "tree", "none", threshold=2 ** 70)[0]) == 0
+    assert len(find_contours(m, "tree", "none", threshold=-2 ** 70)[0]) == 1
+    assert len(find_contours(m, "tree", "none", threshold=2 ** 70 * 1.0 - 2 ** 70 + 0.5)[0]) == 1
+    with pytest.raises(ImageError, match="max_pixels must be None or an integer >= 0"):
+        read_image(Path(__file__), max_pixels="x")
+    from torch_isc.core.render import MAX_RASTER_PIXELS, rasterize
+    r = torch_isc.reconstruct(_circle())
+    with pytest.raises(ValueError, match=f"about 10\\^12 x 3 x 1: more than {MAX_RASTER_PIXELS} pixels"):
+        rasterize(r.curve, 2 ** 40, 3, 0.01)
+
+
+def test_float8_points():
+    p = torch.tensor(_circle(60, 3.0), dtype=torch.float32)
+    for dt in (torch.float8_e4m3fn, torch.float8_e5m2):
+        q = p.to(dt)
+        a, b = torch_isc.reconstruct(q), torch_isc.reconstruct(q.float())
+        assert a.num_components == b.num_components == 1
+        assert torch.equal(a.curve.mesh.verts, b.curve.mesh.verts) and torch.equal(a.curve.values, b.curve.values)
+
+
+def test_batch_of_one_array_is_named():
+    with pytest.raises(PointSetError, match=r"point_sets: one \(50, 2\) array, not a sequence of point sets"):
+        torch_isc.reconstruct_batch(torch.randn(50, 2))
+    assert len(torch_isc.reconstruct_batch(torch.tensor(np.stack([_circle(), 2 * _circle()])))) == 2
+
+
+# ------------------------------------------------------------------ CLI options and files
+def test_device_without_backend_is_a_usage_error(tmp_path, capsys):
+    f = tmp_path / "a.xy"
+    np.savetxt(f, _circle())
+    code, _, err = _run(capsys, f, "--out", tmp_path / "o", "--device", "hpu")
+    assert code == 2 and err.startswith("torch-isc: error: --device hpu:") and "internal" not in err
+    assert len(err.strip().splitlines()) == 1
+
+
+def test_sigma_below_float32(tmp_path, capsys):
+    import cv2
+    from torch_isc.images import edge_points
+
+    im = np.zeros((32, 32), np.uint8)
+    im[8:24, 8:24] = 255
+    f = tmp_path / "s.png"
+    cv2.imwrite(str(f), im)
+    code, _, err = _run(capsys, f, "--out", tmp_path / "o", "--mode", "edges", "--sigma", "1e-300")
+    assert code == 2 and "--sigma must be in [0.001, 1000]" in err
+    with pytest.raises(ImageError, match="sigma must be at least 0.001 pixels"):
+        edge_points([im / 255.0], sigma=1e-300)
+    assert edge_points([im / 255.0], sigma=1e-3)[0].shape[0] > 0
+
+
+def test_npy_durations_and_negative_shapes(tmp_path, capsys):
+    td = tmp_path / "td.npy"
+    np.save(td, np.array([[1, 2], [3, 4], [5, 1]], dtype="m8[s]"))
+    raw = io.BytesIO()
+    np.save(raw, np.zeros((3, 2)))
+    neg = tmp_path / "neg.npy"
+    neg.write_bytes(raw.getvalue().replace(b"(3, 2)", b"(-3, 2)"))
+    good = tmp_path / "good.npy"
+    np.save(good, _circle())
+    code, _, err = _run(capsys, td, neg, good, "--out", tmp_path / "o", "--formats", "json")
+    assert code == 1 and (tmp_path / "o" / "good.json").is_file()
+    assert "td.npy: expected a numeric (integer or float) array, got dtype timedelta64[s]" in err
+    assert "neg.npy: unreadable .npy file (its header declares a negative shape (-3, 2))" in err

@@ -1,11 +1,16 @@
 """Clean nested rings closer than a few sample spacings: how many loops come back.
 
-    OMP_NUM_THREADS=1 .venv/bin/python scripts/evaluate_nested_rings.py [--set KEY=VALUE ...]
+    OMP_NUM_THREADS=1 .venv/bin/python scripts/evaluate_nested_rings.py [--random] [--set KEY=VALUE ...]
 
 ``k`` concentric circles (radii 1, 1 - g h, 1 - 2 g h, ..., ``h`` the outer ring's sample
 spacing 2 pi / 300), each sampled evenly at the outer ring's spacing, no noise: the truth is
-``k`` loops. Prints per set the loops found, the levels, the estimated noise (% of the radius)
+``k`` loops. Prints per set the loops found, the levels, the estimated noise (% of the diagonal)
 and whether the loop hit a limit. One ``reconstruct_batch`` call.
+
+``--random``: 36 harder sets instead, 4 seeds x 2, 3 or 4 rings x gaps of 3, 4 and 6 spacings:
+concentric ellipses (one random eccentricity 0.6-1 per set), sampled with a jitter of +-0.3
+spacings (even seeds) or uniformly at random (odd seeds: some spacings are several times the
+mean), then rotated, scaled by 0.1-10 and shifted by up to 5 at random.
 """
 from __future__ import annotations
 
@@ -32,18 +37,45 @@ def rings(k: int, gap: float, n: int = 300) -> np.ndarray:
     return np.concatenate(out)
 
 
+def random_ellipses(seed: int, k: int, gap: float, n: int = 300) -> np.ndarray:
+    """The ``--random`` set of ``seed``: ``k`` concentric ellipses ``gap`` spacings apart."""
+    rng = np.random.default_rng([100 + seed, k, int(gap * 10)])
+    h = 2 * np.pi / n
+    ecc = rng.uniform(0.6, 1.0)
+    out = []
+    for j in range(k):
+        r = 1 - j * gap * h
+        m = int(round(n * r))
+        if seed % 2:
+            t = np.sort(rng.uniform(0, 2 * np.pi, m))
+        else:
+            t = (np.arange(m) + rng.uniform(-0.3, 0.3, m)) * 2 * np.pi / m
+        out.append(np.stack([r * np.cos(t), ecc * r * np.sin(t)], 1))
+    a = rng.uniform(0, np.pi)
+    rot = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    return np.concatenate(out) @ rot.T * rng.uniform(0.1, 10) + rng.uniform(-5, 5, 2)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--random", action="store_true", help="the 36 jittered or randomly sampled ellipse sets")
     add_run_args(ap, "set")
     args = ap.parse_args(argv)
     config = setup_run(args)
-    keys = [(k, g) for k in (3, 5) for g in (2.0, 3.0, 4.0)]
-    res = torch_isc.reconstruct_batch([torch.tensor(rings(k, g)) for k, g in keys], config)
-    print("| rings | gap (spacings) | loops | levels | noise % of radius | limit |")
-    print("|---:|---:|---:|---:|---:|---|")
-    for (k, g), r in zip(keys, res):
-        print(f"| {k} | {g:g} | {r.num_closed} | {len(r.stats)} | {100 * r.stats[0].noise:.3g} | {r.limit or ''} |")
-    right = sum(r.num_closed == k for (k, _), r in zip(keys, res))
+    if args.random:
+        keys = [(s, k, g) for s in range(4) for k in (2, 3, 4) for g in (3.0, 4.0, 6.0)]
+        sets = [random_ellipses(s, k, g) for s, k, g in keys]
+    else:
+        keys = [(None, k, g) for k in (3, 5) for g in (2.0, 3.0, 4.0)]
+        sets = [rings(k, g) for _, k, g in keys]
+    res = torch_isc.reconstruct_batch([torch.tensor(p) for p in sets], config)
+    print("| seed | rings | gap (spacings) | loops | levels | noise % of diagonal | limit |")
+    print("|---:|---:|---:|---:|---:|---:|---|")
+    for (s, k, g), p, r in zip(keys, sets, res):
+        diag = float(np.hypot(*(p.max(0) - p.min(0))))
+        print(f"| {'' if s is None else s} | {k} | {g:g} | {r.num_closed} | {len(r.stats)} | "
+              f"{100 * r.stats[0].noise / diag:.3g} | {r.limit or ''} |")
+    right = sum(r.num_closed == k for (_, k, _), r in zip(keys, res))
     print(f"\nright loop count: {right} of {len(keys)}")
     return 0
 

@@ -268,10 +268,10 @@ def test_image_options_checked_at_the_boundary(tmp_path, capsys):
             ImageOptions(**kw)
     ImageOptions(spacing=0, threshold=0.0, canny=(0.1, 0.9), max_pixels=None, connectivity=4, zoom=64)
     m = _mask_png(tmp_path / "m.png")
-    for argv, msg in ((["--mode", "edges", "--spacing", "inf"], "--spacing must be in [0, 1e6] pixels, got inf"),
+    for argv, msg in ((["--mode", "edges", "--spacing", "inf"], "--spacing must be 0 (no resampling) or in [0.01, 1e6] pixels, got inf"),
                       (["--canny", "0.1,inf"], "--canny: expected 0 < LOW < HIGH, got '0.1,inf'"),
                       (["--device", "meta"], "--device meta: a meta device holds no values"),
-                      (["--cpus-per-actor", "nan"], "--cpus-per-actor must be > 0, got nan")):
+                      (["--cpus-per-actor", "nan"], "--cpus-per-actor must be > 0 and below 1e6, got nan")):
         code, out, err = _run(capsys, m, "--out", tmp_path / "o", *argv)
         assert code == 2 and _errors(err) == [f"torch-isc: error: {msg}"], err
 

@@ -278,3 +278,120 @@ def test_npy_durations_and_negative_shapes(tmp_path, capsys):
     assert code == 1 and (tmp_path / "o" / "good.json").is_file()
     assert "td.npy: expected a numeric (integer or float) array, got dtype timedelta64[s]" in err
     assert "neg.npy: unreadable .npy file (its header declares a negative shape (-3, 2))" in err
+
+
+# ------------------------------------------------------------------ the seventh round (a second report)
+def test_table_never_overwrites_config_manifest_or_outputs(tmp_path, capsys, monkeypatch):
+    pytest.importorskip("pyarrow")
+    monkeypatch.chdir(tmp_path)
+    np.savetxt("a.xy", _circle())
+    Path("cfg.yaml").write_text("max_level: 8\n")
+    Path("l.txt").write_text("a.xy\n")
+    cases = [(["a.xy", "--config", "cfg.yaml", "--table", "cfg.yaml"], "is the --config file"),
+             (["--manifest", "l.txt", "--table", "l.txt"], "is a manifest of the run"),
+             (["a.xy", "--formats", "json", "--table", "o/a.json"], "is an output file of the run (a.json)"),
+             (["a.xy", "--formats", "json", "--table", "o/a.manifest.json"], "is an output file of the run")]
+    for argv, msg in cases:
+        code, _, err = _run(capsys, *argv, "--out", "o")
+        assert code == 2 and msg in err and len(err.strip().splitlines()) == 1, err
+    assert Path("cfg.yaml").read_text() == "max_level: 8\n" and Path("l.txt").read_text() == "a.xy\n"
+    code, _, err = _run(capsys, "a.xy", "--formats", "json", "--out", "o", "--table", "o/t.parquet")
+    assert code == 0 and Path("o/t.parquet").is_file() and Path("o/a.json").is_file()
+
+
+def _ring_grid(k, per_ring, r=0.1):
+    t = np.linspace(0, 2 * np.pi, per_ring, endpoint=False)
+    ring = np.c_[r * np.cos(t), r * np.sin(t)]
+    return np.concatenate([ring + [x, y] for x in range(k) for y in range(k)])
+
+
+def test_unresolved_components_do_not_converge():
+    """100 rings of 8 points, 0.1 across and 1 apart: most are lost (counted against each
+    ring's own centre, an independent route); the result must not say it converged. One
+    such ring alone is resolved and converges."""
+    pts = _ring_grid(10, 8)
+    r = torch_isc.reconstruct(pts)
+    centres = np.array([(x, y) for x in range(10) for y in range(10)], float)
+    loops = [np.asarray(p["points"], float) for p in r.polylines]
+    found = sum(any(np.abs(np.hypot(*(q - c).T) - 0.1).max() < 0.05 for q in loops) for c in centres)
+    assert found < 100
+    assert not r.converged and r.limit == "unresolved"
+    ok = torch_isc.reconstruct(_ring_grid(1, 16))
+    assert ok.converged and ok.limit is None and ok.num_closed == 1
+
+
+@pytest.mark.parametrize("scale", [1e-100, 1e30, 1e150])
+def test_point_gradients_follow_the_scale(scale):
+    """d(area)/d(points) of a circle scaled by s is s times that of the unit circle (area is
+    homogeneous of degree 2): 4e35 times too small at 1e30 before, and an IndexError at 1e-200."""
+    from torch_isc.core import measures
+
+    base = torch.tensor(_circle(60), requires_grad=True)
+    g1, = torch.autograd.grad(measures.area(torch_isc.reconstruct(base).curve).sum(), base)
+    p = torch.tensor(_circle(60) * scale, requires_grad=True)
+    gs, = torch.autograd.grad(measures.area(torch_isc.reconstruct(p).curve).sum(), p)
+    assert torch.allclose(gs / scale, g1, rtol=1e-6, atol=1e-9 * float(g1.abs().max()))
+    tiny = torch.tensor(_circle(60) * 1e-200, requires_grad=True)
+    assert torch_isc.reconstruct(tiny).num_components == 1
+
+
+def test_resource_bounds_of_the_second_report(tmp_path, capsys):
+    from torch_isc import ConfigError, ReconstructConfig
+    from torch_isc.core.mesh import hexagon_mesh
+    from torch_isc.images.grid import trace_masks
+    from torch_isc.runner import ImageOptions, RunError
+
+    im = np.zeros((16, 16), np.uint8)
+    im[4:12, 4:12] = 255
+    import cv2
+    cv2.imwrite(str(tmp_path / "m.png"), im)
+    code, _, err = _run(capsys, tmp_path / "m.png", "--out", tmp_path / "o", "--no-oracle", "--spacing", "1e-3")
+    assert code == 2 and "--spacing must be 0 (no resampling) or in [0.01, 1e6]" in err
+    with pytest.raises(RunError, match="spacing must be 0"):
+        ImageOptions(spacing=1e-4)
+    with pytest.raises(ImageError, match="smooth must be an integer in \\[0, 10000\\]"):
+        trace_masks([torch.tensor(im > 0)], smooth=10 ** 9)
+    assert len(trace_masks([im > 0]).polylines) == 1                      # numpy masks are read
+    with pytest.raises(ConfigError, match="max_triangles"):
+        ReconstructConfig().replace(max_triangles=100_000_000)
+    with pytest.raises(ValueError, match="6000000000000 triangles"):
+        hexagon_mesh(torch.zeros(1, 2), torch.ones(1), 10 ** 6)
+
+
+def test_api_arguments_of_the_second_report(tmp_path):
+    from torch_isc import ReconstructConfig
+    from torch_isc.core.curve import InvalidValuesError
+    from torch_isc.core.mesh import InvalidMeshError, MeshBatch
+    from torch_isc.core.render import rasterize
+    from torch_isc.runner import RunError, run_arguments, run_inputs
+
+    r = torch_isc.reconstruct(_circle())
+    with pytest.raises(InvalidValuesError, match="magnitudes must be a"):
+        r.curve.rescale(0.5)
+    with pytest.raises(ImageError, match="expected a path .* got bytes"):
+        read_image(b"x.png")
+    with pytest.raises(RunError, match="out_dir: expected a folder path"):
+        run_inputs(["a.xy"], ReconstructConfig(), None)
+    with pytest.raises(RunError, match="formats: no output format"):
+        run_inputs(["a.xy"], ReconstructConfig(), tmp_path, formats=())
+    # one order for one set of formats, repeats dropped: a rerun with "svg,json" skips
+    assert run_arguments(["a"], "svg,json,svg", ["contours.npz", "json"], 1)[1:] == (["json", "svg"],
+                                                                                      ["json", "contours.npz"])
+    with pytest.raises(ValueError, match="extent must be finite"):
+        rasterize(r.curve, 4, 4, 0.01, extent=[float("nan"), 0, 1, 1])
+    with pytest.raises(ValueError, match="xmin < xmax"):
+        rasterize(r.curve, 4, 4, 0.01, extent=[1, 0, 0, 1])
+    v = torch.tensor([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+    with pytest.raises(InvalidMeshError, match="integer vertex indices"):
+        MeshBatch(v, torch.tensor([[0.0, 1.0, 2.0]]), torch.tensor([3]), torch.tensor([1]))
+    with pytest.raises(InvalidMeshError, match="negative count"):
+        MeshBatch(torch.cat([v, v]), torch.tensor([[0, 1, 2]]), torch.tensor([9, -3]), torch.tensor([1, 0]))
+
+
+def test_rerun_with_formats_reordered_skips(tmp_path, capsys):
+    f = tmp_path / "a.xy"
+    np.savetxt(f, _circle())
+    code, _, _ = _run(capsys, f, "--out", tmp_path / "o", "--formats", "json,svg")
+    assert code == 0
+    code, out, err = _run(capsys, f, "--out", tmp_path / "o", "--formats", "svg,json,json")
+    assert code == 0 and "skipped" in out + err

@@ -46,6 +46,7 @@ a stopped run leaves only complete output sets (the one being written has no man
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 from typing import List, Optional, Sequence, TextIO
@@ -280,8 +281,8 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
     config = load_config(args.config, overrides, "--set" if args.overrides else "--seed")
     if args.threshold is not None and not (0.0 <= args.threshold < 1.0):
         raise UsageError(f"--threshold must be in [0, 1), got {args.threshold}")
-    if not 0 <= args.spacing <= 1e6:
-        raise UsageError(f"--spacing must be in [0, 1e6] pixels, got {args.spacing}")
+    if not (args.spacing == 0 or 0.01 <= args.spacing <= 1e6):
+        raise UsageError(f"--spacing must be 0 (no resampling) or in [0.01, 1e6] pixels, got {args.spacing}")
     try:
         if non_ascii_digit(args.canny):
             raise ValueError
@@ -304,6 +305,15 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
             region = ()
         if len(region) != 4 or not (region[0] < region[2] and region[1] < region[3]) or min(region[2:]) <= 0:
             raise UsageError(f"--region expects X0,Y0,X1,Y1 (integer pixels, X0 < X1, Y0 < Y1), got {args.region!r}")
+    if args.table:
+        real = os.path.realpath(args.table)
+        if args.config and real == os.path.realpath(args.config):
+            raise UsageError(f"--table {shown(args.table)}: is the --config file; writing it would overwrite the config")
+        manifests = list(args.manifest or []) + [str(s) for s in args.inputs
+                                                  if Path(str(s)).suffix.lower() in (".parquet", ".pq")]
+        if real in {os.path.realpath(m) for m in manifests}:
+            raise UsageError(f"--table {shown(args.table)}: is a manifest of the run; writing it would overwrite "
+                             f"that manifest")
     if (args.zoom != 1 or region is not None) and "overlay.png" not in image_formats:
         image_formats.append("overlay.png")
     if not 0 <= args.max_pixels < 2 ** 62:
@@ -320,9 +330,9 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
     if args.engine == "ray" and args.actors < 1:
         raise UsageError(f"--actors must be >= 1, got {args.actors}")
     if not 0 < args.cpus_per_actor < 1e6:
-        raise UsageError(f"--cpus-per-actor must be > 0, got {args.cpus_per_actor}")
+        raise UsageError(f"--cpus-per-actor must be > 0 and below 1e6, got {args.cpus_per_actor:g}")
     if not 0 <= args.gpus_per_actor < 1e6:
-        raise UsageError(f"--gpus-per-actor must be >= 0, got {args.gpus_per_actor}")
+        raise UsageError(f"--gpus-per-actor must be >= 0 and below 1e6, got {args.gpus_per_actor:g}")
     from torch_isc.dataset import resolve_inputs
 
     try:

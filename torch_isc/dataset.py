@@ -498,6 +498,13 @@ def _batches_ray(settings: Dict[str, Any], inputs, batch_size: int, address: Opt
     if quiet:                                             # the caller reports progress itself
         ctx.enable_progress_bars, ctx.print_on_execution_start = False, False
     try:
+        # actors the cluster cannot place would wait for ever (--actors 1000000 hung the run)
+        res = ray.cluster_resources()
+        for kind, per in (("CPU", cpus_per_actor), ("GPU", gpus_per_actor)):
+            have = float(res.get(kind, 0.0))
+            if per and actors * per > have + 1e-9:
+                raise RunError(f"actors: {actors} actor(s) x {per:g} {kind}(s) need {actors * per:g} {kind}s, "
+                               f"the Ray cluster has {have:g} (at most {int(have // per)} such actor(s) fit)")
         blocks = [inputs.slice(s, batch_size) for s in range(0, inputs.num_rows, batch_size)]
         ds = ray.data.from_arrow(blocks)
         remote = {"num_gpus": gpus_per_actor} if gpus_per_actor else {}
@@ -572,6 +579,7 @@ def reconstruct_dataset(inputs: Iterable[PathLike], out_dir: PathLike, config=No
         image_config = _as_config(image_config)
     if image_config is None:
         image_config = images.image_config(config, mode=image_options.mode)
+    inputs = list(inputs)
     sources = resolve_inputs(inputs, manifest, manifest_column, errors={})
     if not sources:
         raise RunError("no input")
@@ -582,6 +590,15 @@ def reconstruct_dataset(inputs: Iterable[PathLike], out_dir: PathLike, config=No
             raise RunError(f"table {shown(table)}: is an input of the run; writing it would overwrite that input")
         if Path(table).is_dir():
             raise RunError(f"table {shown(table)}: is a folder, not a file")
+        given = [manifest] if isinstance(manifest, (str, os.PathLike)) else list(manifest or [])
+        given += [m for m in inputs if Path(os.fspath(m)).suffix.lower() in _MANIFEST_SUFFIXES and os.path.isfile(m)]
+        if os.path.realpath(table) in {os.path.realpath(m) for m in given}:
+            raise RunError(f"table {shown(table)}: is a manifest of the run; writing it would overwrite that manifest")
+        if os.path.realpath(Path(table).parent) == os.path.realpath(out):
+            names = {f"{st}.{f}" for st in stems for f in (*formats, *image_formats, "manifest.json")}
+            if Path(table).name in names:
+                raise RunError(f"table {shown(table)}: is an output file of the run ({Path(table).name}); "
+                               f"writing it would overwrite that output")
     todo = pa.table({"index": pa.array(range(len(sources)), pa.int64()), "source": sources, "stem": stems})
     from torch_isc.io import loader_for
 

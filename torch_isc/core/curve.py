@@ -31,6 +31,8 @@ def check_values(values: torch.Tensor, num_verts: int, name: str = "values", syn
     With ``sync=False`` the content checks are device-side asserts (``torch._assert_async``,
     a ``RuntimeError`` naming the problem): no host synchronization on CUDA (on CPU they
     raise at once). The shape check never syncs."""
+    if not torch.is_tensor(values):
+        raise InvalidValuesError(f"{name} must be a ({num_verts},) tensor, got {type(values).__name__}")
     if values.dim() != 1 or values.shape[0] != num_verts:
         raise InvalidValuesError(f"{name} must have shape ({num_verts},), got {tuple(values.shape)}")
     v = values.detach()
@@ -337,6 +339,9 @@ class ImplicitCurve:
         """New magnitudes ``(V,)`` (> 0), the signs kept: a constant-topology change of geometry.
 
         ``validate``: as in the constructor (on CUDA with grad: device-side asserts, no sync)."""
+        if not torch.is_tensor(magnitudes):
+            raise InvalidValuesError(f"magnitudes must be a ({self.mesh.verts.shape[0]},) tensor, got "
+                                     f"{type(magnitudes).__name__}")
         if validate:
             sync = validate == "sync" or (validate is True and not (magnitudes.is_cuda and magnitudes.requires_grad))
             check_values(magnitudes, self.mesh.verts.shape[0], "magnitudes", sync=sync)

@@ -57,6 +57,8 @@ class MeshBatch:
             raise InvalidMeshError(f"verts must have shape (V, 2), got {tuple(verts.shape)}")
         if faces.dim() != 2 or faces.shape[1] != 3:
             raise InvalidMeshError(f"faces must have shape (T, 3), got {tuple(faces.shape)}")
+        if check_sizes and (faces.is_floating_point() or faces.is_complex() or faces.dtype == torch.bool):
+            raise InvalidMeshError(f"faces must be integer vertex indices, got {faces.dtype}")
         dev = verts.device
         self.verts = verts
         self.faces = faces.to(device=dev, dtype=torch.long)
@@ -64,9 +66,20 @@ class MeshBatch:
         self.faces_per_item = torch.as_tensor(faces_per_item, dtype=torch.long, device=dev)
         # the check reads the counts on the host (a synchronization on a GPU): callers that built
         # the counts with the packed tensors pass check_sizes=False
-        if check_sizes and (int(self.verts_per_item.sum()) != verts.shape[0]
-                            or int(self.faces_per_item.sum()) != faces.shape[0]):
-            raise InvalidMeshError("verts_per_item / faces_per_item do not add up to the packed sizes")
+        if check_sizes:
+            if self.verts_per_item.dim() != 1 or self.faces_per_item.shape != self.verts_per_item.shape:
+                raise InvalidMeshError(f"verts_per_item and faces_per_item must be two (B,) tensors, got shapes "
+                                       f"{tuple(self.verts_per_item.shape)} and {tuple(self.faces_per_item.shape)}")
+            # index ranges and finiteness are validate()'s (a full pass); the counts are read here anyway
+            z = torch.zeros((), dtype=torch.long, device=dev)
+            nv, nf, neg = torch.stack([
+                self.verts_per_item.sum(), self.faces_per_item.sum(),
+                torch.minimum(self.verts_per_item.min(), self.faces_per_item.min())
+                if self.verts_per_item.numel() else z]).tolist()
+            if neg < 0:
+                raise InvalidMeshError("verts_per_item / faces_per_item hold a negative count")
+            if nv != verts.shape[0] or nf != faces.shape[0]:
+                raise InvalidMeshError("verts_per_item / faces_per_item do not add up to the packed sizes")
 
     # ------------------------------------------------------------------ basics
     @property
@@ -434,6 +447,33 @@ def _replicate(tv: torch.Tensor, tf: torch.Tensor, center: torch.Tensor, scale: 
     return MeshBatch(verts, faces, full(nv), full(nf), check_sizes=False)
 
 
+#: the most triangles :func:`hexagon_mesh` or :func:`square_mesh` builds in one call (all items)
+MAX_BUILT_TRIANGLES = 1 << 31
+
+
+def _builder_args(name: str, center, size, size_name: str, resolution, triangles) -> int:
+    """Check a mesh builder's arguments; the resolution as an int. ``triangles(r)``: per item."""
+    import operator
+
+    try:
+        r = operator.index(resolution)
+    except TypeError:
+        raise ValueError(f"{name}: resolution must be an integer >= 1, got {resolution!r:.30}") from None
+    if r < 1 or isinstance(resolution, bool):
+        raise ValueError(f"{name}: resolution must be an integer >= 1, got {resolution!r:.30}")
+    if not (torch.is_tensor(center) and center.dim() == 2 and center.shape[1] == 2 and center.is_floating_point()):
+        raise ValueError(f"{name}: center must be a floating (B, 2) tensor, got "
+                         f"{tuple(center.shape) if torch.is_tensor(center) else type(center).__name__}")
+    B = center.shape[0]
+    if not (torch.is_tensor(size) and tuple(size.shape) == (B,)):
+        raise ValueError(f"{name}: {size_name} must be a ({B},) tensor, got "
+                         f"{tuple(size.shape) if torch.is_tensor(size) else type(size).__name__}")
+    if B * triangles(r) > MAX_BUILT_TRIANGLES:
+        raise ValueError(f"{name}: {B} item(s) of resolution {r} are {B * triangles(r)} triangles, more than "
+                         f"{MAX_BUILT_TRIANGLES}")
+    return r
+
+
 def hexagon_mesh(center: torch.Tensor, radius: torch.Tensor, resolution: int = 1) -> MeshBatch:
     """Regular hexagons cut into ``6·resolution²`` equilateral triangles, one per item.
 
@@ -446,9 +486,7 @@ def hexagon_mesh(center: torch.Tensor, radius: torch.Tensor, resolution: int = 1
         >>> m.verts.shape, m.faces.shape
         (torch.Size([7, 2]), torch.Size([6, 3]))
     """
-    r = int(resolution)
-    if r < 1:
-        raise ValueError(f"resolution must be >= 1, got {resolution}")
+    r = _builder_args("hexagon_mesh", center, radius, "radius", resolution, lambda k: 6 * k * k)
     dev, dt = center.device, center.dtype
     # triangular lattice in axial coordinates (q, s), |q|,|s|,|q+s| <= r
     q, s = torch.meshgrid(torch.arange(-r, r + 1, device=dev), torch.arange(-r, r + 1, device=dev), indexing="ij")
@@ -486,9 +524,7 @@ def square_mesh(center: torch.Tensor, half_width: torch.Tensor, resolution: int 
     Args:
         center: ``(B, 2)``. half_width: ``(B,)``. resolution: cells per side.
     """
-    n = int(resolution)
-    if n < 1:
-        raise ValueError(f"resolution must be >= 1, got {resolution}")
+    n = _builder_args("square_mesh", center, half_width, "half_width", resolution, lambda k: 2 * k * k)
     dev, dt = center.device, center.dtype
     t = torch.linspace(-1.0, 1.0, n + 1, device=dev, dtype=dt)
     yy, xx = torch.meshgrid(t, t, indexing="ij")

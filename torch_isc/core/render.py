@@ -135,6 +135,8 @@ def rasterize(curve, height: int, width: int, tau: float,
             ext = ext[None].expand(B, 4)
         if ext.shape != (B, 4):
             raise ValueError(f"extent must be 4 numbers or a ({B}, 4) tensor, got shape {tuple(ext.shape)}")
+        if not bool((torch.isfinite(ext).all(1) & (ext[:, 2] > ext[:, 0]) & (ext[:, 3] > ext[:, 1])).all()):
+            raise ValueError("extent must be finite (xmin, ymin, xmax, ymax) with xmin < xmax and ymin < ymax")
     pts = pixel_centers(height, width, ext).reshape(-1, 2)
     item = torch.arange(B, device=dev).repeat_interleave(height * width)
     return soft_inside(curve, pts, tau, item, mode=mode).view(B, height, width)

@@ -929,6 +929,19 @@ def trace_masks(masks: Sequence[torch.Tensor], connectivity: int = 8, smooth: in
     >>> len(gc.polylines), gc.outer.tolist(), gc.parent.tolist()
     (2, [True, False], [-1, 0])
     """
+    from torch_isc.images.arrays import ImageError, as_masks
+
+    if isinstance(smooth, bool) or not isinstance(smooth, int) or not 0 <= smooth <= 10_000:
+        raise ImageError(f"trace_masks: smooth must be an integer in [0, 10000] (iterations), got {smooth!r:.30}")
+    if connectivity not in (4, 8) or isinstance(connectivity, bool):
+        raise ImageError(f"trace_masks: connectivity must be 8 or 4, got {connectivity!r:.30}")
+    if dtype not in (torch.float32, torch.float64):
+        raise ImageError(f"trace_masks: dtype must be torch.float32 or torch.float64, got {dtype!r:.30}")
+    masks = list(masks) if not (torch.is_tensor(masks) or hasattr(masks, "shape")) else masks
+    if len(masks) == 0:
+        raise ImageError("trace_masks: no mask")
+    if not all(torch.is_tensor(m) and m.dtype == torch.bool and m.dim() == 2 for m in masks):
+        masks = as_masks(masks)              # arrays, other dtypes: one line naming the mask when bad
     grid, sizes = _stack(list(masks))
     B, H2, W2 = grid.shape
     mesh, fg, pix = grid_mesh(grid, connectivity, dtype)

@@ -312,6 +312,9 @@ def read_image(path: Union[str, os.PathLike], max_pixels: Optional[int] = DEFAUL
         ImageError: missing file, unreadable / truncated / not an image, larger than
             ``max_pixels`` (None: no limit), several pages (one line, naming it).
     """
+    if not isinstance(path, (str, os.PathLike)):
+        raise ImageError(f"read_image: expected a path (str or path object), got {type(path).__name__}"
+                         + (" (for the file's bytes: decode_image)" if isinstance(path, (bytes, bytearray)) else ""))
     p = Path(path)
     return decode_image(read_file_bytes(p, ImageError, "an image"), p, max_pixels=max_pixels)
 
@@ -334,6 +337,8 @@ def decode_image(data: bytes, name: object = "image", max_pixels: Optional[int] 
     >>> decode_image(cv2.imencode(".png", np.full((2, 3), 255, np.uint8))[1].tobytes()).tolist()
     [[1.0, 1.0, 1.0], [1.0, 1.0, 1.0]]
     """
+    if not isinstance(data, (bytes, bytearray, memoryview)):
+        raise ImageError(f"decode_image: expected the file's bytes, got {type(data).__name__}")
     if max_pixels is not None:
         try:
             ok = operator.index(max_pixels) >= 0 and not isinstance(max_pixels, bool)

@@ -145,7 +145,7 @@ def initial_triangles(mesh: MeshConfig) -> int:
 #: stays finite. Checked when a :class:`ReconstructConfig` is built, with the key named.
 UPPER_BOUNDS: Dict[str, float] = {
     "initial_resolution": 10_000, "margin": 1e3,
-    "max_level": 1_000, "max_triangles": 100_000_000, "max_seconds": 1e9,
+    "max_level": 1_000, "max_triangles": 10_000_000, "max_seconds": 1e9,
     "seed": 2 ** 63 - 1,
     "min_points_fit": 2 ** 31 - 1, "crossing_reach_slack": 1e6, "evidence_noise_widths": 1e6, "evidence_rings": 64,
     "evidence_line_widths": 1e6, "two_line_separation": 1e6, "two_line_spread": 1e6,

@@ -261,7 +261,7 @@ def _run_loop(batch: PointBatch, cfg: ReconstructConfig, source: SignSource,
     results: List[Optional[ReconstructionResult]] = [None] * B
     cuts = 0                                   # inner loops the deadline has cut short so far
     ws = _start(batch, cfg, rec, isinstance(source, IsingSigns))
-    finished: list = []                        # per finishing level: (working set, slack, marked, over)
+    finished: list = []                        # per finishing level: (working set, slack, marked, over, unresolved)
     for level in range(cfg.limits.max_level + 1):
         ws = snap_blobs(ws)                                            # a vertex inside each cluster
         ev = gather_evidence(ws, cfg.evidence)                         # EstimateTopology
@@ -293,7 +293,8 @@ def _run_loop(batch: PointBatch, cfg: ReconstructConfig, source: SignSource,
             # finished items last, each part ascending: no second host read for the split
             order = torch.argsort(done.to(torch.uint8), stable=True)
             fin = order[nb - n_done:]
-            finished.append((ws if n_done == nb else ws.select(fin), slack[fin], n_marked[fin], over[fin]))
+            finished.append((ws if n_done == nb else ws.select(fin), slack[fin], n_marked[fin], over[fin],
+                             verdict.unresolved[fin]))
         if n_done == nb:
             # the band stage refines and refits the finished items of every level in one call
             # (its cost is per call, not per item: once per solve, not once per finishing level)
@@ -303,7 +304,8 @@ def _run_loop(batch: PointBatch, cfg: ReconstructConfig, source: SignSource,
             band_cut = budget.cuts() > cuts              # the deadline cut the band stage short
             local = torch.arange(sub.num_items, device=sub.device)
             n_mk, ovr = torch.cat([f[2] for f in finished]), torch.cat([f[3] for f in finished])
-            for b, res in finish_items(sub, local, n_mk, ovr, batch, cfg, rec.per_item, names):
+            unres = torch.cat([f[4] for f in finished])
+            for b, res in finish_items(sub, local, n_mk, ovr, batch, cfg, rec.per_item, names, unres):
                 if b in timed or band_cut:
                     res.converged, res.limit = False, "max_seconds"
                 results[b] = res

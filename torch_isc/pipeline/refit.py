@@ -699,7 +699,24 @@ def attach_point_gradients(results_or_curves: Sequence, point_sets: Sequence[tor
     pts = torch.cat([torch.as_tensor(p).to(device=dev, dtype=dt).reshape(-1, 2) for p in sets])
     counts = torch.tensor([int(torch.as_tensor(p).reshape(-1, 2).shape[0]) for p in sets], device=dev)
     point_item = torch.repeat_interleave(torch.arange(len(sets), device=dev), counts)
-    new = refit(batch, pts, point_item, **refit_kw).values
+    # the refit runs in each item's unit frame (a constant map, so the chain rule is exact):
+    # in the caller's units its squares underflow below ~1e-150 and its fixed weights dominate
+    # beyond ~1e20 (a circle of radius 1e30 got gradients 4e35 times too small)
+    vi = batch.mesh.vert_item
+    big = torch.finfo(torch.float64).max
+    v64 = batch.mesh.verts.double()
+    lo = torch.full((len(sets), 2), big, dtype=torch.float64, device=dev).scatter_reduce(
+        0, vi[:, None].expand(-1, 2), v64, "amin")
+    hi = torch.full((len(sets), 2), -big, dtype=torch.float64, device=dev).scatter_reduce(
+        0, vi[:, None].expand(-1, 2), v64, "amax")
+    m = torch.maximum(lo.abs(), hi.abs()).amax(1).clamp_min(torch.finfo(torch.float64).tiny)
+    centre = 0.5 * (lo + hi)
+    size = torch.hypot((hi[:, 0] - lo[:, 0]) / m, (hi[:, 1] - lo[:, 1]) / m) * m      # no overflow near 1e308
+    size = torch.where(size > 0, size, torch.ones_like(size))
+    unit = ImplicitCurve(batch.mesh.with_verts(((v64 - centre[vi]) / size[vi, None]).to(dt)),
+                         (batch.values.double() / size[vi]).to(dt), validate=False)
+    pts_u = (pts - centre[point_item].to(dt)) / size[point_item, None].to(dt)
+    new = refit(unit, pts_u, point_item, **refit_kw).values * size[vi].to(dt)
     vals = batch.values + (new - new.detach()) if keep_values else new
     out = []
     v0 = 0

@@ -138,10 +138,13 @@ class ReconstructionResult:
 
 def finish_items(ws: "WorkingSet", fin: torch.Tensor, n_marked: torch.Tensor, over: torch.Tensor,
                  batch: "PointBatch", cfg: ReconstructConfig, stats: Sequence[List[LevelStats]],
-                 names: Sequence[Optional[str]]) -> Iterator[Tuple[int, ReconstructionResult]]:
+                 names: Sequence[Optional[str]], unresolved: Optional[torch.Tensor] = None
+                 ) -> Iterator[Tuple[int, ReconstructionResult]]:
     """``(caller's item, result)`` for the working items ``fin``: each curve back in the
     caller's frame in float64 (an offset of 1e7 must not be rounded away), then in the caller's
-    precision, at least the working one."""
+    precision, at least the working one. An item that passed the test with points left in
+    clusters far from every curve (``unresolved``, per working item) did not converge: its limit
+    is ``"unresolved"`` (components smaller than the size floor lets the mesh resolve)."""
     with torch.no_grad():
         dtype = ws.dtype
         mesh, B, K = ws.mesh, ws.num_items, fin.shape[0]
@@ -149,8 +152,9 @@ def finish_items(ws: "WorkingSet", fin: torch.Tensor, n_marked: torch.Tensor, ov
         neg = (ws.values < 0) & ~ws.flat[vi]                     # a flat item is all outside: no curve
         inside = segment_any(neg, vi, B)[fin]
         # everything the host needs, read at once: per item its caller, test outcome and sizes
+        unres = torch.zeros_like(n_marked) if unresolved is None else unresolved
         host = torch.stack([ws.items[fin], n_marked[fin], over[fin].long(), inside.long(), ws.flat[fin].long(),
-                            mesh.verts_per_item[fin], mesh.faces_per_item[fin]]).tolist()
+                            mesh.verts_per_item[fin], mesh.faces_per_item[fin], unres[fin]]).tolist()
         caller_l, nv, nf = host[0], host[5], host[6]
         sub, kept_verts, _ = mesh.select_items(fin, (sum(nv), sum(nf)))
         vitem = sub.vert_item
@@ -170,15 +174,17 @@ def finish_items(ws: "WorkingSet", fin: torch.Tensor, n_marked: torch.Tensor, ov
             vals_o = vals64.to(odt)
             meshes = sub.with_verts(verts64.to(odt)).items_list((nv, nf))
             views[odt] = [(m, vals_o[v0:v0 + n]) for m, v0, n in zip(meshes, v_first, nv)]
-        rows = zip(caller_l, host[1], host[2], host[3], host[4], odts)
-        for jj, (b, mk, ov, has_in, fl, odt) in enumerate(rows):
+        rows = zip(caller_l, host[1], host[2], host[3], host[4], odts, host[7])
+        for jj, (b, mk, ov, has_in, fl, odt, un) in enumerate(rows):
             limit = None
             if mk > 0:
                 limit = "max_triangles" if ov else "max_level"
+            elif un > 0:
+                limit = "unresolved"
             raw = batch.raw[b]
             m, v = views[odt][jj]
             curve = ImplicitCurve(m, v, validate=False)
-            converged = mk == 0
+            converged = mk == 0 and un == 0
             if fl or (not has_in and limit is None):
                 # no inside vertex, so no curve: the data did not define one (too few points, or
                 # all of them on one line); a run cut short by a limit keeps that limit as its reason

@@ -284,11 +284,14 @@ def curve_coverage_excess(mesh: MeshBatch, values: torch.Tensor, points: torch.T
 class Verdict:
     """The test's outcome for a working set: ``marked (T,)`` the failing triangles,
     ``tolerance (B,)`` the effective tolerance, ``worst (B,)`` the largest error (a distance),
-    ``residual (P,)`` each point's squared distance to the curve."""
+    ``residual (P,)`` each point's squared distance to the curve, ``unresolved (B,)`` how many
+    points lie in clusters far from every curve (:func:`far_clusters`; 0 without that test):
+    structure the mesh has not resolved, which the size floor may keep from being split."""
     marked: torch.Tensor
     tolerance: torch.Tensor
     worst: torch.Tensor
     residual: torch.Tensor
+    unresolved: Optional[torch.Tensor] = None
 
 
 def test_fit(ws: "WorkingSet", values: torch.Tensor, ev: "Evidence", cfg: TestConfig, min_points_fit: int) -> Verdict:
@@ -309,7 +312,9 @@ def test_fit(ws: "WorkingSet", values: torch.Tensor, ev: "Evidence", cfg: TestCo
                                     cfg.far_cluster_factor, cfg.far_cluster_ratio)
         marked, eff, worst = mark_triangles(mesh, residual, ws.face, ev.moments.count, ev.fits.eps, ws.tol, ws.noise,
                                             cfg, min_points_fit, coverage=coverage, clusters=clusters)
-        return Verdict(marked, eff, worst, residual)
+        unresolved = (segment_sum(clusters[0].long(), ws.point_item, mesh.num_items) if clusters is not None
+                      else torch.zeros(mesh.num_items, dtype=torch.long, device=residual.device))
+        return Verdict(marked, eff, worst, residual, unresolved)
 
 
 test_fit.__test__ = False                 # not a pytest test

@@ -37,16 +37,18 @@ def rings(k: int, gap: float, n: int = 300) -> np.ndarray:
     return np.concatenate(out)
 
 
-def random_ellipses(seed: int, k: int, gap: float, n: int = 300) -> np.ndarray:
-    """The ``--random`` set of ``seed``: ``k`` concentric ellipses ``gap`` spacings apart."""
-    rng = np.random.default_rng([100 + seed, k, int(gap * 10)])
+def ellipse_rings(rng: np.random.Generator, k: int, gap: float, uniform: bool = False, n: int = 300) -> np.ndarray:
+    """``k`` concentric ellipses (axes r and e r, e drawn in [0.6, 1]; r = 1, 1 - g h, ... with
+    ``h = 2 pi / n``), each sampled at ``n r`` angles jittered by up to 0.3 of their step (or, with
+    ``uniform``, drawn uniformly at random), then turned, scaled by 0.1-10 and moved by up to 5
+    at random: the gap is ``gap`` spacings along the major axis, ``e gap`` along the minor one."""
     h = 2 * np.pi / n
     ecc = rng.uniform(0.6, 1.0)
     out = []
     for j in range(k):
         r = 1 - j * gap * h
         m = int(round(n * r))
-        if seed % 2:
+        if uniform:
             t = np.sort(rng.uniform(0, 2 * np.pi, m))
         else:
             t = (np.arange(m) + rng.uniform(-0.3, 0.3, m)) * 2 * np.pi / m
@@ -54,6 +56,11 @@ def random_ellipses(seed: int, k: int, gap: float, n: int = 300) -> np.ndarray:
     a = rng.uniform(0, np.pi)
     rot = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
     return np.concatenate(out) @ rot.T * rng.uniform(0.1, 10) + rng.uniform(-5, 5, 2)
+
+
+def random_ellipses(seed: int, k: int, gap: float) -> np.ndarray:
+    """The ``--random`` set of ``seed``: jittered sampling on even seeds, uniform on odd ones."""
+    return ellipse_rings(np.random.default_rng([100 + seed, k, int(gap * 10)]), k, gap, uniform=seed % 2 == 1)
 
 
 def main(argv=None) -> int:

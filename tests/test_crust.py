@@ -333,23 +333,15 @@ def test_crust_sides_follow_the_even_odd_rule_and_need_closed_chains():
     assert torch.equal(crust_sides(one.mesh, p1, s1), side[vi == 0])
 
 
-def _jittered_ellipses(seed, k, gap, n=300):
-    """``k`` concentric ellipses (axes r and e r, e drawn in [0.6, 1]; r = 1, 1 - g h, ... with
-    ``h = 2 pi / n``), each sampled at ``n r`` angles jittered by up to 0.3 of their step, then
-    turned, scaled and moved at random: the gap is ``g`` spacings along the major axis and ``e g``
-    along the minor one."""
-    rng = np.random.default_rng(100 + seed)
-    h = 2 * np.pi / n
-    e = rng.uniform(0.6, 1.0)
-    pts = []
-    for j in range(k):
-        r = 1 - j * gap * h
-        m = int(round(n * r))
-        t = (np.arange(m) + rng.uniform(-0.3, 0.3, m)) * 2 * np.pi / m
-        pts.append(np.stack([r * np.cos(t), e * r * np.sin(t)], 1))
-    a = rng.uniform(0, np.pi)
-    R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
-    return torch.tensor(np.concatenate(pts) @ R.T * rng.uniform(0.1, 10) + rng.uniform(-5, 5, 2))
+def _jittered_ellipses(seed, k, gap):
+    """``scripts/evaluate_nested_rings.py``'s ``ellipse_rings`` (jittered sampling) of the
+    generator ``default_rng(100 + seed)``."""
+    import sys
+    from pathlib import Path
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+    from evaluate_nested_rings import ellipse_rings
+
+    return torch.tensor(ellipse_rings(np.random.default_rng(100 + seed), k, gap))
 
 
 def test_nested_curves_a_few_spacings_apart_keep_their_alternation():

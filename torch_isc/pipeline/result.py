@@ -185,7 +185,7 @@ def finish_items(ws: "WorkingSet", fin: torch.Tensor, n_marked: torch.Tensor, ov
             m, v = views[odt][jj]
             curve = ImplicitCurve(m, v, validate=False)
             converged = mk == 0 and un == 0
-            if fl or (not has_in and limit is None):
+            if fl or (not has_in and limit in (None, "unresolved")):
                 # no inside vertex, so no curve: the data did not define one (too few points, or
                 # all of them on one line); a run cut short by a limit keeps that limit as its reason
                 converged, limit = False, "no_curve"

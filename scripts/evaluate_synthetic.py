@@ -480,6 +480,14 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     seconds = time.perf_counter() - t0
     scores = score(cases, [r.polylines for r in results])
     print_summary("torch_isc", cases, scores, seconds)
+    # how far the results' own convergence flag can be trusted: its limits against the scores
+    flags: Dict[Tuple[str, str], int] = {}
+    for r, s in zip(results, scores):
+        key = (r.limit or "converged", "right" if s["topology_ok"] else "wrong")
+        flags[key] = flags.get(key, 0) + 1
+    print("limit (converged = none), right / wrong topology: "
+          + "; ".join(f"{lim} {flags.get((lim, 'right'), 0)} / {flags.get((lim, 'wrong'), 0)}"
+                      for lim in sorted({k[0] for k in flags})) + "\n")
     if args.misses:
         print_misses(cases, scores)
     if args.peers:
@@ -495,7 +503,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     if args.json:
         rows = [dict(name=c["name"], kind=c["kind"], noise=c["noise"], glyph=c.get("glyph"), font=c.get("font"), topology_ok=bool(s["topology_ok"]),
                      hausdorff=float(s["hausdorff"]), chamfer=float(s["chamfer"]), n_closed=int(s["n_closed"]),
-                     n_open=int(s["n_open"]), n_truth=int(s["n_truth"]), failure=failure_type(s)) for c, s in zip(cases, scores)]
+                     n_open=int(s["n_open"]), n_truth=int(s["n_truth"]), failure=failure_type(s), limit=r.limit)
+                for c, s, r in zip(cases, scores, results)]
         torch_isc.io.atomic_write(args.json, json.dumps(rows, indent=1))
     return 0
 

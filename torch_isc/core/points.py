@@ -160,23 +160,16 @@ def merge_near_repeats(norm64: torch.Tensor, point_item: torch.Tensor, counts: t
     if norm64.shape[0] == 0:
         return norm64, point_item, counts, source
     keep = torch.arange(norm64.shape[0], device=norm64.device)
-    one_key = B < (1 << 21)                     # item, cell x, cell y in one int64
     for shift in ((0.0, 0.0), (0.5, 0.0), (0.0, 0.5), (0.5, 0.5)):
         off = torch.tensor(shift, dtype=norm64.dtype, device=norm64.device)
         q = torch.floor(norm64[keep] / radius + off).long() + (1 << 20)    # |x| <= 0.5: 0 < q < 2^21
         it = point_item[keep]
         cell = (q[:, 0] << 21) | q[:, 1]
-        if one_key:
-            key = (it << 42) | cell
-            o = torch.argsort(key)
-            ks = key[o]
-            new = torch.ones(o.shape[0], dtype=torch.bool, device=o.device)
-            new[1:] = ks[1:] != ks[:-1]
-        else:
-            o = torch.argsort(cell)
-            o = o[torch.argsort(it[o], stable=True)]
-            new = torch.ones(o.shape[0], dtype=torch.bool, device=o.device)
-            new[1:] = (it[o][1:] != it[o][:-1]) | (cell[o][1:] != cell[o][:-1])
+        o = torch.argsort(cell)
+        o = o[torch.argsort(it[o], stable=True)]                          # item-major (any B)
+        its, cs = it[o], cell[o]
+        new = torch.ones(o.shape[0], dtype=torch.bool, device=o.device)
+        new[1:] = (its[1:] != its[:-1]) | (cs[1:] != cs[:-1])
         gid = torch.cumsum(new.long(), 0) - 1
         G = int(gid[-1]) + 1
         if G < o.shape[0]:

@@ -133,9 +133,16 @@ def test_mark_triangles_splits_a_far_cluster_while_larger_than_it(device, dtype)
     marked, _, _ = mark_triangles(mesh, res, face, count, z, tol, noise, cfg, 3, clusters=(member, radius))
     assert marked.tolist() == [t == int(face[0]) for t in range(T)]
     assert not mark_triangles(mesh, res, face, count, z, tol, noise, cfg, 3)[0].any()
-    # the size guard still holds: below 300 tolerances (1.2) nothing splits
-    assert not mark_triangles(mesh, res, face, count, z, tol, noise, TestConfig(min_split_size=300.0), 3,
-                              clusters=(member, radius))[0].any()
+    # the cluster's own size guard: the edge (1) against cluster_split_size tolerances (0.004 each),
+    # whatever min_split_size (300 tolerances: 1.2) says; at or above min_split_size, the latter
+    def split(**kw):
+        return mark_triangles(mesh, res, face, count, z, tol, noise, TestConfig(min_split_size=300.0, **kw), 3,
+                              clusters=(member, radius))[0]
+    assert split().tolist() == marked.tolist()                        # the default: 2 tolerances, 0.008
+    assert split(cluster_split_size=240.0).tolist() == marked.tolist()  # 0.96 < 1
+    assert not split(cluster_split_size=260.0).any()                    # 1.04 > 1
+    assert not split(cluster_split_size=1e6).any()                      # capped at min_split_size (1.2)
+    assert not mark_triangles(mesh, res, face, count, z, tol, noise, TestConfig(min_split_size=300.0), 3)[0].any()
 
 
 def unit_hexagon_line(device, dtype):

@@ -63,6 +63,9 @@ class TestConfig:
     far_cluster_factor: float = knob(1.5, ge=0)
     #: ...and it is in a cluster when its cluster's radius is below this fraction of that distance
     far_cluster_ratio: float = knob(0.75, gt=0)
+    #: ...and splits its triangles down to this many effective tolerances, below min_split_size
+    #: (a cluster of points off the curve is structure, not noise); min_split_size or more: no lower
+    cluster_split_size: float = knob(2.0, ge=0)
 
     def __post_init__(self):
         check_section(self)
@@ -105,7 +108,8 @@ def mark_triangles(mesh: MeshBatch, residual: torch.Tensor, face: torch.Tensor, 
             ``cfg.transverse_split_size`` effective tolerances (past ``min_split_size``).
         clusters: optional :func:`far_clusters` ``(member, radius)`` per point: a triangle
             holding a member is marked whatever its count, while its longest edge exceeds the
-            member's cluster radius (finer, its triangles hold a point or two each).
+            member's cluster radius (finer, its triangles hold a point or two each) and
+            ``cfg.cluster_split_size`` effective tolerances (past ``min_split_size``).
     Returns:
         marked ``(T,)`` bool, the effective tolerance ``(B,)`` and the largest error ``(B,)``
         (a distance, the chosen statistic).
@@ -142,14 +146,20 @@ def mark_triangles(mesh: MeshBatch, residual: torch.Tensor, face: torch.Tensor, 
             # is topology, not a detail the sampling cannot place: split below the reach and
             # below the size guard, down to its own floor
             across = off & (coverage[2] < cfg.coverage_transverse) & (longest > cfg.transverse_split_size * eff[fi])
+    by_cluster = None
     if clusters is not None:
         member, radius = clusters
         f = face.clamp_min(0)
         split = member & (face >= 0) & (longest[f] > radius)
-        marked |= segment_sum(split.to(residual.dtype), f, mesh.faces.shape[0]) > 0
+        by_cluster = segment_sum(split.to(residual.dtype), f, mesh.faces.shape[0]) > 0
     # below the resolution the tolerance allows, splitting only fits the noise
     if min_split_size > 0:
         marked &= longest > min_split_size * eff[fi]
+    if by_cluster is not None:
+        # a far cluster is evidence of unresolved structure (a tip, a neck, a small component):
+        # it splits below the size guard, down to its own floor
+        floor = min(cfg.cluster_split_size, min_split_size) if min_split_size > 0 else 0.0
+        marked |= by_cluster & (longest > floor * eff[fi])
     if across is not None:
         marked |= across
     worst = segment_max(stat, fi, mesh.num_items, fill=0)

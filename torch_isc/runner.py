@@ -57,6 +57,7 @@ from torch_isc._helpers import is_regular_file, one_line, printable, read_file_b
 from torch_isc.io import EXPORTERS, ExportContext, PointFileError, chosen_formats, export, formats_needing, loader_for
 from torch_isc.io.registry import LOADERS
 from torch_isc.io.files import atomic_write
+from torch_isc.images.masks import MIN_SPACING
 from torch_isc.images.read import DEFAULT_MAX_PIXELS, decode_image
 from torch_isc.pipeline.config import ReconstructConfig, config_hash
 from torch_isc.pipeline.loop import PointSetError, _as_config
@@ -95,9 +96,6 @@ class RunError(ValueError):
     """Arguments a run cannot start with (nothing was read or written); one line."""
 
 
-#: the finest resampling of mask contours, in pixels: 100 points a pixel (a spacing of 1e-3 made a
-#: 128x128 disc 28 s and 0.9 GB, 1e-4 more than a minute and 1.7 GB)
-MIN_SPACING = 0.01
 
 
 @dataclass(frozen=True)
@@ -482,6 +480,8 @@ class _Run:
         # an image gets the formats asked for (the overlay too: it needs the image, which it has)
         self.image_formats = list(image_formats)
         self.formats = [f for f in formats if f not in formats_needing({"image"})]
+        # said once, at the first point-set input: an overlay asked for has no image to draw on
+        self.image_only = [f for f in formats if f not in self.formats]
         self.batch_size = batch_size
         self.opts = image_opts
         self.device = device
@@ -501,6 +501,10 @@ class _Run:
                            True: config_hash(image_config, {"kind": "image", **opts})}
 
     def formats_of(self, job: _Job) -> List[str]:
+        if not job.is_image and self.image_only:
+            left = ", ".join(self.formats) if self.formats else "only the manifest"
+            self.note(f"{', '.join(self.image_only)} needs an image: point-set inputs get {left}")
+            self.image_only = []
         return self.image_formats if job.is_image else self.formats
 
     def finish(self, job: _Job, status: str, error: Optional[str] = None, tb: Optional[str] = None) -> None:

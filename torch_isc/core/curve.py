@@ -71,6 +71,38 @@ def _common_dtype(mesh: MeshBatch, values) -> Tuple[MeshBatch, torch.Tensor]:
     return mesh, values
 
 
+def _as_enclosed(enclosed, mesh: MeshBatch) -> Optional[torch.Tensor]:
+    """``enclosed`` as ``(B,)`` bool on the mesh's device, or None (no item)."""
+    if enclosed is None or enclosed is False:
+        return None
+    B = mesh.num_items
+    if enclosed is True:
+        return torch.ones(B, dtype=torch.bool, device=mesh.device)
+    if not torch.is_tensor(enclosed) or enclosed.dtype != torch.bool or tuple(enclosed.shape) != (B,):
+        got = f"shape {tuple(enclosed.shape)} {enclosed.dtype}" if torch.is_tensor(enclosed) else repr(enclosed)
+        raise ValueError(f"enclosed: expected True, False or a ({B},) bool tensor, got {got:.60}")
+    return enclosed.to(mesh.device)
+
+
+def _check_enclosed(mesh: MeshBatch, values: torch.Tensor, enclosed: torch.Tensor) -> None:
+    """What ``enclosed`` needs: single-signed boundary edges and an outside outermost boundary
+    (checked at each item's leftmost vertex, which lies on it)."""
+    with torch.no_grad():
+        ef, e = mesh.edge_faces, mesh.edges
+        bnd = ((ef[:, 0] < 0) != (ef[:, 1] < 0)) & enclosed[mesh.edge_item]
+        neg = values.detach() < 0
+        if bool((bnd & (neg[e[:, 0]] != neg[e[:, 1]])).any()):
+            raise InvalidValuesError("enclosed: a boundary edge of the mesh joins an inside and an outside vertex "
+                                     "(a hole must take one sign)")
+        x = mesh.verts.detach()[:, 0]
+        big = torch.finfo(x.dtype).max
+        xmin = torch.full((mesh.num_items,), big, dtype=x.dtype, device=x.device).scatter_reduce(
+            0, mesh.vert_item, x, "amin")
+        left = (x == xmin[mesh.vert_item]) & neg & enclosed[mesh.vert_item]
+        if bool(left.any()):
+            raise InvalidValuesError("enclosed: the mesh's outermost boundary must be outside (f > 0)")
+
+
 class ImplicitCurve:
     """A batch of implicit simplicial curves.
 
@@ -84,6 +116,12 @@ class ImplicitCurve:
             values or positions require grad (the differentiable path), only the checks a
             change of positions/values can break run, as device-side asserts with no host
             sync. ``"async"``: always that. ``"sync"``: always the full checks. ``False``: none.
+        enclosed: ``True`` or a ``(B,)`` bool tensor: for those items, a region the mesh
+            encloses without covering it (a hole of the mesh) takes the sign of its boundary,
+            which must be single-signed, and the mesh's outermost boundary must be outside: a
+            band mesh around the curve (mask mode, :func:`torch_isc.images.grid_results`).
+            Areas, centroids, ``inside`` and the soft occupancy then count the holes. Default:
+            everything off the mesh is outside.
 
     Example:
         >>> from torch_isc.core.mesh import hexagon_mesh
@@ -96,8 +134,9 @@ class ImplicitCurve:
         [True, False]
     """
 
-    def __init__(self, mesh: MeshBatch, values, validate=True):
+    def __init__(self, mesh: MeshBatch, values, validate=True, enclosed=None):
         mesh, values = _common_dtype(mesh, values)
+        enclosed = _as_enclosed(enclosed, mesh)
         if validate:
             sync = validate == "sync" or (validate is True and not (
                 values.is_cuda and (values.requires_grad or mesh.verts.requires_grad)))
@@ -106,8 +145,16 @@ class ImplicitCurve:
             else:
                 mesh.validate_async()
             check_values(values, mesh.verts.shape[0], sync=sync)
+            if enclosed is not None and sync:
+                _check_enclosed(mesh, values, enclosed)
         self.mesh = mesh
         self.values = values
+        #: ``(B,)`` bool or None: the items whose mesh holes take their boundary's sign
+        self.enclosed = enclosed
+
+    def _like(self, mesh: MeshBatch, values: torch.Tensor) -> "ImplicitCurve":
+        """A curve on ``mesh`` with ``values`` and this one's ``enclosed`` items (no checks)."""
+        return ImplicitCurve(mesh, values, validate=False, enclosed=self.enclosed)
 
     # --------------------------------------------------------------- basics
     @property
@@ -122,7 +169,8 @@ class ImplicitCurve:
     def __getitem__(self, b: int) -> "ImplicitCurve":
         m = self.mesh[b]
         v0 = int(self.mesh.verts_first_idx[b])
-        return ImplicitCurve(m, self.values[v0:v0 + m.verts.shape[0]], validate=False)
+        enc = None if self.enclosed is None else self.enclosed[b:b + 1] if b >= 0 else self.enclosed[b:][:1]
+        return ImplicitCurve(m, self.values[v0:v0 + m.verts.shape[0]], validate=False, enclosed=enc)
 
     def __len__(self) -> int:
         return self.num_items
@@ -131,7 +179,7 @@ class ImplicitCurve:
         return f"ImplicitCurve(items={self.num_items}, verts={self.mesh.verts.shape[0]}, faces={self.mesh.faces.shape[0]})"
 
     def detach(self) -> "ImplicitCurve":
-        return ImplicitCurve(self.mesh.detach(), self.values.detach(), validate=False)
+        return self._like(self.mesh.detach(), self.values.detach())
 
     @property
     def device(self) -> torch.device:
@@ -150,9 +198,26 @@ class ImplicitCurve:
             >>> ImplicitCurve(m, m.verts.norm(dim=1) - 0.6).to(dtype=torch.float64).values.dtype
             torch.float64
         """
+        if dtype is not None and (not isinstance(dtype, torch.dtype) or not dtype.is_floating_point
+                                  or dtype.is_complex):
+            raise ValueError(f"to: dtype must be a real floating torch dtype, got {dtype!r}")
         mesh = self.mesh.with_verts(self.mesh.verts) if device is None else self.mesh.to(device)
         mesh = mesh.with_verts(mesh.verts.to(dtype=dtype)) if dtype is not None else mesh
-        return ImplicitCurve(mesh, self.values.to(device=device, dtype=dtype), validate=False)
+        values = self.values.to(device=device, dtype=dtype)
+        if dtype is not None and dtype != self.values.dtype:
+            # a narrower dtype must keep every sign and finite number: float16 made 1e-9 values 0
+            # (no curve) and 1e6 values inf (NaN areas)
+            with torch.no_grad():
+                old, new = self.values.detach().to(values.device), values.detach()
+                lost = ((new == 0) & (old != 0)) | (~torch.isfinite(new) & torch.isfinite(old))
+                lost_v = ~torch.isfinite(mesh.verts.detach()).all(1) & torch.isfinite(self.mesh.verts.detach().to(
+                    mesh.verts.device)).all(1)
+                if bool(lost.any() | lost_v.any()):
+                    raise ValueError(f"to: {dtype} cannot hold this curve: "
+                                     f"{int(lost.sum())} value(s) and {int(lost_v.sum())} vertex(es) become 0 or "
+                                     f"infinite (rescale the values or keep a wider dtype)")
+        enc = None if self.enclosed is None else self.enclosed.to(values.device)
+        return ImplicitCurve(mesh, values, validate=False, enclosed=enc)
 
     @staticmethod
     def cat(curves: Sequence["ImplicitCurve"]) -> "ImplicitCurve":
@@ -168,8 +233,12 @@ class ImplicitCurve:
         curves = list(curves)
         if not curves:
             raise ValueError("cat needs at least one curve")
+        enc = None
+        if any(c.enclosed is not None for c in curves):
+            enc = torch.cat([c.enclosed.to(c.values.device) if c.enclosed is not None else
+                             torch.zeros(c.num_items, dtype=torch.bool, device=c.values.device) for c in curves])
         return ImplicitCurve(MeshBatch.cat([c.mesh for c in curves]), torch.cat([c.values for c in curves]),
-                             validate=False)
+                             validate=False, enclosed=enc)
 
     # --------------------------------------------------------------- evaluation
     def face_gradients(self) -> torch.Tensor:
@@ -189,15 +258,19 @@ class ImplicitCurve:
         """``f(points)``: ``points (P, 2)``, ``point_item (P,)`` (default: all item 0).
 
         Differentiable in vertex positions, values and points. Points outside their
-        item's mesh get ``+inf`` (outside)."""
+        item's mesh get ``+inf`` (outside), or ``-inf`` in an inside hole of an ``enclosed`` item."""
         point_item = self._point_item(points, point_item)
         face, _ = locate_grid(self.mesh, points, point_item)
         bary = barycentric(self.mesh.verts, self.mesh.faces, face, points.to(self.mesh.dtype))
         f = self.eval_at(face, torch.nan_to_num(bary))
-        return torch.where(face >= 0, f, torch.full_like(f, float("inf")))
+        off = torch.full_like(f, float("inf"))
+        if self.enclosed is not None:
+            off = torch.where(self.off_mesh_inside(points, point_item, face < 0), -off, off)
+        return torch.where(face >= 0, f, off)
 
     def inside(self, points: torch.Tensor, point_item: Optional[torch.Tensor] = None) -> torch.Tensor:
-        """``(P,)`` bool, ``f < 0``; points off the mesh are outside."""
+        """``(P,)`` bool, ``f < 0``; points off the mesh are outside (but in the inside holes
+        of ``enclosed`` items)."""
         with torch.no_grad():
             return self(points, point_item) < 0
 
@@ -224,6 +297,68 @@ class ImplicitCurve:
             if lo < 0 or hi >= self.num_items:
                 raise PointSetError(f"point_item: items must be in [0, {self.num_items}), got {lo if lo < 0 else hi}")
         return point_item.long()
+
+    def off_mesh_inside(self, points: torch.Tensor, point_item: torch.Tensor, off: torch.Tensor) -> torch.Tensor:
+        """``(P,)`` bool: which of the points flagged ``off (P,)`` (not on their item's mesh)
+        lie in an inside hole of an ``enclosed`` item: the sign of the nearest boundary edge
+        of their item's mesh (the nearest mesh point of a hole lies on the hole's own
+        boundary). Chunked brute force over the item's boundary edges (bounded memory)."""
+        out = torch.zeros(points.shape[0], dtype=torch.bool, device=points.device)
+        if self.enclosed is None:
+            return out
+        with torch.no_grad():
+            m = self.mesh
+            enc = self.enclosed.to(points.device)
+            idx = (off & enc[point_item]).nonzero().squeeze(1)
+            if idx.numel() == 0:
+                return out
+            ef, e = m.edge_faces, m.edges
+            bnd = ((ef[:, 0] < 0) != (ef[:, 1] < 0)) & enc[m.edge_item]
+            be = e[bnd]                                              # item-contiguous (edges are sorted)
+            bitem = m.edge_item[bnd]
+            cnt = torch.zeros(m.num_items, dtype=torch.long, device=points.device).index_add_(
+                0, bitem, torch.ones_like(bitem))
+            first = torch.cumsum(cnt, 0) - cnt
+            emax = int(cnt.max()) if cnt.numel() else 0
+            if emax == 0:
+                return out
+            v = m.verts.detach()
+            neg = self.values.detach() < 0
+            pts = points.detach().to(v.dtype)
+            slot = torch.arange(emax, device=points.device)
+            chunk = max(1, (1 << 22) // emax)
+            for lo in range(0, idx.numel(), chunk):
+                sub = idx[lo:lo + chunk]
+                it = point_item[sub]
+                k = first[it][:, None] + slot[None]                  # (n, emax)
+                valid = slot[None] < cnt[it][:, None]
+                k = torch.where(valid, k, torch.zeros_like(k))
+                a, b = v[be[k, 0]], v[be[k, 1]]                      # (n, emax, 2)
+                q = pts[sub][:, None]
+                d = b - a
+                t = (((q - a) * d).sum(-1) / (d * d).sum(-1).clamp_min(torch.finfo(v.dtype).tiny)).clamp(0, 1)
+                r = q - (a + t[..., None] * d)
+                dist = torch.where(valid, (r * r).sum(-1), torch.full_like(t, float("inf")))
+                near = dist.argmin(1)
+                out[sub] = neg[be[k.gather(1, near[:, None]).squeeze(1), 0]]
+        return out
+
+    def hole_edges(self) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The boundary of the inside holes of ``enclosed`` items: ``(E, 2)`` vertex pairs (every
+        edge of the mesh, each oriented with its triangle on the left), ``(E,)`` float weights
+        (1 on a boundary edge of an enclosed item with both ends inside, else 0) and ``(E,)`` the
+        edge's item. An inside hole's area is ``-Σ w (a × b) / 2`` over its edges."""
+        m = self.mesh
+        with torch.no_grad():
+            ef, e = m.edge_faces, m.edges
+            fwd = ef[:, 0] >= 0
+            ab = torch.where(fwd[:, None], e, e.flip(1))
+            bnd = (ef[:, 0] < 0) != (ef[:, 1] < 0)
+            neg = self.values.detach() < 0
+            keep = bnd & neg[ab[:, 0]] & neg[ab[:, 1]]
+            keep = keep & (self.enclosed.to(e.device)[m.edge_item] if self.enclosed is not None
+                           else torch.zeros_like(keep))
+        return ab, keep.to(m.verts.dtype), m.edge_item
 
     # --------------------------------------------------------------- zero set
     def zero_set(self) -> Polylines:
@@ -299,7 +434,7 @@ class ImplicitCurve:
             off = (move[:, 0] * d[:, 1] - move[:, 1] * d[:, 0]).abs()
             if (off[side] > t[side]).any():
                 raise InvalidMeshError("deform: a boundary vertex would leave the outer boundary")
-        return ImplicitCurve(new, self.values, validate=False)
+        return self._like(new, self.values)
 
     def admissible_displacement(self, disp: torch.Tensor) -> torch.Tensor:
         """``(V, 2)`` the displacement ``disp`` with boundary corners held and the other
@@ -333,7 +468,7 @@ class ImplicitCurve:
             t = torch.where(fail, torch.zeros_like(t), t)
         disp = torch.where(torch.isfinite(disp), disp, torch.zeros_like(disp))
         new = m.with_verts(old + t[m.vert_item][:, None] * disp)
-        return ImplicitCurve(new, self.values, validate=False), t
+        return self._like(new, self.values), t
 
     def rescale(self, magnitudes: torch.Tensor, validate=True) -> "ImplicitCurve":
         """New magnitudes ``(V,)`` (> 0), the signs kept: a constant-topology change of geometry.
@@ -350,7 +485,7 @@ class ImplicitCurve:
                     raise InvalidValuesError("magnitudes must be positive")
             else:
                 torch._assert_async((magnitudes.detach() > 0).all(), "magnitudes must be positive")
-        return ImplicitCurve(self.mesh, self.signs * magnitudes, validate=False)
+        return self._like(self.mesh, self.signs * magnitudes)
 
     # --------------------------------------------------------------- refinement / topology moves
     def refine_band(self, rings: int = 0) -> "ImplicitCurve":
@@ -383,7 +518,7 @@ class ImplicitCurve:
             scale = self.values.detach()[ends].abs().amax(1)
             zero = (vals.detach() == 0) & (sd.new_vert_edge >= 0)
         vals = torch.where(zero, torch.finfo(vals.dtype).eps * scale, vals)
-        return ImplicitCurve(sd.mesh, vals, validate=False)
+        return self._like(sd.mesh, vals)
 
     def simple_vertices(self) -> torch.Tensor:
         """``(V,)`` bool: interior vertices whose sign can flip without changing the topology.
@@ -445,7 +580,7 @@ class ImplicitCurve:
                                                             torch.cat([k[e[:, 1]], k[e[:, 0]]]), "amin")
             flip = ok & (k < nb_min)
         vals = torch.where(flip, -ratio * self.values, self.values)
-        return ImplicitCurve(m, vals, validate=False), flip
+        return self._like(m, vals), flip
 
 
 def crossed_triangles(mesh: MeshBatch, values: torch.Tensor, rings: int = 0) -> torch.Tensor:

@@ -90,7 +90,8 @@ def area(curve) -> torch.Tensor:
     """``(B,)`` area of the inside region ``{f < 0}`` of every item.
 
     Exact for the piecewise-linear function: the sum over triangles of the area of the
-    part of each triangle where ``f < 0`` (closed form, see the module docstring).
+    part of each triangle where ``f < 0`` (closed form, see the module docstring), plus, for
+    an ``enclosed`` item (a band mesh), the inside holes of its mesh.
 
     Example:
         >>> from torch_isc import ImplicitCurve, square_mesh
@@ -105,7 +106,13 @@ def area(curve) -> torch.Tensor:
     A = 0.5 * det[seg.tri]
     corner = A * seg.t1 * seg.t2
     part = torch.where(seg.lone_neg, corner, A - corner)
-    return out.index_add(0, seg.item, part)
+    out = out.index_add(0, seg.item, part)
+    if getattr(curve, "enclosed", None) is not None:
+        # the inside holes of a band mesh: -Σ (a × b) / 2 over their edges (mesh on the left)
+        ab, w, item = curve.hole_edges()
+        a, b = mesh.verts[ab[:, 0]], mesh.verts[ab[:, 1]]
+        out = out.index_add(0, item, -0.5 * w * (a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]))
+    return out
 
 
 def length(curve) -> torch.Tensor:
@@ -151,6 +158,13 @@ def centroid(curve) -> torch.Tensor:
     part_m = torch.where(ln[:, None], ac[:, None] * cc, As[:, None] * cT[seg.tri] - ac[:, None] * cc)
     mom = mom.index_add(0, seg.item, part_m)
     ar = ar.index_add(0, seg.item, part_a)
+    if getattr(curve, "enclosed", None) is not None:
+        # inside holes: the polygon moments -Σ (a + b)(a × b) / 6 and areas -Σ (a × b) / 2
+        ab, w, item = curve.hole_edges()
+        a, b = v[ab[:, 0]], v[ab[:, 1]]
+        cr = w * (a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])
+        mom = mom.index_add(0, item, -(a + b) * cr[:, None] / 6.0)
+        ar = ar.index_add(0, item, -0.5 * cr)
     return mom / ar[:, None]
 
 
@@ -207,7 +221,9 @@ def curvature(curve, polylines=None, method: str = "turning") -> torch.Tensor:
 
     cr = u[:, 0] * w[:, 1] - u[:, 1] * w[:, 0]
     if method == "circle":
-        k = 2.0 * cr / (nrm(u) * nrm(w) * nrm(r - p))
+        # the product of three norms underflows to 0 at coincident points (0/0); clamped, k stays
+        # below 2 / |r - p| (cr is at most |u| |w|)
+        k = 2.0 * cr / (nrm(u) * nrm(w) * nrm(r - p)).clamp_min(tiny)
     elif method == "turning":
         dot = (u * w).sum(1)
         k = torch.atan2(cr, dot) / (0.5 * (nrm(u) + nrm(w)))

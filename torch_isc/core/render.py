@@ -18,6 +18,7 @@ from typing import Optional, Sequence, Union
 import torch
 
 from torch_isc.core.locate import barycentric, locate_grid
+from torch_isc.core.mesh import _segment_bbox
 from torch_isc.core.measures import point_curve_distance
 
 __all__ = ["soft_inside", "rasterize", "pixel_centers"]
@@ -47,6 +48,9 @@ def soft_inside(curve, points: torch.Tensor, tau: float, point_item: Optional[to
         face, _ = locate_grid(mesh, pts, point_item)
         on = face >= 0
         fc = face.clamp_min(0)
+        # off the mesh: outside, but in an inside hole of an enclosed item (a band mesh)
+        hole = curve.off_mesh_inside(pts, point_item, ~on) if getattr(curve, "enclosed", None) is not None \
+            else torch.zeros_like(on)
     bary = barycentric(mesh.verts, mesh.faces, fc, pts)          # fc: never -1
     f = (curve.values[mesh.faces[fc]] * bary).sum(1)
     if mode == "local":
@@ -54,12 +58,12 @@ def soft_inside(curve, points: torch.Tensor, tau: float, point_item: Optional[to
         g = (G * curve.values[mesh.faces[fc]][..., None]).sum(1)
         r = f / torch.sqrt((g * g).sum(1).clamp_min(torch.finfo(pts.dtype).tiny))
         s = torch.sigmoid(-r / tau)
-        return torch.where(on, s, torch.zeros_like(s))
+        return torch.where(on, s, hole.to(s.dtype))
     if mode != "distance":
         raise ValueError(f"mode must be 'distance' or 'local', got {mode!r}")
     d = point_curve_distance(curve, pts, point_item)
     with torch.no_grad():
-        sign = torch.where(on & (f < 0), -1.0, 1.0).to(pts.dtype)
+        sign = torch.where((on & (f < 0)) | hole, -1.0, 1.0).to(pts.dtype)
     return torch.sigmoid(-sign * d / tau)
 
 
@@ -128,7 +132,9 @@ def rasterize(curve, height: int, width: int, tau: float,
         raise ValueError(f"height x width x items = {big[0]} x {big[1]} x {B}: more than {MAX_RASTER_PIXELS} pixels "
                          f"(render fewer items or a smaller image at a time)")
     if extent is None:
-        ext = mesh.item_bbox()
+        # in the graph: the pixel grid moves with the vertices (a detached box gave gradients
+        # that ignored it: -1.03 by finite differences against 13.31 for a uniform scaling)
+        ext = _segment_bbox(mesh.verts, mesh.vert_item, mesh.num_items)
     else:
         ext = torch.as_tensor(extent, dtype=dt, device=dev)
         if ext.dim() == 1 and ext.numel() == 4:

@@ -72,7 +72,10 @@ def _as_real_tensor(im, label: str) -> torch.Tensor:
             a = a.astype(np.float64)                 # long double: no torch dtype
         if not a.dtype.isnative:
             a = a.astype(a.dtype.newbyteorder("="))
-        im = torch.from_numpy(np.ascontiguousarray(a))
+        a = np.ascontiguousarray(a)
+        if not a.flags.writeable:
+            a = a.copy()                             # torch warns on read-only arrays (it never writes)
+        im = torch.from_numpy(a)
     if im.layout != torch.strided or im.device.type == "meta":
         raise ImageError(f"{label}: expected a dense tensor with values (got layout {im.layout}, device {im.device})")
     if im.is_complex() or not (im.dtype.is_floating_point or im.dtype == torch.bool or not im.dtype.is_signed
@@ -119,5 +122,13 @@ def as_masks(masks: Union[ImageLike, Sequence[ImageLike]], threshold: Optional[f
 
 
 def default_names(names: Optional[Sequence[str]], n: int, what: str) -> List[str]:
-    """``names`` as a list, or ``["<what> 0", "<what> 1", ...]`` for ``n`` items."""
-    return list(names) if names is not None else [f"{what} {b}" for b in range(n)]
+    """``names`` as a list, or ``["<what> 0", "<what> 1", ...]`` for ``n`` items; one name per
+    item or an :class:`ImageError` (a short list silently dropped items)."""
+    if names is None:
+        return [f"{what} {b}" for b in range(n)]
+    if isinstance(names, (str, bytes)):
+        raise ImageError(f"names: expected a sequence of {n} name(s), got one string")
+    names = list(names)
+    if len(names) != n:
+        raise ImageError(f"names: {len(names)} name(s) for {n} {what}(s)")
+    return [str(x) for x in names]

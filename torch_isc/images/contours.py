@@ -70,6 +70,15 @@ def contour_hierarchy(polys: List[np.ndarray], mode: str = "tree") -> np.ndarray
     >>> contour_hierarchy([sq(0, 9), sq(1, 8), sq(2, 7)], "ccomp").tolist()
     [[2, -1, 1, -1], [-1, -1, -1, 0], [-1, 0, -1, -1]]
     """
+    try:
+        polys = [np.asarray(p, np.float64) for p in polys]
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"polys: expected a list of (n, 2) point arrays ({e})") from None
+    for i, p in enumerate(polys):
+        if p.ndim == 3 and p.shape[1] == 1:          # OpenCV's (n, 1, 2) contours
+            polys[i] = p = p.reshape(-1, 2)
+        if p.ndim != 2 or p.shape[1] != 2 or p.shape[0] == 0:
+            raise ValueError(f"polys[{i}]: expected (n, 2) or OpenCV's (n, 1, 2) points, got shape {p.shape}")
     return _hierarchy(polys, mode)[0]
 
 
@@ -192,10 +201,35 @@ def _as_cv(poly: np.ndarray, method: str, epsilon: float, integer: bool, offset,
             q = q[:-1]
         q = q.astype(np.int32)
         if method == "simple" and len(q) > 2:
-            q = cv2_approx(q, 0.0)
-    elif method == "simple" and len(q) > 2:
-        q = cv2_approx(q.astype(np.float32), epsilon)
+            q = chain_simple(q)
+    else:
+        # repeated points (a tip vertex on a crossing, equal once in float32): one of each, as cv2
+        q = q.astype(np.float32)
+        keep = np.r_[True, (q[1:] != q[:-1]).any(1)]
+        if keep.sum() > 1 and (q[-1] == q[0]).all():
+            keep[-1] = False
+        q = q[keep]
+        if method == "simple" and len(q) > 2:
+            q = cv2_approx(q, epsilon)
     return np.ascontiguousarray(q.reshape(-1, 1, 2).astype(np.int32 if integer else np.float32))
+
+
+def chain_simple(q: np.ndarray) -> np.ndarray:
+    """OpenCV's ``CHAIN_APPROX_SIMPLE`` of a closed pixel chain ``q (n, 2)`` (its NONE chain):
+    the points where the step direction changes (the step into a point differs from the step
+    out of it, the loop taken cyclically), in chain order (so a start point inside a straight
+    run is dropped, as OpenCV does). ``cv2.approxPolyDP`` keeps the same corners but may start
+    the loop elsewhere.
+
+    >>> chain_simple(np.array([[1, 0], [2, 0], [2, 1], [1, 1], [0, 1], [0, 0]]))
+    array([[2, 0],
+           [2, 1],
+           [0, 1],
+           [0, 0]])
+    """
+    step = np.roll(q, -1, 0) - q                 # step out of each point
+    keep = (step != np.roll(step, 1, 0)).any(1)  # differs from the step into it
+    return q[keep] if keep.any() else q[:1]
 
 
 def cv2_approx(q: np.ndarray, epsilon: float) -> np.ndarray:
@@ -233,6 +267,9 @@ def _check_contour_options(offset, min_area, epsilon, smooth, dtype) -> None:
         dt = None
     if dt not in (np.dtype(np.float32), np.dtype(np.int32)):
         raise ImageError(f"dtype must be np.float32 (sub-pixel) or np.int32 (pixel chain), got {dtype!r:.30}")
+    if dt == np.dtype(np.int32) and offset is not None and any(float(v) != round(float(v)) for v in offset):
+        # as cv2 (a Point offset): rounding half-pixel shifts merged neighbouring chain points
+        raise ImageError(f"offset must be two integers with dtype=np.int32, got {offset!r:.60}")
 
 
 def find_contours_batch(masks, mode=3, method=1, offset=None, *, connectivity: int = 8, dtype=np.float32,

@@ -8,7 +8,7 @@ from typing import List, Optional, Sequence, Tuple, Union
 import numpy as np
 import torch
 
-from torch_isc._helpers import import_cv2
+from torch_isc._helpers import finite_real, import_cv2
 from torch_isc.images.arrays import ImageError, ImageLike, as_masks, binarize, default_names, image_list
 from torch_isc.images.settings import as_image_config, image_config
 from torch_isc.pipeline.config import ReconstructConfig
@@ -94,6 +94,13 @@ def mask_crack_contours(mask: ImageLike, threshold: Optional[float] = None
     return [np.ascontiguousarray(q[::-1]) for q in pieces], hier
 
 
+#: the most samples :func:`resample_closed` makes (a spacing of 1e-9 px asked for 1.5 TB)
+MAX_RESAMPLED = 1 << 27
+#: the finest contour spacing of :func:`mask_to_points` and the CLI, in pixels: 100 points a pixel
+#: (1e-3 made a 128x128 disc take 28 s and 0.9 GB, 1e-4 more than a minute and 1.7 GB)
+MIN_SPACING = 0.01
+
+
 def resample_closed(points: torch.Tensor, counts: torch.Tensor, spacing: float
                     ) -> Tuple[torch.Tensor, torch.Tensor]:
     """Resample packed closed polylines to a uniform spacing along each one.
@@ -112,6 +119,8 @@ def resample_closed(points: torch.Tensor, counts: torch.Tensor, spacing: float
     >>> c.tolist(), q[:3].tolist()
     ([16], [[0.0, 0.0], [1.0, 0.0], [2.0, 0.0]])
     """
+    if not finite_real(spacing):
+        raise ValueError(f"spacing must be a finite number, got {spacing!r:.40}")
     if spacing <= 0 or points.shape[0] == 0:
         return points, counts
     dev, dt = points.device, points.dtype
@@ -128,9 +137,12 @@ def resample_closed(points: torch.Tensor, counts: torch.Tensor, spacing: float
     offset = torch.cumsum(length + 1.0, 0) - (length + 1.0)
     cum = torch.cumsum(seg, 0) - seg
     cum = cum - (torch.cumsum(length, 0) - length)[cid] + offset[cid]  # start of each segment
-    qid = torch.repeat_interleave(torch.arange(C, device=dev), n_new)
+    total = int(n_new.sum())                      # one host read: the output's size, bounded
+    if total > MAX_RESAMPLED:
+        raise ValueError(f"spacing {spacing:g}: {total} samples, more than {MAX_RESAMPLED} (use a larger spacing)")
+    qid = torch.repeat_interleave(torch.arange(C, device=dev), n_new, output_size=total)
     qfirst = torch.cumsum(n_new, 0) - n_new
-    j = torch.arange(int(n_new.sum()), device=dev) - qfirst[qid]
+    j = torch.arange(total, device=dev) - qfirst[qid]
     s = offset[qid] + length[qid] * j.double() / n_new[qid].double()
     idx = torch.searchsorted(cum.contiguous(), s.contiguous(), right=True) - 1
     idx = torch.maximum(idx, first[qid])
@@ -160,6 +172,9 @@ def mask_to_points(masks: Union[ImageLike, Sequence[ImageLike]], spacing: float 
     >>> p.shape, p[:, 0].min().item(), p[:, 1].max().item()
     (torch.Size([9, 2]), 3.0, 8.0)
     """
+    if not finite_real(spacing) or 0 < spacing < MIN_SPACING:
+        raise ImageError(f"spacing must be <= 0 (the crack midpoints) or a number of pixels >= {MIN_SPACING}, "
+                         f"got {spacing!r:.40}")
     ts = image_list(masks, "mask")
     out: List[torch.Tensor] = []
     for t in ts:       # one findContours per image (OpenCV has no batched tracer)
@@ -390,7 +405,8 @@ def grid_results(masks: Union[ImageLike, Sequence[ImageLike]], names: Optional[S
         from torch_isc.core.mesh import MeshBatch
         sub = MeshBatch(mesh.verts[v0:v1], mesh.faces[f0:f1] - v0, mesh.verts_per_item[b:b + 1],
                         mesh.faces_per_item[b:b + 1])
-        curve = ImplicitCurve(sub, gc.values[v0:v1], validate=False)
+        # a band mesh: the uniform regions it encloses take their boundary's sign (areas, inside)
+        curve = ImplicitCurve(sub, gc.values[v0:v1], validate=False, enclosed=True)
         # polylines: OpenCV's order, our orientation (foreground on the left), our coordinates
         pls = [{"closed": True, "points": torch.from_numpy(np.ascontiguousarray(c.reshape(-1, 2)[::-1].astype(np.float64) + 0.5))}
                for c in cs]

@@ -3,7 +3,9 @@
 Arrays: ``verts (V, 2)``, ``faces (T, 3)`` (global indices), ``values (V,)``,
 ``verts_per_item (B,)``, ``faces_per_item (B,)``, each in its own dtype, plus ``dtypes`` (the
 torch dtype names), ``format`` and ``metadata`` (a JSON string; tensors and numpy values become
-lists, NaN/Inf become null). No pickles: the file loads with ``allow_pickle=False``.
+lists, NaN/Inf become null), and ``enclosed (B,)`` bool for curves whose mesh holes take their
+boundary's sign (mask mode's band meshes; absent: none). No pickles: the file loads with
+``allow_pickle=False``.
 """
 from __future__ import annotations
 
@@ -53,6 +55,8 @@ def encode_curve(curve: ImplicitCurve, fh: BinaryIO, metadata: Optional[Dict[str
     dtypes: Dict[str, str] = {}
     for key, t in zip(_ARRAYS, (m.verts, m.faces, curve.values, m.verts_per_item, m.faces_per_item)):
         arrays[key], dtypes[key] = _to_numpy(t)
+    if curve.enclosed is not None:
+        arrays["enclosed"] = curve.enclosed.detach().cpu().numpy().astype(np.bool_)
     arrays["dtypes"] = np.array(json.dumps(dtypes, sort_keys=True))
     arrays["format"] = np.array(NPZ_FORMAT, dtype=np.int64)
     arrays["metadata"] = np.array(json.dumps(jsonable(metadata or {}), sort_keys=True))
@@ -104,6 +108,13 @@ def load_npz(path: PathLike, device: Union[str, torch.device, None] = None,
                 raise CurveFileError(f"{p}: invalid curve ({k} holds a negative count)")
         if not isinstance(meta, dict):
             raise CurveFileError(f"{p}: invalid curve (metadata is a JSON {type(meta).__name__}, not an object)")
+        enclosed = None
+        if "enclosed" in z:
+            e = np.asarray(z["enclosed"])
+            if e.dtype != np.bool_ or e.shape != tuple(t["verts_per_item"].shape):
+                raise CurveFileError(f"{p}: invalid curve (enclosed of dtype {e.dtype} and shape {e.shape}, expected "
+                                     f"{tuple(t['verts_per_item'].shape)} bool)")
+            enclosed = torch.from_numpy(e.copy())
     except CurveFileError:
         raise
     except Exception as e:  # ValueError, KeyError, json errors, RecursionError from a corrupt file
@@ -111,6 +122,7 @@ def load_npz(path: PathLike, device: Union[str, torch.device, None] = None,
     try:
         if device is not None:
             t = {k: v.to(device) for k, v in t.items()}
+            enclosed = enclosed.to(device) if enclosed is not None else None
         mesh = MeshBatch(t["verts"], t["faces"], t["verts_per_item"], t["faces_per_item"])
         if validate:
             # orientation is checked in units of a power of 2 near the largest coordinate (exact),
@@ -121,8 +133,8 @@ def load_npz(path: PathLike, device: Union[str, torch.device, None] = None,
             m = float(v.abs().max()) if v.numel() else 0.0
             unit = math.ldexp(1.0, math.frexp(m)[1]) if m > 0 else 1.0
             ImplicitCurve(MeshBatch(v / unit, t["faces"], t["verts_per_item"], t["faces_per_item"]),
-                          t["values"], validate=True)
-        curve = ImplicitCurve(mesh, t["values"], validate=False)
+                          t["values"], validate=True, enclosed=enclosed)
+        curve = ImplicitCurve(mesh, t["values"], validate=False, enclosed=enclosed)
     except (InvalidMeshError, InvalidValuesError) as e:
         raise CurveFileError(f"{p}: invalid curve ({one_line(e)})") from None
     return curve, meta

@@ -58,7 +58,11 @@ def decode_points(p: Path, raw: bytes) -> Tuple[np.ndarray, Optional[np.ndarray]
     toks = _FIELD_SPLIT.split(first.group(1).strip())
     if all(tok and not _is_number(tok) for tok in toks):
         # a header line of words: blank it, keeping the line count for messages
+        header = first.group(1).strip()
         text = text[:first.start(1)] + text[first.end(1):]
+        if not text.strip():
+            shown = header if len(header) <= 40 else header[:37] + "..."
+            raise PointFileError(f"{p}: no points (its one line {shown!r} is not numbers; expected rows of x y)")
     if not text.isascii():
         # Python's float reads Arabic-Indic or full-width digits, numpy's parser in part: refused
         m = _NON_ASCII_DIGIT.search(text)

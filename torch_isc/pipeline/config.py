@@ -385,7 +385,8 @@ def config_hash(cfg: ReconstructConfig, extra: Optional[Mapping[str, Any]] = Non
 
 
 def parse_overrides(items: Iterable[str]) -> Dict[str, Any]:
-    """``["key=value", ...]`` with YAML scalars (``tolerance=0.01``, ``dtype=float64``; no aliases)."""
+    """``["key=value", ...]`` with YAML scalars (``tolerance=0.01``, ``dtype=float64``; no aliases);
+    a key may name its section (``test.tolerance=0.01``)."""
     out: Dict[str, Any] = {}
     for it in items:
         shown = repr(it) if len(it) <= 80 else repr(it[:77]) + "..."
@@ -399,9 +400,21 @@ def parse_overrides(items: Iterable[str]) -> Dict[str, Any]:
         if len(v) > MAX_CONFIG_BYTES:
             raise ConfigError(f"--set {shown}: value longer than {MAX_CONFIG_BYTES} characters")
         try:
-            out[k.strip()] = _parse_yaml(v, f"--set {shown}")
+            val = _parse_yaml(v, f"--set {shown}")
         except ConfigError as e:
             if "aliases" in str(e) or "deeply" in str(e) or "cannot be read" in str(e) or "duplicate key" in str(e):
                 raise
             raise ConfigError(f"--set {shown}: value is not a YAML scalar") from None
+        k = k.strip()
+        sec, dot, key = k.partition(".")
+        if dot and sec in _SECTION_TYPES and key:
+            # section.key, the form the config's own messages use ('limits.max_level')
+            part = out.setdefault(sec, {})
+            if not isinstance(part, dict):
+                raise ConfigError(f"--set {shown}: section '{sec}' is also given whole")
+            part[key] = val
+        elif k in _SECTION_TYPES and isinstance(out.get(k), dict) and k in out:
+            raise ConfigError(f"--set {shown}: section '{k}' is also given key by key")
+        else:
+            out[k] = val
     return out

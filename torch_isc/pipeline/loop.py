@@ -178,6 +178,12 @@ def _as_config(config: Union[None, ReconstructConfig, Mapping[str, Any]]) -> Rec
         config = from_dict(config)
     if not isinstance(config, ReconstructConfig):
         raise ConfigError(f"config: expected a ReconstructConfig or a mapping of its keys, got {type(config).__name__}")
+    # checked again: a section's field set after construction (cfg.limits.max_level = -3) was
+    # used unchecked (reconstruct returned None)
+    try:
+        config = from_dict(config.to_dict())
+    except ConfigError as e:
+        raise ConfigError(f"{e} (a value set after the config was built)") from None
     n0 = initial_triangles(config.mesh)
     if n0 > config.limits.max_triangles:
         raise ConfigError(f"config key 'initial_resolution': the initial mesh has {n0} triangles, more than "

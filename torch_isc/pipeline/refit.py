@@ -644,12 +644,11 @@ def refit(curve: ImplicitCurve, points: torch.Tensor, point_item: Optional[torch
         >>> area(r).sum().backward(); pts.grad.shape
         torch.Size([40, 2])
     """
+    _check_refit_options(reg=reg, rel_scale=rel_scale, smoothness=smoothness, floor=floor, max_iter=max_iter)
     mesh = curve.mesh.detach()
+    # the queries' checks: an (N, 2) real tensor, integer items in range (-1 meant the last item)
+    point_item = curve._point_item(points, point_item)
     pts = points.to(mesh.dtype)
-    if point_item is None:
-        if mesh.num_items != 1:
-            raise ValueError("point_item is required for a batch of more than one curve")
-        point_item = torch.zeros(pts.shape[0], dtype=torch.long, device=pts.device)
     with torch.no_grad():
         face, _ = locate_grid(mesh, pts, point_item)
     ok = face >= 0
@@ -659,7 +658,27 @@ def refit(curve: ImplicitCurve, points: torch.Tensor, point_item: Optional[torch
     mom = triangle_moments(mesh, p, f, bary)
     problem = RefitProblem(curve, mom.count, reg, rel_scale, smoothness, floor)
     s = _ImplicitRefit.apply(mom.M, problem, max_iter)
-    return ImplicitCurve(curve.mesh, problem.values(s), validate=False)
+    new = problem.values(s)
+    with torch.no_grad():
+        has = torch.zeros(mesh.num_items, dtype=torch.bool, device=mesh.device)
+        has[point_item[ok]] = True
+    # an item without points on its mesh keeps its values (the regularizer alone moved them)
+    return curve._like(curve.mesh, torch.where(has[mesh.vert_item], new, curve.values.to(new.dtype)))
+
+
+def _check_refit_options(**kw) -> None:
+    """One-line ``ValueError``s for :func:`refit`'s numeric options (NaN gave NaN values, a
+    negative ``max_iter`` an unfitted curve)."""
+    import numbers
+    from torch_isc._helpers import finite_real
+    for k in ("reg", "smoothness", "floor"):
+        if not finite_real(kw[k]) or kw[k] < 0:
+            raise ValueError(f"refit: {k} must be a finite number >= 0, got {kw[k]!r}")
+    if not finite_real(kw["rel_scale"]) or kw["rel_scale"] <= 0:
+        raise ValueError(f"refit: rel_scale must be a finite number > 0, got {kw['rel_scale']!r}")
+    it = kw["max_iter"]
+    if isinstance(it, bool) or not isinstance(it, numbers.Integral) or not 1 <= it <= 1_000_000:
+        raise ValueError(f"refit: max_iter must be an integer in [1, 1000000], got {it!r}")
 
 
 def attach_point_gradients(results_or_curves: Sequence, point_sets: Sequence[torch.Tensor],
@@ -694,6 +713,10 @@ def attach_point_gradients(results_or_curves: Sequence, point_sets: Sequence[tor
     curves = [x.curve if hasattr(x, "curve") else x for x in items]
     if any(c.num_items != 1 for c in curves):
         raise ValueError("attach_point_gradients: one item per curve")
+    for i, p in enumerate(sets):
+        shape = tuple(torch.as_tensor(p).shape) if not torch.is_tensor(p) else tuple(p.shape)
+        if len(shape) != 2 or shape[1] != 2:
+            raise ValueError(f"attach_point_gradients: point set {i}: expected (N, 2) points, got shape {shape}")
     batch = ImplicitCurve.cat([ImplicitCurve(c.mesh.detach(), c.values.detach(), validate=False) for c in curves])
     dt, dev = batch.mesh.dtype, batch.mesh.device
     pts = torch.cat([torch.as_tensor(p).to(device=dev, dtype=dt).reshape(-1, 2) for p in sets])
@@ -722,7 +745,7 @@ def attach_point_gradients(results_or_curves: Sequence, point_sets: Sequence[tor
     v0 = 0
     for x, c in zip(items, curves):
         n = c.values.shape[0]
-        nc = ImplicitCurve(c.mesh, vals[v0:v0 + n].to(c.values.dtype), validate=False)
+        nc = c._like(c.mesh, vals[v0:v0 + n].to(c.values.dtype))
         v0 += n
         out.append(dataclasses.replace(x, curve=nc) if hasattr(x, "curve") else nc)
     return out

@@ -32,6 +32,24 @@ manifest, no word; ``contour_hierarchy`` of cv2's       test_hierarchy_of_cv2_co
 test.tolerance=...``: unknown key; a one-line JSON      test_one_line_of_words_is_named,
 point file: "no data lines"; a read-only mask: a        test_read_only_mask_no_warning
 torch UserWarning
+--- second report ---
+a file name that is not UTF-8 with ``--table``: the     test_non_utf8_file_name_written_with_table_and_svg
+whole run lost (pyarrow); its SVG not written
+an SVG title with control characters: not XML           test_svg_title_control_characters_well_formed
+an integer Parquet manifest column: exit 134 about      test_parquet_manifest_of_numbers_always_exit_2
+half the time, after the message
+a manifest listing a folder: "done: 0 of 1 input(s)     test_manifest_folder_counts_its_inputs
+ok, 1 failed" for 2 of 3
+SVG (9 digits) and contours.npz (float32) merged the    test_far_offset_keeps_its_vertices_in_svg_and_contours
+vertices of a small curve at a 1e7 offset
+``--table res.csv`` got Parquet bytes; killed runs'     test_table_must_be_parquet_and_dead_temporaries_go
+table temporaries piled up
+a skipped mask's row: ``points_beyond_tolerance`` null  test_skipped_mask_row_matches_its_done_row
+(0 when done)
+``--mode edges --spacing 1000``: "no edges found        test_edges_coarse_spacing_is_named
+... flat image?"
+(an overlay wider than PNG allows, a region missing     tests/test_overlay_zoom.py
+the image: the input's outputs lost)
 =====================================================  ==========================================
 """
 from __future__ import annotations
@@ -350,3 +368,113 @@ def test_one_line_of_words_is_named(tmp_path, capsys):
     f.write_text("[[0,0],[1,0],[0,1]]\n")
     code, _, err = _run(capsys, f, "--out", tmp_path / "o")
     assert code == 1 and "its one line '[[0,0],[1,0],[0,1]]' is not numbers" in err
+
+
+# ----------------------------------------------------------------------------- second report
+def test_non_utf8_file_name_written_with_table_and_svg(tmp_path, capsys):
+    """A file name that is not UTF-8 (byte 0xff) beside a normal one, with ``--table``: before,
+    pyarrow raised and the whole run was lost (nothing written), and the SVG writer failed."""
+    import os
+    import pyarrow.parquet as pq
+    d = tmp_path / "d"
+    d.mkdir()
+    t = np.linspace(0, 2 * np.pi, 80, endpoint=False)
+    pts = np.c_[np.cos(t), np.sin(t)]
+    bad = os.path.join(os.fsencode(str(d)), b"bad\xffbyte.xy")
+    with open(bad, "wb") as fh:
+        np.savetxt(fh, pts)
+    np.savetxt(d / "ok.xy", pts)
+    code, _, err = _run(capsys, d, "--out", tmp_path / "o", "--table", tmp_path / "o" / "t.parquet")
+    assert code == 0, err
+    names = sorted(p.name for p in (tmp_path / "o").iterdir())
+    assert sum(n.endswith(".svg") for n in names) == 2 and sum(n.endswith(".manifest.json") for n in names) == 2
+    rows = pq.read_table(tmp_path / "o" / "t.parquet", columns=["source", "status"]).to_pylist()
+    assert [r["status"] for r in rows] == ["done", "done"] and any("\\udcff" in r["source"] for r in rows)
+
+
+def test_svg_title_control_characters_well_formed():
+    import xml.etree.ElementTree as ET
+    from torch_isc.io.svg import svg_text
+    t = torch.linspace(0, 2 * math.pi, 41)[:-1]
+    r = reconstruct(torch.stack([t.cos(), t.sin()], 1).double())
+    r.name = "a\x01b\x1bc\udcffd<e>"
+    root = ET.fromstring(svg_text(r))
+    title = root.find("{http://www.w3.org/2000/svg}title").text
+    assert title == "a\\x01b\\x1bc\\udcffd<e>"
+
+
+def test_parquet_manifest_of_numbers_always_exit_2(tmp_path):
+    """A manifest column of integers: the one-line usage error and exit 2 every time (the read
+    that started Arrow's threads made about half the runs abort with 134 after the message)."""
+    import subprocess
+    import sys
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+    pq.write_table(pa.table({"path": [1, 2]}), tmp_path / "ints.parquet")
+    for _ in range(3):
+        p = subprocess.run([sys.executable, "-m", "torch_isc", "reconstruct", "--manifest", str(tmp_path / "ints.parquet"),
+                            "--out", str(tmp_path / "o")], capture_output=True, text=True, timeout=120,
+                           env={**__import__("os").environ, "OMP_NUM_THREADS": "1"})
+        assert p.returncode == 2 and "holds int64, not paths" in p.stderr and "terminate" not in p.stderr
+
+
+def test_manifest_folder_counts_its_inputs(tmp_path, capsys):
+    d = tmp_path / "mf" / "d"
+    d.mkdir(parents=True)
+    _circle_file(d / "a.xy")
+    _circle_file(d / "c.xy")
+    (d / "b.xy").write_text("1 2\n")
+    (tmp_path / "mf" / "list.txt").write_text("d\n")
+    code, _, err = _run(capsys, "--manifest", tmp_path / "mf" / "list.txt", "--out", tmp_path / "o")
+    assert code == 1 and "done: 2 of 3 input(s) ok, 1 failed" in err
+
+
+def test_far_offset_keeps_its_vertices_in_svg_and_contours(tmp_path, capsys):
+    """A curve 1e-2 across at an offset of 1e7: the SVG (9 digits) kept 6 distinct vertices and
+    the contours file (float32) 2, of the JSON's 54."""
+    import json
+    import re
+    from torch_isc.images import load_contours
+    t = np.linspace(0, 6.283, 200, endpoint=False)
+    f = tmp_path / "off.xy"
+    np.savetxt(f, np.c_[1e7 + 1e-2 * np.cos(t), -3e6 + 1e-2 * np.sin(t)], fmt="%.12f")
+    code, _, _ = _run(capsys, f, "--out", tmp_path / "o", "--formats", "json,svg,contours.npz")
+    assert code == 0
+    pts = np.asarray(json.loads((tmp_path / "o" / "off.json").read_text())["polylines"][0]["points"])
+    n = len(np.unique(pts, axis=0))
+    d = re.search(r'class="closed" d="([^"]+)"', (tmp_path / "o" / "off.svg").read_text()).group(1)
+    xy = np.array([[float(a) for a in m.split(",")] for m in re.findall(r"[-0-9.e+]+,[-0-9.e+]+", d)])
+    assert len(np.unique(xy, axis=0)) == n and np.allclose(np.unique(xy, axis=0), np.unique(pts, axis=0), atol=0, rtol=0)
+    c, _ = load_contours(tmp_path / "o" / "off.contours.npz", dtype=np.float64)
+    assert len(np.unique(c[0].reshape(-1, 2), axis=0)) == n
+
+
+def test_table_must_be_parquet_and_dead_temporaries_go(tmp_path, capsys):
+    f = _circle_file(tmp_path / "c.xy")
+    code, _, err = _run(capsys, f, "--out", tmp_path / "o", "--table", tmp_path / "res.csv")
+    assert code == 2 and "name it .parquet or .pq" in err and not (tmp_path / "res.csv").exists()
+    stale = tmp_path / "o" / ".t.parquet.999999999.tmp"          # a pid no process has
+    (tmp_path / "o").mkdir(exist_ok=True)
+    stale.write_bytes(b"x")
+    code, _, _ = _run(capsys, f, "--out", tmp_path / "o", "--table", tmp_path / "o" / "t.parquet")
+    assert code == 0 and not stale.exists() and (tmp_path / "o" / "t.parquet").exists()
+
+
+def test_skipped_mask_row_matches_its_done_row(tmp_path, capsys):
+    import pyarrow.parquet as pq
+    yy, xx = np.mgrid[:64, :64]
+    cv2.imwrite(str(tmp_path / "disc.png"), ((np.hypot(xx - 32, yy - 32) < 20) * 255).astype(np.uint8))
+    cols = ["num_closed", "converged", "limit", "points_beyond_tolerance"]
+    rows = []
+    for name in ("t1", "t2"):
+        assert _run(capsys, tmp_path / "disc.png", "--out", tmp_path / "o", "--table", tmp_path / f"{name}.parquet")[0] == 0
+        rows.append(pq.read_table(tmp_path / f"{name}.parquet", columns=["status"] + cols).to_pylist()[0])
+    assert [r["status"] for r in rows] == ["done", "skipped"]
+    assert {k: rows[0][k] for k in cols} == {k: rows[1][k] for k in cols}
+
+
+def test_edges_coarse_spacing_is_named(tmp_path, capsys):
+    yy, xx = np.mgrid[:64, :64]
+    cv2.imwrite(str(tmp_path / "disc.png"), ((np.hypot(xx - 32, yy - 32) < 20) * 255).astype(np.uint8))
+    code, _, err = _run(capsys, tmp_path / "disc.png", "--out", tmp_path / "o", "--mode", "edges", "--spacing", "1000")
+    assert code == 1 and "--spacing 1000" in err and "too coarse" in err

@@ -133,7 +133,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="mask mode: foreground is gray > T, gray in [0, 1] (default: midway between the two levels "
                           "of a two-level image, else 0.5)")
     img.add_argument("--spacing", type=_FLOAT, default=1.0, metavar="PX",
-                     help="distance in pixels between boundary points along a contour (default: 1)")
+                     help="distance in pixels between boundary points along a contour, for --no-oracle and "
+                          "--mode edges (mask mode traces the pixel grid itself; default: 1)")
     img.add_argument("--no-oracle", action="store_true",
                      help="mask mode: estimate the topology from the points instead of reading it from the mask")
     img.add_argument("--connectivity", type=_INT, choices=(8, 4), default=8,
@@ -154,7 +155,7 @@ def build_parser() -> argparse.ArgumentParser:
                           "(vertices marked from 8 on), to see sub-pixel defects; adds overlay.png to the image formats")
     img.add_argument("--region", default=None, metavar="X0,Y0,X1,Y1",
                      help="overlay.png: show only this part of the image (pixels, x right, y down, clipped to the "
-                          "image); adds overlay.png to the image formats")
+                          "image; an image it misses is shown whole); adds overlay.png to the image formats")
     rec.add_argument("--device", default="cpu", help="torch device for the reconstruction (default: cpu)")
     rec.add_argument("--overwrite", action="store_true",
                      help="redo inputs whose output set is complete (by default they are skipped; a set is "
@@ -407,7 +408,10 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
                 raise UsageError(str(e)) from None
     finally:
         bar.close()
-    failed, n = report.failed, len(sources)
+    # the inputs the run had (a folder or a glob in a manifest lists many), not the arguments
+    counts = getattr(report, "counts", None)
+    n = sum(counts.values()) if counts else len(getattr(report, "records", None) or sources)
+    failed = report.failed
     if getattr(report, "batches", 0) > 1 or failed:
         _note(f"done: {n - failed} of {n} input(s) ok, {failed} failed"
               + (f"; table: {args.table}" if args.table else ""))

@@ -127,15 +127,22 @@ def read_manifest(path: PathLike, column: str = "path") -> List[str]:
             pa = _pa()
             try:
                 pf = pa.parquet.ParquetFile(pa.BufferReader(raw))
-                names = pf.schema_arrow.names
-                col = pf.read(columns=[column]).column(column) if column in names else None
+                schema = pf.schema_arrow
+                names = schema.names
             except (pa.ArrowException, OSError, ValueError) as e:
                 raise RunError(f"{p}: not a readable Parquet manifest ({one_line(e, type(e).__name__)})") from None
-            if col is None:
+            if column not in names:
                 raise RunError(f"{p}: manifest has no column '{shown(column)}' (columns: {_names(names)})")
-            t = col.type.value_type if pa.types.is_dictionary(col.type) else col.type
+            # the type from the schema, before any read: a wrong column is refused without starting
+            # Arrow's reader threads (exiting with them alive aborted the process now and then: 134)
+            ct = schema.field(column).type
+            t = ct.value_type if pa.types.is_dictionary(ct) else ct
             if not (pa.types.is_string(t) or pa.types.is_large_string(t) or pa.types.is_null(t)):
-                raise RunError(f"{p}: manifest column '{column}' holds {col.type}, not paths (strings)")
+                raise RunError(f"{p}: manifest column '{column}' holds {ct}, not paths (strings)")
+            try:
+                col = pf.read(columns=[column], use_threads=False).column(column)
+            except (pa.ArrowException, OSError, ValueError) as e:
+                raise RunError(f"{p}: not a readable Parquet manifest ({one_line(e, type(e).__name__)})") from None
             items = [v for v in col.to_pylist() if v]
         elif suffix == ".csv":
             reader = csv.DictReader(io.StringIO(decode_text(raw, str(p), "CSV manifest", RunError), newline=""))
@@ -250,7 +257,8 @@ def _summary_from_json(path: Path) -> Optional[Dict[str, Any]]:
         return {"num_curves": len(pls), "num_closed": sum(bool(p["closed"]) for p in pls),
                 "num_open": sum(not p["closed"] for p in pls), "converged": st.get("converged"),
                 "limit": st.get("limit"), "levels": len(st.get("levels") or []) if st else None,
-                "points_beyond_tolerance": last.get("points_beyond_tolerance"),
+                # as a done row has it: 0 when there are no levels (mask mode)
+                "points_beyond_tolerance": last.get("points_beyond_tolerance", 0),
                 "closed": [bool(p["closed"]) for p in pls], "polylines": [p["points"] for p in pls]}
     except (OSError, ValueError, KeyError, TypeError, IndexError):
         return None
@@ -292,10 +300,10 @@ class BatchReconstructor:
         _pa()                                # pyarrow is needed here: a clear error if missing
         cols = batch.to_pydict() if hasattr(batch, "to_pydict") else {k: list(v) for k, v in batch.items()}
         index = [int(i) for i in cols["index"]]
-        sources, stems = [str(s) for s in cols["source"]], [str(s) for s in cols["stem"]]
+        sources, stems = [_name(s) for s in cols["source"]], [_name(s) for s in cols["stem"]]
         # where to read each input: an absolute path when the driver gave one (a Ray worker's
         # folder is not the driver's); records and errors name the input as given
-        paths = [str(s) for s in cols["read"]] if "read" in cols else sources
+        paths = [_name(s) for s in cols["read"]] if "read" in cols else sources
         given = dict(zip(paths, sources))
         rows = {i: _null_row(i, s, t) for i, s, t in zip(index, sources, stems)}
         # inputs the driver already failed (their outputs would overwrite an input of the run)
@@ -352,6 +360,23 @@ class BatchReconstructor:
         return self.image_formats if loader_for(source).kind == "image" else self.formats
 
 
+def _name(v) -> str:
+    """A file name of the work table: bytes (os.fsencode) back to the name, or a string."""
+    return os.fsdecode(v) if isinstance(v, (bytes, bytearray)) else str(v)
+
+
+def _utf8(v):
+    """A string Arrow can store: a file name that is not UTF-8 (a byte like 0xff, kept by
+    Python as a lone surrogate) with that character backslash-escaped (pyarrow raised, and the
+    whole run was lost)."""
+    if isinstance(v, str):
+        try:
+            v.encode("utf-8")
+        except UnicodeEncodeError:
+            return v.encode("utf-8", "backslashreplace").decode("utf-8")
+    return v
+
+
 def _rows_table(rows: List[Dict[str, Any]]):
     """A pyarrow table of :data:`TABLE_SCHEMA` from row dicts; polylines as float64 arrays or
     nested lists, packed into offsets without a Python loop over points."""
@@ -360,6 +385,9 @@ def _rows_table(rows: List[Dict[str, Any]]):
     pa = _pa()
     schema = TABLE_SCHEMA()
     cols = {n: [r[n] for r in rows] for n in schema.names if n != "polylines"}
+    for n in schema.names:
+        if n != "polylines" and schema.field(n).type == pa.string():
+            cols[n] = [_utf8(v) for v in cols[n]]
     arrays = [pa.array(cols[n], type=schema.field(n).type) if n != "polylines" else None for n in schema.names]
     # polylines: list (input) of list (curve) of [x, y]
     curve_off, vert_off, chunks, valid = [0], [0], [], []
@@ -410,6 +438,33 @@ class DatasetReport:
         return self.counts.get("failed", 0)
 
 
+def _remove_dead_temporaries(path: Path) -> None:
+    """Remove ``.<name>.<pid>.tmp`` files of ``path`` left by runs that were killed (their
+    process is gone); a live run's temporary is left alone."""
+    prefix = f".{path.name}."
+    try:
+        entries = list(os.scandir(path.parent))
+    except OSError:
+        return
+    for e in entries:
+        if not (e.name.startswith(prefix) and e.name.endswith(".tmp")):
+            continue
+        pid = e.name[len(prefix):-len(".tmp")]
+        if not pid.isdigit() or int(pid) == os.getpid():
+            continue
+        try:
+            os.kill(int(pid), 0)                 # raises when no such process
+            continue
+        except ProcessLookupError:
+            pass
+        except (PermissionError, OverflowError, OSError):
+            continue                             # alive under another user, or not a pid
+        try:
+            os.unlink(e.path)
+        except OSError:
+            pass
+
+
 class _TableSink:
     """Rows in input order into one Parquet file, row groups of ``rows`` rows, renamed into place
     at the end (an interrupted run leaves no half-written table under the final name)."""
@@ -423,8 +478,12 @@ class _TableSink:
             # checked before any input is solved: a table that cannot be written would lose the run's rows
             if path.is_dir():
                 raise RunError(f"table {shown(path)}: is a folder, not a file")
+            if path.suffix.lower() not in _MANIFEST_SUFFIXES:
+                # the table is Parquet: a .csv name got Parquet bytes without a word
+                raise RunError(f"table {shown(path)}: the table is written as Parquet; name it .parquet or .pq")
             try:
                 path.parent.mkdir(parents=True, exist_ok=True)
+                _remove_dead_temporaries(path)
                 self.tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
                 self.writer = _pa().parquet.ParquetWriter(self.tmp, TABLE_SCHEMA(), compression="zstd")
             except (OSError, _pa().ArrowException) as e:
@@ -599,15 +658,18 @@ def reconstruct_dataset(inputs: Iterable[PathLike], out_dir: PathLike, config=No
             if Path(table).name in names:
                 raise RunError(f"table {shown(table)}: is an output file of the run ({Path(table).name}); "
                                f"writing it would overwrite that output")
-    todo = pa.table({"index": pa.array(range(len(sources)), pa.int64()), "source": sources, "stem": stems})
+    # names as bytes (os.fsencode): a file name that is not UTF-8 cannot be an Arrow string
+    todo = pa.table({"index": pa.array(range(len(sources)), pa.int64()),
+                     "source": pa.array([os.fsencode(s) for s in sources], pa.binary()),
+                     "stem": pa.array([os.fsencode(s) for s in stems], pa.binary())})
     from torch_isc.io import loader_for
 
     clobber = overwritten_inputs(sources, stems, out, lambda src: image_formats
                                  if loader_for(src).kind == "image" else formats)
     if clobber:
-        todo = todo.append_column("error", pa.array([clobber.get(i) for i in range(len(sources))], pa.string()))
+        todo = todo.append_column("error", pa.array([_utf8(clobber.get(i)) for i in range(len(sources))], pa.string()))
     if engine == "ray":
-        todo = todo.append_column("read", pa.array([os.path.abspath(s) for s in sources], pa.string()))
+        todo = todo.append_column("read", pa.array([os.fsencode(os.path.abspath(s)) for s in sources], pa.binary()))
     settings = dict(config=config, image_config=image_config, out_dir=str(out.resolve()), formats=list(formats),
                     image_formats=list(image_formats), overwrite=overwrite, image_options=image_options,
                     device=device)

@@ -537,7 +537,7 @@ class _Run:
             if not bool(mask.any()):
                 # a valid mask with no border (cv2.findContours: no contour): an output set without
                 # curves, so a rerun skips it and the run does not fail
-                self.note(f"note: {shown(job.source)}: empty mask (no pixel above threshold {thr:.3g}, all "
+                self.note(f"note: {shown(job.source)}: empty mask (no pixel above threshold {thr:.10g}, all "
                           f"black): no curve")
                 job.points, job.n_boundaries, job.mask = None, 0, mask
                 return
@@ -565,8 +565,11 @@ class _Run:
             pts = images.edge_points([torch.from_numpy(gray).to(self.device)], low, high, sigma=o.sigma,
                                      spacing=o.spacing)[0]
             if pts.shape[0] < 3:
-                raise images.ImageError(f"{job.source}: no edges found ({pts.shape[0]} edge pixel(s) at Canny "
-                                        f"thresholds {low:g},{high:g}; flat image?)")
+                # with a coarse spacing the edges may be there but resampled to fewer than 3 points
+                why = (f"{pts.shape[0]} point(s) at Canny thresholds {low:g},{high:g} and --spacing {o.spacing:g}: "
+                       f"a flat image, or a spacing too coarse for its edges" if o.spacing > 1 else
+                       f"{pts.shape[0]} edge pixel(s) at Canny thresholds {low:g},{high:g}; flat image?")
+                raise images.ImageError(f"{job.source}: no edges found ({why})")
             if o.max_boundary and pts.shape[0] > o.max_boundary:
                 raise images.ImageError(f"{job.source}: too many edge points: {pts.shape[0]}, more than the limit of "
                                         f"{o.max_boundary} (max_boundary, --max-boundary)")

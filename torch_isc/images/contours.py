@@ -389,16 +389,19 @@ CONTOURS_FORMAT = 1
 
 def contour_arrays(src, mode: str = "tree") -> Dict[str, np.ndarray]:
     """The arrays of a contours ``.npz`` (written by :func:`torch_isc.io.write_contours`):
-    ``points (P, 2)`` float32 in OpenCV coordinates (:func:`to_cv_contours`), ``counts (N,)``
-    vertices per contour, ``hierarchy (N, 4)`` int32, ``mode``, ``format``."""
+    ``points (P, 2)`` in OpenCV coordinates (:func:`to_cv_contours`; float32 for a mask's
+    contours, float64 for a point set's, whose coordinates may sit far from the origin: float32
+    merged the vertices of a curve 1e-2 across at 1e7), ``counts (N,)`` vertices per contour,
+    ``hierarchy (N, 4)`` int32, ``mode``, ``format``."""
     pre = getattr(src, "cv_contours", None)
     if pre is not None and mode == "tree":           # a mask's grid result: OpenCV's own order
         contours, h = pre
     else:
-        contours, h = to_cv_contours(src, mode)
+        contours, h = to_cv_contours(src, mode, dtype=np.float64)
     pts = np.concatenate([c.reshape(-1, 2) for c in contours]) if contours else np.zeros((0, 2), np.float32)
     return {
-        "points": pts.astype(np.float32), "counts": np.array([len(c) for c in contours], np.int64),
+        "points": pts.astype(np.float32 if pre is not None else np.float64),
+        "counts": np.array([len(c) for c in contours], np.int64),
         "hierarchy": (h[0] if h is not None else np.zeros((0, 4), np.int32)).astype(np.int32),
         "mode": np.array(mode), "format": np.array(CONTOURS_FORMAT, np.int64),
     }

@@ -31,17 +31,22 @@ def _bgr(image: ImageLike) -> np.ndarray:
 
 #: The largest overlay drawn, in output pixels (a zoom of a large region is refused above it).
 MAX_OVERLAY_PIXELS = 100_000_000
+#: ...and its longest side: PNG encoders refuse more than 10^6 pixels a row or column (libpng's
+#: user limit; a 1x20000 image at zoom 64 passed the pixel count, then failed to encode)
+MAX_OVERLAY_SIDE = 1_000_000
 
 
 def overlay_region(shape, region=None):
     """``(x0, y0, x1, y1)`` integer pixel bounds of the part of an image of ``shape`` (H, W)
     that an overlay shows: ``region`` clipped to the image (None: all of it).
 
-    Raises:
-        ValueError: an empty region, or one outside the image.
+    A region that misses the image shows all of it.
 
-    >>> overlay_region((10, 20), (5, -3, 30, 4))
-    (5, 0, 20, 4)
+    Raises:
+        ValueError: an empty region (x0 >= x1 or y0 >= y1).
+
+    >>> overlay_region((10, 20), (5, -3, 30, 4)), overlay_region((10, 20), (50, 50, 60, 60))
+    ((5, 0, 20, 4), (0, 0, 20, 10))
     """
     H, W = int(shape[0]), int(shape[1])
     if region is None:
@@ -51,7 +56,9 @@ def overlay_region(shape, region=None):
         raise ValueError(f"overlay region {x0},{y0},{x1},{y1}: expected x0 < x1 and y0 < y1")
     c = max(0, x0), max(0, y0), min(W, x1), min(H, y1)
     if not (c[0] < c[2] and c[1] < c[3]):
-        raise ValueError(f"overlay region {x0},{y0},{x1},{y1} lies outside the {W}x{H} image")
+        # a region that misses this image (a folder of images of several sizes): all of it is
+        # shown, rather than failing the image's whole output set
+        return 0, 0, W, H
     return c
 
 
@@ -84,6 +91,9 @@ def render_overlay(image: ImageLike, result, points: bool = False, scale: int = 
     if (x1 - x0) * (y1 - y0) * scale * scale > MAX_OVERLAY_PIXELS:
         raise ValueError(f"overlay of {x1 - x0}x{y1 - y0} px at zoom {scale} is larger than "
                          f"{MAX_OVERLAY_PIXELS:.0e} pixels (choose a smaller --region or --zoom)")
+    if max(x1 - x0, y1 - y0) * scale > MAX_OVERLAY_SIDE:
+        raise ValueError(f"overlay of {x1 - x0}x{y1 - y0} px at zoom {scale} has a side of more than "
+                         f"{MAX_OVERLAY_SIDE} pixels, more than PNG allows (choose a smaller --region or --zoom)")
     img = np.ascontiguousarray(img[y0:y1, x0:x1])
     if scale != 1:
         img = cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)

@@ -7,13 +7,16 @@ from typing import BinaryIO, Iterable, List, Tuple
 
 import numpy as np
 
+from torch_isc._helpers import printable
 from torch_isc.io.files import PathLike, atomic_write
 
 __all__ = ["svg_text", "encode_svg", "write_svg"]
 
 
 def _fmt_xy(pts: np.ndarray) -> List[str]:
-    return [f"{x:.9g},{y:.9g}" for x, y in pts.tolist()]
+    # the shortest text that reads back as the same float64 (9 digits merged the vertices of a
+    # curve 1e-2 across at an offset of 1e7)
+    return [f"{x!r},{y!r}" for x, y in pts.tolist()]
 
 
 def _padded_bbox(bbox: Iterable[float], margin: float) -> Tuple[float, float, float, float]:
@@ -27,6 +30,9 @@ def _padded_bbox(bbox: Iterable[float], margin: float) -> Tuple[float, float, fl
 
 
 def _xml_escape(s: str) -> str:
+    # control characters (not allowed in XML 1.0) and the lone surrogates of a non-UTF-8 file name
+    # (not encodable) written as backslash escapes first
+    s = printable(s)
     return s.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;").replace('"', "&quot;")
 
 
@@ -52,7 +58,7 @@ def svg_text(result, margin: float = 0.05, width: int = 800, y_down: bool = Fals
     out = [
         '<?xml version="1.0" encoding="UTF-8"?>',
         f'<svg xmlns="http://www.w3.org/2000/svg" version="1.1" width="{width}" height="{height}" '
-        f'viewBox="{x0:.9g} {(y0 if y_down else -y1):.9g} {w:.9g} {h:.9g}">',
+        f'viewBox="{x0!r} {(y0 if y_down else -y1)!r} {w!r} {h!r}">',
         f"<title>{_xml_escape(result.name or 'torch_isc reconstruction')}</title>",
         '<g>' if y_down else '<g transform="scale(1,-1)">',
     ]

@@ -96,8 +96,6 @@ class RunError(ValueError):
     """Arguments a run cannot start with (nothing was read or written); one line."""
 
 
-
-
 @dataclass(frozen=True)
 class ImageOptions:
     """How image inputs become points.

@@ -101,6 +101,101 @@ def _check_enclosed(mesh: MeshBatch, values: torch.Tensor, enclosed: torch.Tenso
         left = (x == xmin[mesh.vert_item]) & neg & enclosed[mesh.vert_item]
         if bool(left.any()):
             raise InvalidValuesError("enclosed: the mesh's outermost boundary must be outside (f > 0)")
+        # every region off the mesh must take one sign: just outside each boundary edge, the
+        # parity of the inside loops around the point must be the edge's own sign (a second,
+        # all-inside piece beside the first, or a plain piece inside an inside hole, failed it)
+        idx = bnd.nonzero().squeeze(1)
+        if idx.numel():
+            fwd = ef[idx, 0] >= 0
+            ab = torch.where(fwd[:, None], e[idx], e[idx].flip(1))
+            p, q = mesh.verts.detach()[ab[:, 0]], mesh.verts.detach()[ab[:, 1]]
+            d = q - p
+            out_n = torch.stack([d[:, 1], -d[:, 0]], 1)                # right of the edge: off the mesh
+            probe = 0.5 * (p + q) + 1e-3 * out_n
+            odd = _odd_crossings(_parity_index(mesh, values, enclosed), probe, mesh.edge_item[idx], enclosed)
+            if bool((odd != neg[ab[:, 0]]).any()):
+                raise InvalidValuesError("enclosed: a region off the mesh is bounded by inside and outside loops "
+                                         "(or an outer boundary is inside); a hole must take one sign")
+
+
+#: the most horizontal bands of one item's parity index, and the most slots a query chunk holds
+_MAX_BANDS = 4096
+_CHUNK_SLOTS = 1 << 22
+
+
+def _parity_index(mesh: MeshBatch, values: torch.Tensor, enclosed: torch.Tensor):
+    """The boundary edges of ``enclosed`` items with both ends inside, bucketed in horizontal
+    bands per item (about two mean edge heights each, at most ``_MAX_BANDS`` an item), for
+    :func:`_odd_crossings`; None when there are none. Three host reads."""
+    with torch.no_grad():
+        dev = mesh.device
+        ef, e = mesh.edge_faces, mesh.edges
+        v = mesh.verts.detach()
+        neg = values.detach() < 0
+        keep = ((ef[:, 0] < 0) != (ef[:, 1] < 0)) & neg[e[:, 0]] & neg[e[:, 1]] & enclosed.to(dev)[mesh.edge_item]
+        keep &= v[e[:, 0], 1] != v[e[:, 1], 1]         # a horizontal edge never crosses a horizontal ray
+        idx = keep.nonzero().squeeze(1)
+        if idx.numel() == 0:
+            return None
+        a, b, it = v[e[idx, 0]], v[e[idx, 1]], mesh.edge_item[idx]
+        B, dt = mesh.num_items, v.dtype
+        ylo, yhi = torch.minimum(a[:, 1], b[:, 1]), torch.maximum(a[:, 1], b[:, 1])
+        big = torch.finfo(dt).max
+        y0 = torch.full((B,), big, dtype=dt, device=dev).scatter_reduce(0, it, ylo, "amin")
+        y1 = torch.full((B,), -big, dtype=dt, device=dev).scatter_reduce(0, it, yhi, "amax")
+        cnt = torch.zeros(B, dtype=torch.long, device=dev).index_add_(0, it, torch.ones_like(it))
+        has = cnt > 0
+        span = torch.where(has, y1 - y0, torch.ones_like(y0)).clamp_min(torch.finfo(dt).tiny)
+        mean_dy = torch.zeros(B, dtype=dt, device=dev).index_add_(0, it, yhi - ylo) / cnt.clamp_min(1).to(dt)
+        h = torch.maximum(2.0 * mean_dy, span / (_MAX_BANDS - 1)).clamp_min(torch.finfo(dt).tiny)
+        nb = torch.where(has, torch.floor(span / h).long() + 1, torch.zeros_like(cnt))
+        off = torch.cumsum(nb, 0) - nb
+        b0 = torch.floor((ylo - y0[it]) / h[it]).long()
+        b1 = torch.minimum(torch.floor((yhi - y0[it]) / h[it]).long(), nb[it] - 1)
+        n_e = b1 - b0 + 1
+        total = int(n_e.sum())
+        rep = torch.repeat_interleave(torch.arange(idx.numel(), device=dev), n_e, output_size=total)
+        start = torch.cumsum(n_e, 0) - n_e
+        key = off[it[rep]] + b0[rep] + (torch.arange(total, device=dev) - start[rep])
+        order = torch.argsort(key, stable=True)
+        rep = rep[order]
+        K = int(nb.sum())
+        kcnt = torch.bincount(key, minlength=K)
+        kstart = torch.cumsum(kcnt, 0) - kcnt
+        return {"a": a, "b": b, "y0": y0, "h": h, "nb": nb, "off": off, "edge": rep, "kstart": kstart,
+                "kcnt": kcnt, "kmax": int(kcnt.max())}
+
+
+def _odd_crossings(ix, points: torch.Tensor, point_item: torch.Tensor, enclosed: torch.Tensor) -> torch.Tensor:
+    """``(P,)`` bool: whether the ray from each point toward +x crosses an odd number of the
+    indexed edges of its item (half-open in y, so a vertex on the ray counts once)."""
+    P = points.shape[0]
+    dev = points.device
+    out = torch.zeros(P, dtype=torch.bool, device=dev)
+    if ix is None or P == 0:
+        return out
+    with torch.no_grad():
+        a, b = ix["a"], ix["b"]
+        q = points.detach().to(a.dtype)
+        it = point_item
+        bf = torch.floor((q[:, 1] - ix["y0"][it]) / ix["h"][it])
+        valid = torch.isfinite(q).all(1) & enclosed.to(dev)[it] & (bf >= 0) & (bf < ix["nb"][it].to(bf.dtype))
+        key = ix["off"][it] + torch.where(valid, bf, torch.zeros_like(bf)).long()
+        kmax = max(ix["kmax"], 1)
+        slot = torch.arange(kmax, device=dev)
+        step = max(1, _CHUNK_SLOTS // kmax)
+        for lo in range(0, P, step):
+            k, ok, qq = key[lo:lo + step], valid[lo:lo + step], q[lo:lo + step]
+            n = ix["kcnt"][k]
+            use = (slot[None] < n[:, None]) & ok[:, None]
+            j = ix["edge"][(ix["kstart"][k][:, None] + slot[None]).clamp_max(ix["edge"].numel() - 1)]
+            A, Bv = a[j], b[j]                                             # (n, kmax, 2)
+            py, px = qq[:, 1:2], qq[:, 0:1]
+            cross = (A[..., 1] > py) != (Bv[..., 1] > py)
+            t = (py - A[..., 1]) / torch.where(cross, Bv[..., 1] - A[..., 1], torch.ones_like(py))
+            xc = A[..., 0] + t * (Bv[..., 0] - A[..., 0])
+            out[lo:lo + step] = ((use & cross & (xc > px)).sum(1) % 2) == 1
+    return out
 
 
 class ImplicitCurve:
@@ -151,6 +246,7 @@ class ImplicitCurve:
         self.values = values
         #: ``(B,)`` bool or None: the items whose mesh holes take their boundary's sign
         self.enclosed = enclosed
+        self._parity = None                  # the banded inside-boundary edges, made on first query
 
     def _like(self, mesh: MeshBatch, values: torch.Tensor) -> "ImplicitCurve":
         """A curve on ``mesh`` with ``values`` and this one's ``enclosed`` items (no checks)."""
@@ -260,6 +356,8 @@ class ImplicitCurve:
         Differentiable in vertex positions, values and points. Points outside their
         item's mesh get ``+inf`` (outside), or ``-inf`` in an inside hole of an ``enclosed`` item."""
         point_item = self._point_item(points, point_item)
+        if self.mesh.faces.shape[0] == 0:          # no triangle (an all-black mask's curve): outside
+            return torch.full((points.shape[0],), float("inf"), dtype=self.values.dtype, device=points.device)
         face, _ = locate_grid(self.mesh, points, point_item)
         bary = barycentric(self.mesh.verts, self.mesh.faces, face, points.to(self.mesh.dtype))
         f = self.eval_at(face, torch.nan_to_num(bary))
@@ -300,48 +398,16 @@ class ImplicitCurve:
 
     def off_mesh_inside(self, points: torch.Tensor, point_item: torch.Tensor, off: torch.Tensor) -> torch.Tensor:
         """``(P,)`` bool: which of the points flagged ``off (P,)`` (not on their item's mesh)
-        lie in an inside hole of an ``enclosed`` item: the sign of the nearest boundary edge
-        of their item's mesh (the nearest mesh point of a hole lies on the hole's own
-        boundary). Chunked brute force over the item's boundary edges (bounded memory)."""
+        lie in an inside hole of an ``enclosed`` item: an odd number of the item's inside
+        boundary edges cross the ray from the point toward +x (the holes' sign by parity, the
+        same count the area's boundary term makes). Edges are bucketed in horizontal bands, so
+        a point meets only the edges of its band. NaN points are outside."""
         out = torch.zeros(points.shape[0], dtype=torch.bool, device=points.device)
         if self.enclosed is None:
             return out
-        with torch.no_grad():
-            m = self.mesh
-            enc = self.enclosed.to(points.device)
-            idx = (off & enc[point_item]).nonzero().squeeze(1)
-            if idx.numel() == 0:
-                return out
-            ef, e = m.edge_faces, m.edges
-            bnd = ((ef[:, 0] < 0) != (ef[:, 1] < 0)) & enc[m.edge_item]
-            be = e[bnd]                                              # item-contiguous (edges are sorted)
-            bitem = m.edge_item[bnd]
-            cnt = torch.zeros(m.num_items, dtype=torch.long, device=points.device).index_add_(
-                0, bitem, torch.ones_like(bitem))
-            first = torch.cumsum(cnt, 0) - cnt
-            emax = int(cnt.max()) if cnt.numel() else 0
-            if emax == 0:
-                return out
-            v = m.verts.detach()
-            neg = self.values.detach() < 0
-            pts = points.detach().to(v.dtype)
-            slot = torch.arange(emax, device=points.device)
-            chunk = max(1, (1 << 22) // emax)
-            for lo in range(0, idx.numel(), chunk):
-                sub = idx[lo:lo + chunk]
-                it = point_item[sub]
-                k = first[it][:, None] + slot[None]                  # (n, emax)
-                valid = slot[None] < cnt[it][:, None]
-                k = torch.where(valid, k, torch.zeros_like(k))
-                a, b = v[be[k, 0]], v[be[k, 1]]                      # (n, emax, 2)
-                q = pts[sub][:, None]
-                d = b - a
-                t = (((q - a) * d).sum(-1) / (d * d).sum(-1).clamp_min(torch.finfo(v.dtype).tiny)).clamp(0, 1)
-                r = q - (a + t[..., None] * d)
-                dist = torch.where(valid, (r * r).sum(-1), torch.full_like(t, float("inf")))
-                near = dist.argmin(1)
-                out[sub] = neg[be[k.gather(1, near[:, None]).squeeze(1), 0]]
-        return out
+        if self._parity is None:
+            self._parity = _parity_index(self.mesh, self.values, self.enclosed)
+        return off & _odd_crossings(self._parity, points, point_item, self.enclosed)
 
     def hole_edges(self) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The boundary of the inside holes of ``enclosed`` items: ``(E, 2)`` vertex pairs (every

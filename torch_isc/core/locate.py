@@ -99,6 +99,9 @@ def locate_grid(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor,
         pts = points.detach().to(dt)
         if P == 0:
             return torch.empty(0, dtype=torch.long, device=dev), torch.empty(0, 3, dtype=dt, device=dev)
+        if mesh.faces.shape[0] == 0:                          # no triangle at all (an all-black mask's curve)
+            return (torch.full((P,), -1, dtype=torch.long, device=dev),
+                    torch.full((P, 3), float("nan"), dtype=dt, device=dev))
         bbox = mesh.item_bbox()                               # (B,4)
         lo = bbox[:, :2]
         ext = (bbox[:, 2:] - bbox[:, :2]).clamp_min(torch.finfo(dt).tiny)

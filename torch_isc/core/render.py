@@ -44,6 +44,8 @@ def soft_inside(curve, points: torch.Tensor, tau: float, point_item: Optional[to
     mesh = curve.mesh
     point_item = curve._point_item(points, point_item)
     pts = points.to(mesh.dtype)
+    if mesh.faces.shape[0] == 0:                   # no triangle (an all-black mask's curve): empty
+        return torch.zeros(pts.shape[0], dtype=pts.dtype, device=pts.device)
     with torch.no_grad():
         face, _ = locate_grid(mesh, pts, point_item)
         on = face >= 0

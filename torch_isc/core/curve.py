@@ -84,14 +84,26 @@ def _as_enclosed(enclosed, mesh: MeshBatch) -> Optional[torch.Tensor]:
     return enclosed.to(mesh.device)
 
 
+def _boundary_of_enclosed(mesh: MeshBatch, values: torch.Tensor, enclosed: Optional[torch.Tensor]):
+    """``(ab (E, 2), bnd (E,), inside (E,))``: every edge oriented with its triangle on the left,
+    whether it is a boundary edge of an ``enclosed`` item, and whether it is one with both ends
+    inside (the edges of the inside holes)."""
+    with torch.no_grad():
+        e = mesh.edges
+        ab = torch.where((mesh.edge_faces[:, 0] >= 0)[:, None], e, e.flip(1))
+        bnd = mesh.is_boundary_edge
+        bnd = (bnd & enclosed.to(e.device)[mesh.edge_item]) if enclosed is not None else torch.zeros_like(bnd)
+        neg = values.detach() < 0
+        return ab, bnd, bnd & neg[ab[:, 0]] & neg[ab[:, 1]]
+
+
 def _check_enclosed(mesh: MeshBatch, values: torch.Tensor, enclosed: torch.Tensor) -> None:
     """What ``enclosed`` needs: single-signed boundary edges and an outside outermost boundary
     (checked at each item's leftmost vertex, which lies on it)."""
     with torch.no_grad():
-        ef, e = mesh.edge_faces, mesh.edges
-        bnd = ((ef[:, 0] < 0) != (ef[:, 1] < 0)) & enclosed[mesh.edge_item]
+        ab, bnd, _ = _boundary_of_enclosed(mesh, values, enclosed)
         neg = values.detach() < 0
-        if bool((bnd & (neg[e[:, 0]] != neg[e[:, 1]])).any()):
+        if bool((bnd & (neg[ab[:, 0]] != neg[ab[:, 1]])).any()):
             raise InvalidValuesError("enclosed: a boundary edge of the mesh joins an inside and an outside vertex "
                                      "(a hole must take one sign)")
         x = mesh.verts.detach()[:, 0]
@@ -106,8 +118,7 @@ def _check_enclosed(mesh: MeshBatch, values: torch.Tensor, enclosed: torch.Tenso
         # all-inside piece beside the first, or a plain piece inside an inside hole, failed it)
         idx = bnd.nonzero().squeeze(1)
         if idx.numel():
-            fwd = ef[idx, 0] >= 0
-            ab = torch.where(fwd[:, None], e[idx], e[idx].flip(1))
+            ab = ab[idx]
             p, q = mesh.verts.detach()[ab[:, 0]], mesh.verts.detach()[ab[:, 1]]
             d = q - p
             out_n = torch.stack([d[:, 1], -d[:, 0]], 1)                # right of the edge: off the mesh
@@ -129,10 +140,9 @@ def _parity_index(mesh: MeshBatch, values: torch.Tensor, enclosed: torch.Tensor)
     :func:`_odd_crossings`; None when there are none. Three host reads."""
     with torch.no_grad():
         dev = mesh.device
-        ef, e = mesh.edge_faces, mesh.edges
+        e = mesh.edges
         v = mesh.verts.detach()
-        neg = values.detach() < 0
-        keep = ((ef[:, 0] < 0) != (ef[:, 1] < 0)) & neg[e[:, 0]] & neg[e[:, 1]] & enclosed.to(dev)[mesh.edge_item]
+        keep = _boundary_of_enclosed(mesh, values, enclosed)[2]
         keep &= v[e[:, 0], 1] != v[e[:, 1], 1]         # a horizontal edge never crosses a horizontal ray
         idx = keep.nonzero().squeeze(1)
         if idx.numel() == 0:
@@ -246,7 +256,6 @@ class ImplicitCurve:
         self.values = values
         #: ``(B,)`` bool or None: the items whose mesh holes take their boundary's sign
         self.enclosed = enclosed
-        self._parity = None                  # the banded inside-boundary edges, made on first query
 
     def _like(self, mesh: MeshBatch, values: torch.Tensor) -> "ImplicitCurve":
         """A curve on ``mesh`` with ``values`` and this one's ``enclosed`` items (no checks)."""
@@ -405,26 +414,20 @@ class ImplicitCurve:
         out = torch.zeros(points.shape[0], dtype=torch.bool, device=points.device)
         if self.enclosed is None:
             return out
-        if self._parity is None:
-            self._parity = _parity_index(self.mesh, self.values, self.enclosed)
         return off & _odd_crossings(self._parity, points, point_item, self.enclosed)
+
+    @cached_property
+    def _parity(self):
+        """The banded inside-boundary edges (:func:`_parity_index`), made on the first query."""
+        return _parity_index(self.mesh, self.values, self.enclosed)
 
     def hole_edges(self) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The boundary of the inside holes of ``enclosed`` items: ``(E, 2)`` vertex pairs (every
         edge of the mesh, each oriented with its triangle on the left), ``(E,)`` float weights
         (1 on a boundary edge of an enclosed item with both ends inside, else 0) and ``(E,)`` the
         edge's item. An inside hole's area is ``-Σ w (a × b) / 2`` over its edges."""
-        m = self.mesh
-        with torch.no_grad():
-            ef, e = m.edge_faces, m.edges
-            fwd = ef[:, 0] >= 0
-            ab = torch.where(fwd[:, None], e, e.flip(1))
-            bnd = (ef[:, 0] < 0) != (ef[:, 1] < 0)
-            neg = self.values.detach() < 0
-            keep = bnd & neg[ab[:, 0]] & neg[ab[:, 1]]
-            keep = keep & (self.enclosed.to(e.device)[m.edge_item] if self.enclosed is not None
-                           else torch.zeros_like(keep))
-        return ab, keep.to(m.verts.dtype), m.edge_item
+        ab, _, inside = _boundary_of_enclosed(self.mesh, self.values, self.enclosed)
+        return ab, inside.to(self.mesh.verts.dtype), self.mesh.edge_item
 
     # --------------------------------------------------------------- zero set
     def zero_set(self) -> Polylines:

@@ -107,7 +107,7 @@ def area(curve) -> torch.Tensor:
     corner = A * seg.t1 * seg.t2
     part = torch.where(seg.lone_neg, corner, A - corner)
     out = out.index_add(0, seg.item, part)
-    if getattr(curve, "enclosed", None) is not None:
+    if curve.enclosed is not None:
         # the inside holes of a band mesh: -Σ (a × b) / 2 over their edges (mesh on the left)
         ab, w, item = curve.hole_edges()
         a, b = mesh.verts[ab[:, 0]], mesh.verts[ab[:, 1]]
@@ -158,7 +158,7 @@ def centroid(curve) -> torch.Tensor:
     part_m = torch.where(ln[:, None], ac[:, None] * cc, As[:, None] * cT[seg.tri] - ac[:, None] * cc)
     mom = mom.index_add(0, seg.item, part_m)
     ar = ar.index_add(0, seg.item, part_a)
-    if getattr(curve, "enclosed", None) is not None:
+    if curve.enclosed is not None:
         # inside holes: the polygon moments -Σ (a + b)(a × b) / 6 and areas -Σ (a × b) / 2
         ab, w, item = curve.hole_edges()
         a, b = v[ab[:, 0]], v[ab[:, 1]]

@@ -51,8 +51,7 @@ def soft_inside(curve, points: torch.Tensor, tau: float, point_item: Optional[to
         on = face >= 0
         fc = face.clamp_min(0)
         # off the mesh: outside, but in an inside hole of an enclosed item (a band mesh)
-        hole = curve.off_mesh_inside(pts, point_item, ~on) if getattr(curve, "enclosed", None) is not None \
-            else torch.zeros_like(on)
+        hole = curve.off_mesh_inside(pts, point_item, ~on)
     bary = barycentric(mesh.verts, mesh.faces, fc, pts)          # fc: never -1
     f = (curve.values[mesh.faces[fc]] * bary).sum(1)
     if mode == "local":

@@ -413,7 +413,7 @@ def parse_overrides(items: Iterable[str]) -> Dict[str, Any]:
             if not isinstance(part, dict):
                 raise ConfigError(f"--set {shown}: section '{sec}' is also given whole")
             part[key] = val
-        elif k in _SECTION_TYPES and isinstance(out.get(k), dict) and k in out:
+        elif k in _SECTION_TYPES and isinstance(out.get(k), dict):
             raise ConfigError(f"--set {shown}: section '{k}' is also given key by key")
         else:
             out[k] = val

@@ -63,6 +63,7 @@ import torch
 
 from torch_isc.core.curve import ImplicitCurve
 from torch_isc.core.locate import barycentric, locate_grid
+from torch_isc.core.mesh import _segment_bbox
 from torch_isc.pipeline.evidence import triangle_moments
 from torch_isc.pipeline import budget
 
@@ -726,12 +727,9 @@ def attach_point_gradients(results_or_curves: Sequence, point_sets: Sequence[tor
     # in the caller's units its squares underflow below ~1e-150 and its fixed weights dominate
     # beyond ~1e20 (a circle of radius 1e30 got gradients 4e35 times too small)
     vi = batch.mesh.vert_item
-    big = torch.finfo(torch.float64).max
     v64 = batch.mesh.verts.double()
-    lo = torch.full((len(sets), 2), big, dtype=torch.float64, device=dev).scatter_reduce(
-        0, vi[:, None].expand(-1, 2), v64, "amin")
-    hi = torch.full((len(sets), 2), -big, dtype=torch.float64, device=dev).scatter_reduce(
-        0, vi[:, None].expand(-1, 2), v64, "amax")
+    box = _segment_bbox(v64, vi, len(sets))
+    lo, hi = box[:, :2], box[:, 2:]
     m = torch.maximum(lo.abs(), hi.abs()).amax(1).clamp_min(torch.finfo(torch.float64).tiny)
     centre = 0.5 * (lo + hi)
     size = torch.hypot((hi[:, 0] - lo[:, 0]) / m, (hi[:, 1] - lo[:, 1]) / m) * m      # no overflow near 1e308

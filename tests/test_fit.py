@@ -18,7 +18,8 @@ from torch_isc.core.curve import ImplicitCurve
 from torch_isc.pipeline.values import (GeometryConfig, GeometryObjective, delta1_per_triangle, fit_geometry, point_residuals,
                                    vertex_data_distance, vertex_data_distance_near)
 from torch_isc.pipeline.optim import batched_lbfgs
-from torch_isc.pipeline.relax import RelaxConfig, mesh_energy, relax_mesh
+from torch_isc.pipeline.relax import RelaxConfig, mesh_energy, relax_mesh, relax_stage
+from torch_isc.pipeline.workset import WorkingSet
 from torch_isc.core.subdivide import subdivide
 from torch_isc.pipeline.noise import NoiseConfig, estimate_noise, noise_and_frames
 from torch_isc.pipeline.tolerance import (TestConfig, curve_coverage_excess, mark_triangles, point_curve_distance2,
@@ -1444,6 +1445,35 @@ def test_relax_mesh_batch_independent(device):
                            RelaxConfig(relax_iterations=10))
     v0 = int(mesh.verts_first_idx[1])
     torch.testing.assert_close(out.verts[v0:], o1.verts, rtol=1e-12, atol=1e-12)
+
+
+def test_relax_stage_relaxes_only_items_whose_noise_is_within_relax_noisy_of_the_tolerance(device):
+    """``relax_noisy`` 0.5 with tolerance 0.004: an item whose noise is 0.002 (exactly at the bound)
+    or 0 is relaxed as it would be alone; an item whose noise is 0.0021 keeps its mesh bit for bit
+    (a noisy band says nothing about where a vertex is "away from the data")."""
+    dtype = torch.float64
+    mesh, pts, item, face = relax_setup(device, dtype, n_items=3)
+    B = mesh.num_items
+    bary = barycentric(mesh.verts, mesh.faces, face, pts)
+    ws = WorkingSet.start(mesh, pts, item, face, bary, torch.zeros(pts.shape[0], 5, dtype=dtype, device=device),
+                          torch.zeros(B, 2, dtype=dtype, device=device), torch.ones(B, dtype=dtype, device=device),
+                          torch.full((B,), 0.004, dtype=dtype, device=device),
+                          torch.tensor([0.002, 0.0021, 0.0], dtype=dtype, device=device),
+                          torch.zeros(B, dtype=torch.bool, device=device))
+    cfg = RelaxConfig(relax_iterations=10, relax_noisy=0.5)
+    out = relax_stage(ws, cfg)
+    every, f_every, _ = relax_mesh(mesh, pts, item, face, RelaxConfig(relax_iterations=10))
+    vi = mesh.vert_item
+    assert torch.equal(out.mesh.verts[vi == 1], mesh.verts[vi == 1])
+    for b in (0, 2):
+        moved = (out.mesh.verts[vi == b] - mesh.verts[vi == b]).abs().max()
+        assert float(moved) > 1e-3
+        torch.testing.assert_close(out.mesh.verts[vi == b], every.verts[vi == b], rtol=1e-12, atol=1e-12)
+    # the points' triangles and barycentrics are those of the returned mesh
+    assert torch.equal(out.face[item != 1], f_every[item != 1])
+    torch.testing.assert_close(out.bary, barycentric(out.mesh.verts, out.mesh.faces, out.face, pts))
+    # a large bound relaxes every item
+    assert torch.equal(relax_stage(ws, RelaxConfig(relax_iterations=10, relax_noisy=1e6)).mesh.verts, every.verts)
 
 
 def naive_relax(mesh, pts, face, cfg):

@@ -21,7 +21,8 @@ class ImageError(ValueError):
 
 def image_list(images: Union[ImageLike, Sequence[ImageLike]], what: str = "image") -> List[torch.Tensor]:
     """A batch of 2D images as a list of ``(H_b, W_b)`` tensors: accepts a list of 2D
-    arrays/tensors (sizes may differ) or one ``(B, H, W)`` / ``(B, 1, H, W)`` array."""
+    arrays/tensors (sizes may differ; one-channel ``(H, W, 1)`` or ``(1, H, W)`` too) or one
+    ``(B, H, W)`` / ``(B, 1, H, W)`` array."""
     if isinstance(images, (np.ndarray, torch.Tensor)):
         t = _as_real_tensor(images, f"{what}s")
         if t.dim() == 4 and t.shape[1] == 1:
@@ -37,8 +38,11 @@ def image_list(images: Union[ImageLike, Sequence[ImageLike]], what: str = "image
         out = []
         for b, im in enumerate(images):
             t = _as_real_tensor(im, f"{what} {b}")
-            if t.dim() == 3 and t.shape[0] == 1:
-                t = t[0]
+            if t.dim() == 3 and (t.shape[0] == 1 or t.shape[2] == 1):
+                # one channel: (H, W, 1) as OpenCV reads arrays, (1, H, W) as torch lays tensors out;
+                # a (1, n, 1) array is a row, a (1, n, 1) tensor a column
+                last = t.shape[2] == 1 and (t.shape[0] != 1 or not torch.is_tensor(im))
+                t = t[..., 0] if last else t[0]
             if t.dim() != 2:
                 raise ImageError(f"{what} {b}: expected a 2D (H, W) array, got shape {tuple(t.shape)}")
             if t.shape[0] == 0 or t.shape[1] == 0:

@@ -352,7 +352,10 @@ def find_contours(mask: ImageLike, mode=3, method=1, offset=None, *, connectivit
     hole, with ``connectivity=8``, as OpenCV), in OpenCV's order, orientation and hierarchy
     layout, from the implicit simplicial curve of the mask on its pixel-centre grid
     (:func:`torch_isc.images.grid.trace_masks`): each point lies between a foreground and a
-    background pixel centre, never more than a pixel from OpenCV's chain.
+    background pixel centre, within a pixel of OpenCV's chain, and inside the image frame;
+    except the tip inserted at a corner sharper than the pixel staircase (an acute wedge of a
+    few pixels), which may lie up to a few pixels out along the corner's bisector, where the
+    wedge's sides meet (``smooth=0``: none).
 
     Args:
         mask: 2D array or tensor; foreground is nonzero for integer masks (as OpenCV), above

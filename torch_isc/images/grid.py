@@ -967,6 +967,10 @@ def trace_masks(masks: Sequence[torch.Tensor], connectivity: int = 8, smooth: in
     t = _smooth(a, d, prev, nxt, smooth, reach, cap) if smooth > 0 else torch.full((N,), 0.5, dtype=dtype, device=dev)
     tips = None
     verts0 = mesh.verts
+    vi = mesh.vert_item
+    pi, pj = (pix // W2) % H2, pix % W2
+    sz = sizes.to(dev)
+    pad = (pi == 0) | (pj == 0) | (pi == sz[vi, 0] + 1) | (pj == sz[vi, 1] + 1)      # padding pixels
     if corners and smooth > 0:
         frame = sizes.to(dev).flip(1).to(dtype)                   # (W, H) of each item
 
@@ -974,9 +978,6 @@ def trace_masks(masks: Sequence[torch.Tensor], connectivity: int = 8, smooth: in
             nonlocal mesh
             item = mesh.vert_item[fg_v[nodes[:, 0]]]
             # a side along the image border is the frame's, not the shape's: no tip from it
-            pi, pj = (pix // W2) % H2, pix % W2
-            vi = mesh.vert_item
-            pad = (pi == 0) | (pj == 0) | (pi == sizes[vi, 0].to(dev) + 1) | (pj == sizes[vi, 1].to(dev) + 1)
             inner_c = ~(pad[fg_v[nodes]] | pad[bg_v[nodes]]).any(1)
             moved = torch.full((nodes.shape[0],), -1, dtype=torch.long, device=dev)
             if not bool(inner_c.any()):
@@ -991,6 +992,10 @@ def trace_masks(masks: Sequence[torch.Tensor], connectivity: int = 8, smooth: in
         t, tips = _corner_tips(a, d, t, prev, nxt, pl.counts[loop], stretch=stretch if stretch_tips else None)
     s = _realize(t, fg_v, bg_v, loop, k, pl.first, pl.counts, nxt, V)
     mag = torch.exp(s - s.max().clamp_min(0) if V else s)
+    # a crossing toward a padding pixel's centre lies at most half way, on the image frame: the
+    # padding vertex's magnitude is raised to that of every foreground vertex across such an edge
+    need = torch.where(pad.index_select(0, bg_v), mag.index_select(0, fg_v), torch.zeros_like(a[:, 0]))
+    mag = torch.maximum(mag, torch.zeros_like(mag).scatter_reduce_(0, bg_v, need, "amax"))
     values = torch.where(fg, -mag, mag)
     e0, e1 = ends[:, 0].contiguous(), ends[:, 1].contiguous()
     v0, v1 = mesh.verts.index_select(0, e0), mesh.verts.index_select(0, e1)
@@ -1008,6 +1013,9 @@ def trace_masks(masks: Sequence[torch.Tensor], connectivity: int = 8, smooth: in
         out_mesh, values, (pts, fg_v, bg_v, edge, first, counts), _ = spliced
         a = verts0.index_select(0, fg_v)
         loop, k, prev, nxt = _loop_index(first, counts, pts.shape[0])
+    # an inserted tip on the frame leaves its neighbours within eps of the zero set, a hair outside
+    frame = sz.flip(1).to(dtype).index_select(0, pl.item.index_select(0, loop))
+    pts = torch.minimum(pts.clamp_min(0), frame)
     pl = Polylines(pts, first, counts, pl.closed, pl.item, edge, pl.num_items)
 
     # ---- outer border or hole: foreground on the left, so outer loops turn positively

@@ -152,7 +152,7 @@ UPPER_BOUNDS: Dict[str, float] = {
     "noise_neighbours": 1_000, "noise_window": 10_000, "noise_blob_aspect": 1e6, "noise_line_aspect": 1e6,
     "noise_min_subset": 2 ** 31 - 1, "denoise_iterations": 100, "denoise_neighbours": 1_000, "denoise_radius": 1e6,
     "denoise_band": 1e6, "denoise_split_band": 1e6, "denoise_refine_hops": 1_000, "denoise_window": 10_000, "denoise_max_move": 1e6,
-    "relax_iterations": 100_000, "kappa_data": 1e6, "kappa_edge": 1e6, "relax_max_backtracks": 64,
+    "relax_iterations": 100_000, "kappa_data": 1e6, "kappa_edge": 1e6, "relax_max_backtracks": 64, "relax_noisy": 1e6,
     "empty_weight": 1e6, "anneal_sweeps": 1_000_000, "anneal_t_start": 1e6, "anneal_t_end": 1e6,
     "anneal_warm_t_start": 1e6, "anneal_replicas": 1_024, "anneal_greedy_sweeps": 1_000_000,
     "min_island_vertices": 2 ** 31 - 1, "unsupported_weight": 1e6, "unsupported_noise_widths": 1e6, "cluster_rounds": 1_000,

@@ -41,6 +41,9 @@ class RelaxConfig:
     relax_max_move: float = knob(0.3, gt=0, le=1)
     #: step halvings tried before an item's step is given up
     relax_max_backtracks: int = knob(6, gt=0)
+    #: relax only items whose estimated noise is at most this fraction of their tolerance
+    #: (in a noise band wider than the tolerance "away from the data" says nothing)
+    relax_noisy: float = knob(0.5, ge=0)
 
     def __post_init__(self):
         check_section(self)
@@ -91,7 +94,8 @@ def degree_weights(mesh: MeshBatch) -> torch.Tensor:
 
 
 def relax_mesh(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor, face: torch.Tensor,
-               cfg: Optional[RelaxConfig] = None) -> Tuple[MeshBatch, torch.Tensor, torch.Tensor]:
+               cfg: Optional[RelaxConfig] = None, active: Optional[torch.Tensor] = None
+               ) -> Tuple[MeshBatch, torch.Tensor, torch.Tensor]:
     """Relax the interior of every item's mesh: ``cfg.relax_iterations`` steps.
 
     Each step tries the step lengths ``s, s/2, s/4, ...`` in turn and takes the first that
@@ -132,7 +136,7 @@ def relax_mesh(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor, 
         stack_item = (mesh.face_item[None, :] + B * torch.arange(K, device=dev)[:, None]).reshape(-1)
         trial = torch.arange(K, device=dev)[:, None]
         vrow = torch.arange(V, device=dev)
-        active = torch.ones(B, dtype=torch.bool, device=dev)
+        active = torch.ones(B, dtype=torch.bool, device=dev) if active is None else active.clone()
     rounds: list = []       # (positions, energy with its graph, accepted) of the last step's trials
     for _ in budget.rounds(iterations):
         if not rounds:
@@ -201,5 +205,6 @@ def relax_stage(ws: "WorkingSet", cfg: RelaxConfig) -> "WorkingSet":
     """The relaxation stage: the working set on the relaxed mesh, points re-located."""
     if cfg.relax_iterations <= 0:
         return ws
-    mesh, face, bary = relax_mesh(ws.mesh, ws.points, ws.point_item, ws.face, cfg)
+    active = ws.noise <= cfg.relax_noisy * ws.tol
+    mesh, face, bary = relax_mesh(ws.mesh, ws.points, ws.point_item, ws.face, cfg, active)
     return ws.replace(mesh=mesh, face=face, bary=bary)

@@ -48,7 +48,7 @@ class TestConfig:
     #: ...but a line-fit error this many times above the noise splits it (thin features)
     thin_feature_factor: float = knob(3.0, ge=0)
     #: never split a triangle whose longest edge is below this many effective tolerances
-    min_split_size: float = knob(4.0, ge=0)
+    min_split_size: float = knob(3.0, ge=0)
     #: also test curve-to-data (walls across rings, bridges between close curves)
     coverage_test: bool = knob(True)
     #: a coverage failure whose piece of curve runs across the data (largest |cos| to the tangents

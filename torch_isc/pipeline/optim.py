@@ -75,8 +75,10 @@ def _neg_direction(g: torch.Tensor, dg: torch.Tensor, H: torch.Tensor, Q: torch.
     DY.diagonal(dim1=1, dim2=2).add_(torch.diagonal(SY, dim1=1, dim2=2))     # D + γYᵀY
     R = torch.triu(SY)
     p = torch.linalg.solve_triangular(R, a, upper=True)                     # R⁻¹ Sᵀg
-    q = torch.linalg.solve_triangular(R.transpose(1, 2), DY @ p - gm * b, upper=False)
-    c = torch.cat([-q, gm * p], 1)[..., 0].to(g.dtype)[seg]                 # (N, 2k), negated
+    # −q = R⁻ᵀ (γ Yᵀg − (D + γYᵀY) p): a triangular solve is odd in its right-hand side, so
+    # solving for −q directly gives −q's bits without a negation
+    nq = torch.linalg.solve_triangular(R.transpose(1, 2), gm * b - DY @ p, upper=False)
+    c = torch.cat([nq, gm * p], 1)[..., 0].to(g.dtype)[seg]                 # (N, 2k), negated
     return dg + (c.T * W).sum(0)
 
 
@@ -100,7 +102,7 @@ def _pair(Hold: torch.Tensor, Qold: torch.Tensor, hn: torch.Tensor, seg: torch.T
     keep = (sy > 1e-12 * r[:, 0] * r[:, 1]) & (sy > 0)
     torch.where(keep[seg], hn, zero, out=Hn[:, k])           # a skipped pair is stored as zeros
     gamma = torch.where(keep & (yy > 0), sy / yy.clamp_min(tiny), one)
-    Pd = P.double() * keep.double()[:, None, None]
+    Pd = (P * keep[:, None, None]).double()                  # times 1 or 0, exact in either dtype
     Qn = Pd.new_empty(B, 2, k + 1, k + 1)
     if k:
         Qn[:, :, :k, :k] = Qold
@@ -189,6 +191,7 @@ def batched_lbfgs(fun: Callable[..., torch.Tensor], x0: torch.Tensor, seg: torch
     one0 = torch.ones((), dtype=dt, device=dev)
     one64 = torch.ones((), dtype=torch.float64, device=dev)
     mb_t = torch.full((), mb, dtype=torch.long, device=dev)
+    zero_l = torch.zeros((), dtype=torch.long, device=dev)
     neg_inf = float("-inf")
     cols = torch.arange(n, device=dev)
     blocks = {}                                              # trials per block -> (j, 2^-j) as (k, 1)
@@ -315,8 +318,10 @@ def batched_lbfgs(fun: Callable[..., torch.Tensor], x0: torch.Tensor, seg: torch
         H = torch.where(ms, Hn, H)
         Q = torch.where(moved[:, None, None, None], Qn, Q)
         iters = iters + moved
-        stop = converged(f, f_new, moved) | (iters >= iterations)
-        left = torch.where(moved, mb_t, left - Kc).clamp_min(0).masked_fill(stop, 0)
+        # a segment that moved gets a new iteration unless it has converged or run out; one that
+        # did not has Kc trials fewer (left > 0 implies iters < iterations, so it cannot have run out)
+        stop = ((f - f_new).abs() <= rel_tol * f.abs().clamp_min(tiny)) | (iters >= iterations)
+        left = torch.where(moved, torch.where(stop, zero_l, mb_t), (left - Kc).clamp_min(0))
         step0 = torch.where(moved, one, step0 * 0.5 ** Kc)
         XG, f = XGn, f_new
     return _put(x_out, f_out, it_out, ent, item, XG[0], f, iters)

@@ -235,7 +235,6 @@ class GeometryObjective:
         sign patterns), from the fields above; :meth:`restrict` makes them again."""
         self.sfloor = self.signs * self.floor                 # F = sfloor + signs·e = signs·(e + floor)
         self.wt2, self.m2wt = 2.0 * self.wt, -2.0 * self.wt
-        self.zero = torch.zeros((), dtype=self.dt, device=self.dev)
         # ∇f_t and M_t F_t from one product and one sum over the face's vertices (M_t transposed:
         # the same products M_t[k, i] F_i, summed in the same order)
         self.GM = torch.cat([self.G, self.M.transpose(1, 2)], -1)     # (T,3,5)
@@ -431,7 +430,9 @@ class GeometryObjective:
             h = self.cw2 * (over[..., 1] - over[..., 0]) * cl / (msum * msum)
             # d obj/d F at both ends: (h m_1, −h m_0), times the signs
             dF = dF.index_add(1, self.ce.reshape(-1), ((h[..., None] * mf) * self.sgn_c).reshape(K, -1))
-        ds = dF * self.signs * torch.where(s.abs() < 60.0, e, self.zero)
+        # d e/d s = e where the clamp let s through (−60 < s < 60), 0 elsewhere: clamp's own
+        # backward (where it zeroes, the product it replaces, · +0, had no other value but ±0)
+        ds = torch.ops.aten.hardtanh_backward(dF * self.signs * e, s, -60.0, 60.0)
         return (obj[0], ds[0]) if one else (obj, ds)
 
 

@@ -99,17 +99,19 @@ def _pair(Hold: torch.Tensor, Qold: torch.Tensor, hn: torch.Tensor, seg: torch.T
     P = _segrows(Pr.view(3 * (k + 1), n), seg, B).view(B, 3, k + 1)
     sy, yy = P[:, 0, k], P[:, 1, k]
     r = P[:, 1:, k].sqrt()                                   # √(y·y), √(s·s)
-    keep = (sy > 1e-12 * r[:, 0] * r[:, 1]) & (sy > 0)
+    # enough curvature: s·y > 1e-12 |y| |s| (the bound is >= 0 or NaN, so this also says s·y > 0)
+    keep = sy > 1e-12 * r[:, 0] * r[:, 1]
     torch.where(keep[seg], hn, zero, out=Hn[:, k])           # a skipped pair is stored as zeros
     gamma = torch.where(keep & (yy > 0), sy / yy.clamp_min(tiny), one)
     Pd = (P * keep[:, None, None]).double()                  # times 1 or 0, exact in either dtype
-    Qn = Pd.new_empty(B, 2, k + 1, k + 1)
-    if k:
-        Qn[:, :, :k, :k] = Qold
-        Qn[:, :, :k, k] = Pd[:, :2, :k]                      # columns s_i·y and y_i·y
-        Qn[:, 0, k, :k] = Pd[:, 2, :k]                       # row s·y_j
-    Qn[:, 1, k, :] = Pd[:, 1, :]                             # row y_j·y, y·y
-    torch.where(keep, Pd[:, 0, k], one64, out=Qn[:, 0, k, k])   # s·y, a unit pivot when skipped
+    # the new last rows: s·y_j then s·y (a unit pivot when skipped) in place of s·s, no longer
+    # needed; y_j·y, y·y
+    torch.where(keep, Pd[:, 0, k], one64, out=Pd[:, 2, k])
+    rows = Pd[:, 1:].flip(1)[:, :, None]                     # (B, 2, 1, k+1)
+    if not k:
+        return Hn, rows, gamma
+    # below Qold's columns s_i·y and y_i·y, those rows
+    Qn = torch.cat([torch.cat([Qold, Pd[:, :2, :k, None]], 3), rows], 2)
     return Hn, Qn, gamma
 
 

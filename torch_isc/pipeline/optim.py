@@ -73,7 +73,7 @@ def _neg_direction(g: torch.Tensor, dg: torch.Tensor, H: torch.Tensor, Q: torch.
     SY, YY = Q[:, 0], Q[:, 1]
     DY = gm * YY
     DY.diagonal(dim1=1, dim2=2).add_(torch.diagonal(SY, dim1=1, dim2=2))     # D + γYᵀY
-    R = SY                          # R the upper triangle of SᵀY: the solves read no other entry
+    R = torch.triu(SY)
     p = torch.linalg.solve_triangular(R, a, upper=True)                     # R⁻¹ Sᵀg
     # −q = R⁻ᵀ (γ Yᵀg − (D + γYᵀY) p): a triangular solve is odd in its right-hand side, so
     # solving for −q directly gives −q's bits without a negation

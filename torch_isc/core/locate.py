@@ -240,27 +240,28 @@ def _walk_buffer(frames: torch.Tensor, nbr: torch.Tensor, pts: torch.Tensor, fac
     """The walk of :func:`locate_walk` over a buffer of points (``live`` rows): every step
     covers the whole buffer, a settled point recomputes the same coordinates and stays.
     Returns the faces, which rows need the grid, and whether any row (or ``overflow``) does."""
-    off = face < 0                                         # started outside, or walked off the mesh
+    on = face >= 0                                         # not outside (from the start, or walked off)
+    nb3 = nbr.view(-1, 3)
     for s in range(max_steps):
         fc = face.clamp_min(0)
         bc = _frames_bary(frames, fc, pts)
         mn, arg = bc.min(1)
-        moving = (mn < -tol) & ~off
-        face = torch.where(moving, nbr[fc * 3 + arg], face)       # -1 when it walked off the mesh
-        off = face < 0
+        moving = (mn < -tol) & on
+        face = torch.where(moving, nb3[fc, arg], face)            # -1 when it walked off the mesh
+        on = face >= 0
         if (s + 1) % max(1, check_every) and s + 1 < max_steps:
             continue
         # near a vertex (two small coordinates) several triangles compete: the grid decides
         small = bc <= tol
         one = small.sum(1) == 1
-        near = ~moving & ~off & (mn <= tol)
-        unresolved = (off | moving | (near & ~one)) & live
+        near = ~moving & on & (mn <= tol)
+        unresolved = (~on | moving | (near & ~one)) & live
         go_on, need_grid = torch.stack([moving.any(), unresolved.any() | overflow.any()]).tolist()
         if not go_on:
             break
     # a point that settled on (or within tolerance of) an edge may tie with the triangle across
     # it: the tie rule (largest min-barycentric, lowest index) between the two
-    other = nbr[fc * 3 + torch.argmax(small.to(torch.int8), 1)]
+    other = nb3[fc, torch.argmax(small.to(torch.int8), 1)]
     tie = near & one & (other >= 0)
     m2 = _frames_bary(frames, other.clamp_min(0), pts).min(1).values
     face = torch.where(tie & ((m2 > mn) | ((m2 == mn) & (other < face))), other, face)

@@ -75,8 +75,10 @@ def _neg_direction(g: torch.Tensor, dg: torch.Tensor, H: torch.Tensor, Q: torch.
     DY.diagonal(dim1=1, dim2=2).add_(torch.diagonal(SY, dim1=1, dim2=2))     # D + γYᵀY
     R = torch.triu(SY)
     p = torch.linalg.solve_triangular(R, a, upper=True)                     # R⁻¹ Sᵀg
-    q = torch.linalg.solve_triangular(R.transpose(1, 2), DY @ p - gm * b, upper=False)
-    c = torch.cat([-q, gm * p], 1)[..., 0].to(g.dtype)[seg]                 # (N, 2k), negated
+    # −q = R⁻ᵀ (γ Yᵀg − (D + γYᵀY) p): a triangular solve is odd in its right-hand side, so
+    # solving for −q directly gives −q's bits without a negation
+    nq = torch.linalg.solve_triangular(R.transpose(1, 2), gm * b - DY @ p, upper=False)
+    c = torch.cat([nq, gm * p], 1)[..., 0].to(g.dtype)[seg]                 # (N, 2k), negated
     return dg + (c.T * W).sum(0)
 
 
@@ -97,17 +99,19 @@ def _pair(Hold: torch.Tensor, Qold: torch.Tensor, hn: torch.Tensor, seg: torch.T
     P = _segrows(Pr.view(3 * (k + 1), n), seg, B).view(B, 3, k + 1)
     sy, yy = P[:, 0, k], P[:, 1, k]
     r = P[:, 1:, k].sqrt()                                   # √(y·y), √(s·s)
-    keep = (sy > 1e-12 * r[:, 0] * r[:, 1]) & (sy > 0)
+    # enough curvature: s·y > 1e-12 |y| |s| (the bound is >= 0 or NaN, so this also says s·y > 0)
+    keep = sy > 1e-12 * r[:, 0] * r[:, 1]
     torch.where(keep[seg], hn, zero, out=Hn[:, k])           # a skipped pair is stored as zeros
     gamma = torch.where(keep & (yy > 0), sy / yy.clamp_min(tiny), one)
-    Pd = P.double() * keep.double()[:, None, None]
-    Qn = Pd.new_empty(B, 2, k + 1, k + 1)
-    if k:
-        Qn[:, :, :k, :k] = Qold
-        Qn[:, :, :k, k] = Pd[:, :2, :k]                      # columns s_i·y and y_i·y
-        Qn[:, 0, k, :k] = Pd[:, 2, :k]                       # row s·y_j
-    Qn[:, 1, k, :] = Pd[:, 1, :]                             # row y_j·y, y·y
-    torch.where(keep, Pd[:, 0, k], one64, out=Qn[:, 0, k, k])   # s·y, a unit pivot when skipped
+    Pd = (P * keep[:, None, None]).double()                  # times 1 or 0, exact in either dtype
+    # the new last rows: s·y_j then s·y (a unit pivot when skipped) in place of s·s, no longer
+    # needed; y_j·y, y·y
+    torch.where(keep, Pd[:, 0, k], one64, out=Pd[:, 2, k])
+    rows = Pd[:, 1:].flip(1)[:, :, None]                     # (B, 2, 1, k+1)
+    if not k:
+        return Hn, rows, gamma
+    # below Qold's columns s_i·y and y_i·y, those rows
+    Qn = torch.cat([torch.cat([Qold, Pd[:, :2, :k, None]], 3), rows], 2)
     return Hn, Qn, gamma
 
 
@@ -189,6 +193,7 @@ def batched_lbfgs(fun: Callable[..., torch.Tensor], x0: torch.Tensor, seg: torch
     one0 = torch.ones((), dtype=dt, device=dev)
     one64 = torch.ones((), dtype=torch.float64, device=dev)
     mb_t = torch.full((), mb, dtype=torch.long, device=dev)
+    zero_l = torch.zeros((), dtype=torch.long, device=dev)
     neg_inf = float("-inf")
     cols = torch.arange(n, device=dev)
     blocks = {}                                              # trials per block -> (j, 2^-j) as (k, 1)
@@ -315,8 +320,10 @@ def batched_lbfgs(fun: Callable[..., torch.Tensor], x0: torch.Tensor, seg: torch
         H = torch.where(ms, Hn, H)
         Q = torch.where(moved[:, None, None, None], Qn, Q)
         iters = iters + moved
-        stop = converged(f, f_new, moved) | (iters >= iterations)
-        left = torch.where(moved, mb_t, left - Kc).clamp_min(0).masked_fill(stop, 0)
+        # a segment that moved gets a new iteration unless it has converged or run out; one that
+        # did not has Kc trials fewer (left > 0 implies iters < iterations, so it cannot have run out)
+        stop = ((f - f_new).abs() <= rel_tol * f.abs().clamp_min(tiny)) | (iters >= iterations)
+        left = torch.where(moved, torch.where(stop, zero_l, mb_t), (left - Kc).clamp_min(0))
         step0 = torch.where(moved, one, step0 * 0.5 ** Kc)
         XG, f = XGn, f_new
     return _put(x_out, f_out, it_out, ent, item, XG[0], f, iters)

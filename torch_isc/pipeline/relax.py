@@ -52,7 +52,7 @@ class RelaxConfig:
 def mesh_energy(mesh: MeshBatch, verts: torch.Tensor, points: torch.Tensor, face: torch.Tensor,
                 kappa_data: float, kappa_edge: float, rho: torch.Tensor, n_points: torch.Tensor,
                 min_dist: torch.Tensor, edge_sel: Optional[torch.Tensor] = None,
-                nu_e: Optional[torch.Tensor] = None) -> torch.Tensor:
+                nu_e: Optional[torch.Tensor] = None, consts: Optional[tuple] = None) -> torch.Tensor:
     """``(B,)`` the mesh energy of every item at vertex positions ``verts (V, 2)``.
 
     Args:
@@ -61,26 +61,34 @@ def mesh_energy(mesh: MeshBatch, verts: torch.Tensor, points: torch.Tensor, face
         edge_sel: optional indices of the edges to sum (the edges of the items wanted; the
             other items' energies are then meaningless).
         nu_e: optional ``(E,)`` :func:`degree_weights` of ``mesh`` (computed when None).
+        consts: optional :func:`_energy_constants` of the same arguments (computed when None).
     """
     B = mesh.num_items
     dt = verts.dtype
+    guard_t, n_v, rho2 = _energy_constants(mesh, rho, n_points, min_dist) if consts is None else consts
     f = face.clamp_min(0)
     vid = mesh.faces[f]                                             # (P,3)
-    # an ignored point's guard is infinite: it adds 1/inf = 0
-    guard = torch.cat([min_dist[mesh.face_item], min_dist.new_full((1,), float("inf"))])
-    guard = guard[torch.where(face >= 0, f, mesh.faces.shape[0])]
+    guard = guard_t[torch.where(face >= 0, f, mesh.faces.shape[0])]
     dist = (verts[vid] - points.to(dt)[:, None, :]).norm(dim=2)
-    inv = 1.0 / torch.maximum(dist, guard[:, None])
+    inv = torch.maximum(dist, guard[:, None]).reciprocal()          # 1 / max(|v − p|, guard)
     phi = segment_sum(inv.reshape(-1), vid.reshape(-1), verts.shape[0])
-    phi = phi / n_points[mesh.vert_item].clamp_min(1)
+    phi = phi / n_v
     e, ei = mesh.edges, mesh.edge_item
     nu_e = degree_weights(mesh) if nu_e is None else nu_e
     if edge_sel is not None:
         e, ei, nu_e = e[edge_sel], ei[edge_sel], nu_e[edge_sel]
-    UD = segment_sum((phi[e[:, 0]] - phi[e[:, 1]]) ** 2, ei, B) * rho ** 2
+    UD = segment_sum((phi[e[:, 0]] - phi[e[:, 1]]) ** 2, ei, B) * rho2
     l2 = ((verts[e[:, 0]] - verts[e[:, 1]]) ** 2).sum(1)
-    UE = segment_sum(nu_e.to(dt) * l2, ei, B) / rho ** 2
+    UE = segment_sum(nu_e.to(dt) * l2, ei, B) / rho2
     return kappa_data * UD + kappa_edge * UE
+
+
+def _energy_constants(mesh: MeshBatch, rho: torch.Tensor, n_points: torch.Tensor, min_dist: torch.Tensor):
+    """What :func:`mesh_energy` uses of its arguments that its evaluations of one relaxation
+    share: the distance guard per triangle with an infinite one after the last (an ignored
+    point adds 1/inf = 0), the points per vertex's item (at least 1), ``rho²``."""
+    guard = torch.cat([min_dist[mesh.face_item], min_dist.new_full((1,), float("inf"))])
+    return guard, n_points[mesh.vert_item].clamp_min(1), rho ** 2
 
 
 def degree_weights(mesh: MeshBatch) -> torch.Tensor:
@@ -130,11 +138,13 @@ def relax_mesh(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor, 
         short = short.scatter_reduce(0, torch.cat([e[:, 0], e[:, 1]]), torch.cat([el, el]), "amin")
         mesh.face_neighbors                       # cached here, so the trial meshes share it
         nu_e = degree_weights(mesh)
+        consts = _energy_constants(mesh, rho, n_points, min_dist)
         q0 = mesh.quality(v)
         floor = torch.minimum(q0, torch.full_like(q0, min_quality)).repeat(K)
         # trial k of item b is row k * B + b of the stacked mesh checks
         stack_item = (mesh.face_item[None, :] + B * torch.arange(K, device=dev)[:, None]).reshape(-1)
         trial = torch.arange(K, device=dev)[:, None]
+        halves = torch.pow(0.5, trial.to(dt))                               # exact powers of two
         vrow = torch.arange(V, device=dev)
         active = torch.ones(B, dtype=torch.bool, device=dev) if active is None else active.clone()
     rounds: list = []       # (positions, energy with its graph, accepted) of the last step's trials
@@ -142,7 +152,8 @@ def relax_mesh(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor, 
         if not rounds:
             vv = v.clone().requires_grad_(True)
             with torch.enable_grad():
-                U = mesh_energy(mesh, vv, points, face, kappa_data, kappa_edge, rho, n_points, min_dist, nu_e=nu_e)
+                U = mesh_energy(mesh, vv, points, face, kappa_data, kappa_edge, rho, n_points, min_dist, nu_e=nu_e,
+                                consts=consts)
                 g, = torch.autograd.grad(U.sum(), vv)
             U = U.detach()
         else:               # an accepted trial's energy is this step's: its graph gives the gradient
@@ -160,10 +171,7 @@ def relax_mesh(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor, 
             ratio = d.norm(dim=1) / short
             worst = segment_max(ratio, vi, B, fill=0)
             step = torch.where(worst > 0, max_move / worst.clamp_min(torch.finfo(dt).tiny), torch.zeros_like(worst))
-            lengths = [step]
-            for _k in range(1, K):
-                lengths.append(0.5 * lengths[-1])
-            lengths = torch.stack(lengths)                                  # (K,B) the halvings
+            lengths = step * halves                                         # (K,B) the halvings
             vt = v + lengths[:, vi, None] * d                               # (K,V,2)
             q = mesh.kernel.quality(vt[:, mesh.faces].reshape(K * T, 3, 2))
             bad = segment_any((q <= 0) | (q < floor), stack_item, K * B).view(K, B)     # q has the sign of the area
@@ -179,7 +187,8 @@ def relax_mesh(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor, 
                 ft, _ = locate_walk(mesh.with_verts(vk), points, point_item, face, return_bary=False)
                 vk.requires_grad_(True)
                 with torch.enable_grad():
-                    Ut = mesh_energy(mesh, vk, points, ft, kappa_data, kappa_edge, rho, n_points, min_dist, nu_e=nu_e)
+                    Ut = mesh_energy(mesh, vk, points, ft, kappa_data, kappa_edge, rho, n_points, min_dist, nu_e=nu_e,
+                                     consts=consts)
                 ok = has & (Ut.detach() < U)
                 rounds.append((vk, Ut, ok))
                 v_new = torch.where(ok[vi][:, None], vk.detach(), v_new)

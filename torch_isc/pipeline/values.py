@@ -235,8 +235,21 @@ class GeometryObjective:
         sign patterns), from the fields above; :meth:`restrict` makes them again."""
         self.sfloor = self.signs * self.floor                 # F = sfloor + signs·e = signs·(e + floor)
         self.wt2, self.m2wt = 2.0 * self.wt, -2.0 * self.wt
-        self.el2 = torch.stack([self.el, 0.5 * self.el], -1)   # J and S in one sum: el·jump, el·size/2
-        self.zero = torch.zeros((), dtype=self.dt, device=self.dev)
+        # ∇f_t and M_t F_t from one product and one sum over the face's vertices (M_t transposed:
+        # the same products M_t[k, i] F_i, summed in the same order)
+        self.GM = torch.cat([self.G, self.M.transpose(1, 2)], -1)     # (T,3,5)
+        # every per-item sum of an evaluation in one scatter: column 0 the faces' w·q, 1 and 2
+        # the band edges' el·jump and el·size, 3 the crossings' w·over² (each column still
+        # gets its entries in order, so its sums keep their bits)
+        self.smooth = self.smoothness > 0 and self.ef.shape[0] > 0
+        ws, idx = [self.wt], [self.fi * 4]
+        if self.smooth:
+            ws += [self.el, 0.5 * self.el]
+            idx += [self.eitem * 4 + 1, self.eitem * 4 + 2]
+        if self.cross:
+            ws.append(self.c_w)
+            idx.append(self.c_item * 4 + 3)
+        self.sum_w, self.sum_idx = torch.cat(ws), torch.cat(idx)
         if self.cross:
             self.ce4 = torch.cat([self.ce, self.ce.flip(1)], 1)   # both ends, then swapped
             self.cw2 = 2.0 * self.c_w
@@ -367,51 +380,59 @@ class GeometryObjective:
         one = s.dim() == 1
         s = s[None] if one else s
         K = s.shape[0]
-        faces, G, M, fi, wt, guard, ef, eitem = (self.faces, self.G, self.M, self.fi, self.wt, self.guard,
-                                                 self.ef, self.eitem)
+        faces, G, guard, ef, eitem = self.faces, self.G, self.guard, self.ef, self.eitem
         e = torch.exp(s.clamp(-60.0, 60.0))
         F = torch.addcmul(self.sfloor, self.signs, e)        # (K,V) signs·(e + floor), exactly
         Ft = F[:, faces]                                     # (K,T,3)
-        grad = (G * Ft[..., None]).sum(-2)                   # (K,T,2) ∇f_t
+        GMF = (self.GM * Ft[..., None]).sum(-2)              # (K,T,5) ∇f_t, then M_t F_t
+        grad, MF = GMF[..., :2], GMF[..., 2:]
         g2 = (grad * grad).sum(-1)
-        MF = (M * Ft[..., None, :]).sum(-1)                  # (K,T,3) M_t F_t (M symmetric)
         num = (MF * Ft).sum(-1)
         rden = (g2 + guard).reciprocal()
         q = num * rden
-        obj = self._segsum(wt * q, fi)
-        # d(num/den)/dF_t = 2 (M F − q G ∇f) / den, the G ∇f part added with the smoothness one
-        dgrad = (self.m2wt * q * rden)[..., None] * grad     # (K,T,2) d obj / d ∇f_t
-        dFt = (self.wt2 * rden)[..., None] * MF
-        if self.smoothness > 0 and ef.shape[0]:
-            a, b = ef[:, 0], ef[:, 1]
-            ga, gb = grad[:, a], grad[:, b]
-            diff = ga - gb
-            jump = (diff * diff).sum(-1)
-            # el·jump and el·size (size = half the sum of the two g2) summed per item at once
-            JS = self._segsum(self.el2 * torch.stack([jump, g2[:, a] + g2[:, b]], -1), eitem)
-            J, S = JS[..., 0], JS[..., 1].clamp_min(torch.finfo(self.dt).tiny)
-            obj = obj + self.smoothness * J / S
-            el = self.el
-            dj = ((2.0 * self.smoothness) / S)[:, eitem] * el     # 2 · d obj / d jump
-            cs = (-self.smoothness * J / (S * S))[:, eitem] * el  # d obj / d size
-            dj = dj[..., None] * diff
-            dgrad = dgrad.index_add(1, self.ef_ab,
-                                    torch.cat([dj + cs[..., None] * ga, cs[..., None] * gb - dj], 1))
-        dFt = dFt + (G * dgrad[..., None, :]).sum(-1)
-        dF = torch.zeros_like(F).index_add_(1, faces.reshape(-1), dFt.reshape(K, -1))
+        terms = [q]                                          # the per-entry terms of the per-item sums
+        if self.smooth:
+            E = ef.shape[0]
+            # ∇f and |∇f|² of both faces of every band edge in one gather: a's rows, then b's
+            gg = torch.cat([grad, g2[..., None]], -1)[:, self.ef_ab]     # (K,2E,3)
+            diff = gg[:, :E, :2] - gg[:, E:, :2]
+            terms += [(diff * diff).sum(-1), gg[:, :E, 2] + gg[:, E:, 2]]   # jump, size (times 2)
         if self.cross:
-            ce, cl, clim, cw, cit = self.ce, self.c_len, self.c_lim, self.c_w, self.c_item
+            cl, clim = self.c_len, self.c_lim
             m4 = F[:, self.ce4].abs()                        # (K,C,4) |F| at both ends, then swapped
             m, mf = m4[..., :2], m4[..., 2:]
             msum = m.sum(-1)
             a = cl[:, None] * m / msum[..., None]
             over = (clim - a).clamp_min(0)
-            obj = obj + self._segsum(cw * (over * over).sum(-1), cit)
+            terms.append((over * over).sum(-1))
+        # w·q per face, el·jump and el·size per band edge, w·over² per crossing: one scatter
+        sums = F.new_zeros((K, self.item_zero.shape[0] * 4)).index_add_(
+            1, self.sum_idx, self.sum_w * torch.cat(terms, 1)).view(K, -1, 4)
+        obj = sums[..., 0]
+        # d(num/den)/dF_t = 2 (M F − q G ∇f) / den, the G ∇f part added with the smoothness one
+        dgrad = (self.m2wt * q * rden)[..., None] * grad     # (K,T,2) d obj / d ∇f_t
+        dFt = (self.wt2 * rden)[..., None] * MF
+        if self.smooth:
+            J, S = sums[..., 1], sums[..., 2].clamp_min(torch.finfo(self.dt).tiny)
+            obj = obj + self.smoothness * J / S
+            r = (2.0 * self.smoothness) / S                  # 2 · d obj / d jump, per item
+            # per edge, times el: d obj / d jump for a's side and b's (negated), d obj / d size
+            c = torch.stack([r, -r, -self.smoothness * J / (S * S)], -1)[:, eitem] * self.el[:, None]
+            # (dj + cs·ga, cs·gb − dj) with dj = 2 d obj / d jump · (ga − gb), for a's rows then b's
+            upd = (c[:, None, :, 2, None] * gg[..., :2].view(K, 2, E, 2)
+                   + c[..., :2].transpose(1, 2)[..., None] * diff[:, None])
+            dgrad = dgrad.index_add(1, self.ef_ab, upd.view(K, 2 * E, 2))
+        dFt = dFt + (G * dgrad[..., None, :]).sum(-1)
+        dF = torch.zeros_like(F).index_add_(1, faces.reshape(-1), dFt.reshape(K, -1))
+        if self.cross:
+            obj = obj + sums[..., 3]
             # a_0 = ℓ m_0/(m_0+m_1), a_1 = ℓ − a_0: d obj/d m_0 = (h_0 − h_1) ℓ m_1/Σ², h_k = −2 w over_k
             h = self.cw2 * (over[..., 1] - over[..., 0]) * cl / (msum * msum)
             # d obj/d F at both ends: (h m_1, −h m_0), times the signs
-            dF = dF.index_add(1, ce.reshape(-1), ((h[..., None] * mf) * self.sgn_c).reshape(K, -1))
-        ds = dF * self.signs * torch.where(s.abs() < 60.0, e, self.zero)
+            dF = dF.index_add(1, self.ce.reshape(-1), ((h[..., None] * mf) * self.sgn_c).reshape(K, -1))
+        # d e/d s = e where the clamp let s through (−60 < s < 60), 0 elsewhere: clamp's own
+        # backward (where it zeroes, the product it replaces, · +0, had no other value but ±0)
+        ds = torch.ops.aten.hardtanh_backward(dF * self.signs * e, s, -60.0, 60.0)
         return (obj[0], ds[0]) if one else (obj, ds)
 
 

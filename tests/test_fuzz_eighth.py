@@ -9,6 +9,8 @@ on 86% of random masks (a 2x2 white mask: -0.553 in     test_mask_curves_stay_in
 cv2's coordinates; up to 0.48 px)
 a ``(1, W, 1)`` array read as a ``W x 1`` column; an    test_one_channel_arrays_read_as_cv2
 ``(H, W, 1)`` array refused (cv2 reads both)
+``find_contours`` of a ``(0, W)`` mask: an error where  test_empty_mask_has_no_contour
+cv2 returns no contour
 =====================================================  ==========================================
 """
 from __future__ import annotations
@@ -78,3 +80,15 @@ def test_one_channel_arrays_read_as_cv2():
     col, _ = find_contours(torch.as_tensor(x[:, :, 0])[None], cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE, dtype=np.int32)
     row, _ = cv2.findContours(x[:, :, 0], cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)
     assert len(col) == len(row) and all(np.array_equal(p, q) for p, q in zip(col, row))
+
+
+def test_empty_mask_has_no_contour():
+    """``(0, 5)``, ``(5, 0)`` and ``(0, 5, 1)``: no contour and no hierarchy, as cv2; a bad
+    argument is still refused."""
+    from torch_isc.images import ImageError
+    for shape in ((0, 5), (5, 0), (0, 5, 1)):
+        m = np.zeros(shape, np.uint8)
+        assert find_contours(m, cv2.RETR_TREE, cv2.CHAIN_APPROX_NONE) == cv2.findContours(
+            m, cv2.RETR_TREE, cv2.CHAIN_APPROX_NONE) == ((), None)
+    with pytest.raises(ImageError):
+        find_contours(np.zeros((0, 5), np.uint8), 99, cv2.CHAIN_APPROX_NONE)

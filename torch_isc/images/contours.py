@@ -382,6 +382,10 @@ def find_contours(mask: ImageLike, mode=3, method=1, offset=None, *, connectivit
     >>> len(c), h[0, :, 3].tolist(), c[0].dtype.name
     (2, [-1, 0], 'float32')
     """
+    shape = tuple(getattr(mask, "shape", ()))
+    if len(shape) in (2, 3) and 0 in shape[:2] and shape[2:] in ((), (1,)):
+        # an empty image has no contour (as cv2); the arguments are still checked, on a blank pixel
+        mask = np.zeros((1, 1), np.uint8)
     return find_contours_batch([mask], mode, method, offset, connectivity=connectivity, dtype=dtype,
                                min_area=min_area, epsilon=epsilon, smooth=smooth, threshold=threshold)[0]
 

@@ -344,7 +344,7 @@ def test_dropin_input_forms_and_errors():
         same(x, cv2.findContours(x, cv2.RETR_TREE, cv2.CHAIN_APPROX_NONE))
     bad = [(dict(mask=m.astype(np.complex64)), "bool, integer or float array, got dtype complex64"),
            (dict(mask=np.array([["a"]])), "got dtype <U1"), (dict(mask=None), "got dtype object"),
-           (dict(mask=np.zeros((3, 4, 5))), "expected a 2D"), (dict(mask=np.zeros((0, 5))), "empty image"),
+           (dict(mask=np.zeros((3, 4, 5))), "expected a 2D"), (dict(mask=np.zeros((0, 5, 2))), "expected a 2D"),
            (dict(mask=m, dtype=np.float16), "dtype must be"), (dict(mask=m, dtype=np.int64), "dtype must be"),
            (dict(mask=m, offset=(1,)), "offset must be"), (dict(mask=m, min_area=-1), "min_area must be"),
            (dict(mask=m, threshold="x"), "threshold must be"), (dict(mask=m, connectivity=6), "connectivity must be")]

@@ -994,7 +994,7 @@ def trace_masks(masks: Sequence[torch.Tensor], connectivity: int = 8, smooth: in
     mag = torch.exp(s - s.max().clamp_min(0) if V else s)
     # a crossing toward a padding pixel's centre lies at most half way, on the image frame: the
     # padding vertex's magnitude is raised to that of every foreground vertex across such an edge
-    need = torch.where(pad.index_select(0, bg_v), mag.index_select(0, fg_v), torch.zeros_like(a[:, 0]))
+    need = torch.where(pad.index_select(0, bg_v), mag.index_select(0, fg_v), mag.new_zeros(()))
     mag = torch.maximum(mag, torch.zeros_like(mag).scatter_reduce_(0, bg_v, need, "amax"))
     values = torch.where(fg, -mag, mag)
     e0, e1 = ends[:, 0].contiguous(), ends[:, 1].contiguous()
@@ -1014,8 +1014,7 @@ def trace_masks(masks: Sequence[torch.Tensor], connectivity: int = 8, smooth: in
         a = verts0.index_select(0, fg_v)
         loop, k, prev, nxt = _loop_index(first, counts, pts.shape[0])
     # an inserted tip on the frame leaves its neighbours within eps of the zero set, a hair outside
-    frame = sz.flip(1).to(dtype).index_select(0, pl.item.index_select(0, loop))
-    pts = torch.minimum(pts.clamp_min(0), frame)
+    pts = torch.minimum(pts.clamp_min(0), sz.flip(1).to(dtype).index_select(0, pl.item.index_select(0, loop)))
     pl = Polylines(pts, first, counts, pl.closed, pl.item, edge, pl.num_items)
 
     # ---- outer border or hole: foreground on the left, so outer loops turn positively

@@ -237,8 +237,11 @@ def batched_lbfgs(fun: Callable[..., torch.Tensor], x0: torch.Tensor, seg: torch
     tiny = torch.finfo(dt).tiny
     one = torch.ones(B, dtype=dt, device=dev)
 
+    def small_change(f, f_new):
+        return (f - f_new).abs() <= rel_tol * f.abs().clamp_min(tiny)
+
     def converged(f, f_new, moved):
-        return moved & ((f - f_new).abs() <= rel_tol * f.abs().clamp_min(tiny))
+        return moved & small_change(f, f_new)
 
     # the history fills: lockstep rounds, a host read per block of trials; each block after the
     # first tries twice as many steps (a few segments backtrack far: fewer blocks, fewer reads)
@@ -322,7 +325,7 @@ def batched_lbfgs(fun: Callable[..., torch.Tensor], x0: torch.Tensor, seg: torch
         iters = iters + moved
         # a segment that moved gets a new iteration unless it has converged or run out; one that
         # did not has Kc trials fewer (left > 0 implies iters < iterations, so it cannot have run out)
-        stop = ((f - f_new).abs() <= rel_tol * f.abs().clamp_min(tiny)) | (iters >= iterations)
+        stop = small_change(f, f_new) | (iters >= iterations)
         left = torch.where(moved, torch.where(stop, zero_l, mb_t), (left - Kc).clamp_min(0))
         step0 = torch.where(moved, one, step0 * 0.5 ** Kc)
         XG, f = XGn, f_new

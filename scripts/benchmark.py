@@ -373,6 +373,7 @@ def part_b(args, config, shapes) -> Dict[int, Dict[str, Any]]:
         rows[B] = dict(seconds=t, rate=B / t, one_by_one=one, one_rate=B / one, speedup=one / t, extrap=extrap,
                        levels=max(len(r.stats) for r in results), topo=topo_ok(results, shapes[:B]),
                        stages={k: median([s[k] for s in stage_runs]) for k in STAGES})
+        print(f"# part b, B={B}: {t:.3f} s ({B / t:.1f} shapes/s)", file=sys.stderr, flush=True)
         sys.stdout.flush()
     print("| B | batch s | **shapes/s (batch)** | one-by-one s | shapes/s (one-by-one) | **speed-up** | levels | "
           "topology ok | " + " | ".join(STAGES) + " |")
@@ -448,6 +449,7 @@ def part_d(args, config) -> Dict[str, Any]:
         results = torch_isc.reconstruct_batch(tensors, config)
         times.append(clock(device) - t0)
     t = median(times)
+    print(f"# part d, B={B}: {t:.3f} s ({B / t:.1f} shapes/s)", file=sys.stderr, flush=True)
     n_sub = min(args.subset, B)
     one = []
     for i in range(n_sub):

@@ -225,6 +225,11 @@ def test_query_points_and_items_are_checked():
     for bad in (torch.zeros(3, 3), torch.zeros(2), torch.zeros(2, 2, dtype=torch.complex64), [[0.0, 0.0]]):
         with pytest.raises(PointSetError, match="points: expected a real"):
             c.inside(bad, torch.zeros(len(bad), dtype=torch.long))
+    # points or items on another device than the curve (meta stands in for a GPU here)
+    with pytest.raises(PointSetError, match=r"points: on meta, the curve on cpu \(move them"):
+        c.locate(torch.zeros(2, 2, dtype=torch.float64, device="meta"), torch.tensor([0, 1]))
+    with pytest.raises(PointSetError, match="point_item: on meta, the curve on cpu"):
+        c.inside(p, torch.tensor([0, 1], device="meta"))
 
 
 def test_render_arguments_are_checked():

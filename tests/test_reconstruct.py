@@ -69,7 +69,7 @@ def check_result_basics(res, pts):
     curve.mesh.validate()
     assert not (curve.values == 0).any()
     # the mesh covers every input point (caller's coordinates)
-    face, _ = curve.locate(pts.to(curve.mesh.dtype))
+    face, _ = curve.locate(pts.to(device=curve.device, dtype=curve.mesh.dtype))
     assert (face >= 0).all()
     assert res.converged and res.limit is None
     levels = [s.level for s in res.stats]
@@ -155,7 +155,8 @@ def test_batch_independence(device):
         _, ra = solved(n, device)
         assert (rb.num_closed, rb.num_open) == (ra.num_closed, ra.num_open)
         assert hausdorff(rb.polylines, ra.polylines) < 1e-3 * bbox_diagonal(p.cpu())
-        assert polys_equal(rb.polylines, ra.polylines), f"{n}: result depends on its batch"
+        if device.type == "cpu":           # CUDA's atomic adds: equal to rounding only (the bound above)
+            assert polys_equal(rb.polylines, ra.polylines), f"{n}: result depends on its batch"
         assert [s.triangles for s in rb.stats] == [s.triangles for s in ra.stats]
         assert torch.equal(rb.points, p)
 

@@ -389,6 +389,11 @@ class ImplicitCurve:
                 or points.dtype == torch.bool):
             got = f"shape {tuple(points.shape)} {points.dtype}" if torch.is_tensor(points) else type(points).__name__
             raise PointSetError(f"points: expected a real (N, 2) tensor, got {got}")
+        dev = self.values.device
+        if points.device != dev:
+            raise PointSetError(f"points: on {points.device}, the curve on {dev} (move them with .to(curve.device))")
+        if point_item is not None and torch.is_tensor(point_item) and point_item.device != dev:
+            raise PointSetError(f"point_item: on {point_item.device}, the curve on {dev}")
         if point_item is None:
             if self.num_items != 1:
                 raise ValueError("point_item is required for a batch of more than one curve")

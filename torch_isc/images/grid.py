@@ -87,7 +87,7 @@ def cv_option(value: Union[str, int], table: Dict[str, int], prefix: str, what: 
 def _stack(masks: Sequence[torch.Tensor]) -> Tuple[torch.Tensor, torch.Tensor]:
     """Masks of any sizes as one ``(B, Hmax+2, Wmax+2)`` bool grid, one background pixel (at
     least) around each; and ``(B, 2)`` their ``(H, W)``."""
-    sizes = torch.tensor([list(m.shape) for m in masks], dtype=torch.long)
+    sizes = torch.tensor([list(m.shape) for m in masks], dtype=torch.long, device="cpu")
     H, W = int(sizes[:, 0].max()), int(sizes[:, 1].max())
     dev = masks[0].device
     if all(tuple(m.shape) == (H, W) for m in masks):

@@ -178,7 +178,8 @@ def test_mark_triangles_transverse_coverage(device, dtype):
     """Every triangle's piece is 0.1 off the data (0.001 for the fifth) and smaller than twice
     the reach (1 < 1.2), so the plain coverage rule splits none; a piece across the data
     (alignment below 0.7) is split, down to transverse_split_size tolerances, past
-    min_split_size."""
+    min_split_size; with transverse_noisy 0.5, only where the noise exceeds 0.002 (half the
+    tolerance 0.004)."""
     mesh, _ = unit_hexagon_line(device, dtype)
     T = mesh.faces.shape[0]
     z = torch.zeros(T, device=device, dtype=dtype)
@@ -189,13 +190,19 @@ def test_mark_triangles_transverse_coverage(device, dtype):
     reach = torch.full((T,), 0.6, device=device, dtype=dtype)
     align = torch.tensor([0.2, 0.69, 0.71, 1.0, 0.0, 0.2], device=device, dtype=dtype)
     cov = (excess, reach, align)
-    cfg = TestConfig(min_split_size=0.0, coverage_transverse=0.7)
+    cfg = TestConfig(min_split_size=0.0, coverage_transverse=0.7, transverse_noisy=0.0)
     assert mark_triangles(*args, cfg, 3, coverage=cov)[0].tolist() == [True, True, False, False, False, True]
+    # the noise gate: noise 0 and 0.002 (at the bound) split nothing, 0.0021 splits as above
+    # (its effective tolerance 3 x 0.0021 = 0.0063 is still far below the pieces' 0.1)
+    gated = TestConfig(min_split_size=0.0, coverage_transverse=0.7, transverse_noisy=0.5)
+    for nz, want in ((0.0, [False] * 6), (0.002, [False] * 6), (0.0021, [True, True, False, False, False, True])):
+        a = args[:-1] + (torch.tensor([nz], device=device, dtype=dtype),)
+        assert mark_triangles(*a, gated, 3, coverage=cov)[0].tolist() == want
     assert not mark_triangles(*args, cfg, 3, coverage=(excess, reach))[0].any()
     assert not mark_triangles(*args, TestConfig(min_split_size=0.0, coverage_transverse=0.0), 3, coverage=cov)[0].any()
     # min_split_size 300 x 0.004 = 1.2 > 1 stops the other rules, not this one
-    big = TestConfig(min_split_size=300.0, coverage_transverse=0.7)
+    big = TestConfig(min_split_size=300.0, coverage_transverse=0.7, transverse_noisy=0.0)
     assert mark_triangles(*args, big, 3, coverage=cov)[0].tolist() == [True, True, False, False, False, True]
     # its own floor: 300 tolerances
-    floor = TestConfig(min_split_size=0.0, coverage_transverse=0.7, transverse_split_size=300.0)
+    floor = TestConfig(min_split_size=0.0, coverage_transverse=0.7, transverse_split_size=300.0, transverse_noisy=0.0)
     assert not mark_triangles(*args, floor, 3, coverage=cov)[0].any()

@@ -53,9 +53,11 @@ class TestConfig:
     coverage_test: bool = knob(True)
     #: a coverage failure whose piece of curve runs across the data (largest |cos| to the tangents
     #: of the points that see it below this) splits below the data's reach too; 0 disables
-    coverage_transverse: float = knob(0.0, ge=0, le=1)
+    coverage_transverse: float = knob(0.95, ge=0, le=1)
     #: ...down to this many effective tolerances (instead of min_split_size)
     transverse_split_size: float = knob(1.0, ge=0)
+    #: ...in items whose estimated noise exceeds this fraction of their tolerance (0: every item)
+    transverse_noisy: float = knob(0.5, ge=0)
     #: points a far cluster needs (a point and its nearest far neighbours) to split its triangles
     #: whatever their counts (small components); 0 disables the rule
     far_cluster_points: int = knob(6, ge=0)
@@ -104,7 +106,8 @@ def mark_triangles(mesh: MeshBatch, residual: torch.Tensor, face: torch.Tensor, 
         coverage: optional :func:`curve_coverage_excess` ``(excess, reach[, alignment])``: a
             triangle whose piece of curve is farther from the data than the effective tolerance
             is marked too, while it is larger than the reach of the points near it (the data's
-            resolution), or, when its alignment is below ``cfg.coverage_transverse``, down to
+            resolution), or, when its alignment is below ``cfg.coverage_transverse`` and its
+            item's noise above ``cfg.transverse_noisy`` tolerances, down to
             ``cfg.transverse_split_size`` effective tolerances (past ``min_split_size``).
         clusters: optional :func:`far_clusters` ``(member, radius)`` per point: a triangle
             holding a member is marked whatever its count, while its longest edge exceeds the
@@ -145,7 +148,11 @@ def mark_triangles(mesh: MeshBatch, residual: torch.Tensor, face: torch.Tensor, 
             # a piece across the data (a bridge between two close curves a few spacings apart)
             # is topology, not a detail the sampling cannot place: split below the reach and
             # below the size guard, down to its own floor
+            # on noise-free data the reach already resolves the sampling, and splitting below it
+            # there only cuts notches at the ends of sampling gaps: noisy items only
             across = off & (coverage[2] < cfg.coverage_transverse) & (longest > cfg.transverse_split_size * eff[fi])
+            if cfg.transverse_noisy > 0:
+                across &= (noise > cfg.transverse_noisy * tol)[fi]
     by_cluster = None
     if clusters is not None:
         member, radius = clusters

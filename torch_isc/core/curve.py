@@ -14,7 +14,7 @@ from typing import Optional, Sequence, Tuple
 import torch
 
 from torch_isc.core.extract import Polylines, extract_zero_set
-from torch_isc.core.locate import barycentric, locate_grid
+from torch_isc.core.locate import barycentric, finite_rows, locate_grid
 from torch_isc.core.mesh import InvalidMeshError, MeshBatch
 from torch_isc.core.points import PointSetError
 
@@ -57,12 +57,12 @@ def _common_dtype(mesh: MeshBatch, values) -> Tuple[MeshBatch, torch.Tensor]:
     if not isinstance(values, torch.Tensor):
         raise InvalidValuesError(f"values must be a torch.Tensor, got {type(values).__name__}")
     vd, md = values.dtype, mesh.verts.dtype
+    if values.device != mesh.verts.device:
+        raise InvalidValuesError(f"values are on {values.device}, the mesh on {mesh.verts.device}")
     if vd == md:
         return mesh, values
     if vd == torch.bool or vd.is_complex:
         raise InvalidValuesError(f"values must be real numbers, got dtype {vd}")
-    if values.device != mesh.verts.device:
-        raise InvalidValuesError(f"values are on {values.device}, the mesh on {mesh.verts.device}")
     common = torch.promote_types(vd, md) if vd.is_floating_point else md
     if common != md:
         mesh = mesh.with_verts(mesh.verts.to(common))
@@ -338,6 +338,11 @@ class ImplicitCurve:
         curves = list(curves)
         if not curves:
             raise ValueError("cat needs at least one curve")
+        for k, c in enumerate(curves):
+            if not isinstance(c, ImplicitCurve):
+                raise TypeError(f"cat: item {k} is a {type(c).__name__}, not an ImplicitCurve")
+            if c.values.device != curves[0].values.device:
+                raise ValueError(f"cat: curve {k} is on {c.values.device}, curve 0 on {curves[0].values.device}")
         enc = None
         if any(c.enclosed is not None for c in curves):
             enc = torch.cat([c.enclosed.to(c.values.device) if c.enclosed is not None else
@@ -367,13 +372,14 @@ class ImplicitCurve:
         point_item = self._point_item(points, point_item)
         if self.mesh.faces.shape[0] == 0:          # no triangle (an all-black mask's curve): outside
             return torch.full((points.shape[0],), float("inf"), dtype=self.values.dtype, device=points.device)
+        points, ok = finite_rows(points)
         face, _ = locate_grid(self.mesh, points, point_item)
         bary = barycentric(self.mesh.verts, self.mesh.faces, face, points.to(self.mesh.dtype))
         f = self.eval_at(face, torch.nan_to_num(bary))
         off = torch.full_like(f, float("inf"))
         if self.enclosed is not None:
             off = torch.where(self.off_mesh_inside(points, point_item, face < 0), -off, off)
-        return torch.where(face >= 0, f, off)
+        return torch.where((face >= 0) & ok, f, torch.where(ok, off, torch.full_like(off, float("inf"))))
 
     def inside(self, points: torch.Tensor, point_item: Optional[torch.Tensor] = None) -> torch.Tensor:
         """``(P,)`` bool, ``f < 0``; points off the mesh are outside (but in the inside holes
@@ -479,8 +485,17 @@ class ImplicitCurve:
             >>> bool((moved.mesh.signed_areas() > 0).all())
             True
         """
+        if not torch.is_tensor(verts) or not verts.is_floating_point():
+            got = f"a {verts.dtype} tensor" if torch.is_tensor(verts) else type(verts).__name__
+            raise InvalidMeshError(f"deform: verts must be a real floating tensor, got {got}")
+        if verts.device != self.mesh.device:
+            raise InvalidMeshError(f"deform: verts are on {verts.device}, the curve on {self.mesh.device}")
         if verts.shape != self.mesh.verts.shape:
             raise InvalidMeshError(f"deform: verts must have shape {tuple(self.mesh.verts.shape)}, got {tuple(verts.shape)}")
+        common = torch.promote_types(verts.dtype, self.mesh.verts.dtype)
+        if common != self.mesh.verts.dtype:            # float64 positions for a float32 curve: both float64
+            return self.to(dtype=common).deform(verts, tol, clamp, safety)
+        verts = verts.to(common)
         # a NaN tol passed every boundary check (comparisons with NaN are False)
         if tol is not None and not (isinstance(tol, numbers.Real) and 0 <= tol < float("inf")):
             raise InvalidMeshError(f"deform: tol must be a finite number >= 0, got {tol!r}")
@@ -551,6 +566,8 @@ class ImplicitCurve:
         if not torch.is_tensor(magnitudes):
             raise InvalidValuesError(f"magnitudes must be a ({self.mesh.verts.shape[0]},) tensor, got "
                                      f"{type(magnitudes).__name__}")
+        if magnitudes.device != self.mesh.device:
+            raise InvalidValuesError(f"magnitudes are on {magnitudes.device}, the curve on {self.mesh.device}")
         if validate:
             sync = validate == "sync" or (validate is True and not (magnitudes.is_cuda and magnitudes.requires_grad))
             check_values(magnitudes, self.mesh.verts.shape[0], "magnitudes", sync=sync)

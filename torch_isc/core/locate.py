@@ -25,7 +25,7 @@ from torch_isc.core.mesh import MeshBatch
 from torch_isc.core.segments import expand_in_chunks
 from torch_isc.core.simplex import TRIANGLES
 
-__all__ = ["barycentric", "locate_grid", "locate_children", "locate_walk", "inside_tolerance"]
+__all__ = ["barycentric", "locate_grid", "locate_children", "locate_walk", "inside_tolerance", "finite_rows"]
 
 _MAX_CANDIDATES = 1 << 22
 
@@ -266,3 +266,13 @@ def _walk_buffer(frames: torch.Tensor, nbr: torch.Tensor, pts: torch.Tensor, fac
     m2 = _frames_bary(frames, other.clamp_min(0), pts).min(1).values
     face = torch.where(tie & ((m2 > mn) | ((m2 == mn) & (other < face))), other, face)
     return face, unresolved, need_grid
+
+
+def finite_rows(points: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+    """``(safe, ok)``: ``points (P, 2)`` with each row holding a NaN or an infinity replaced by
+    the origin, and ``ok (P,)`` whether the row was finite. Queries compute on ``safe`` and pick
+    their answer for the other rows with ``torch.where``: a NaN point's NaN would otherwise
+    reach the gradient of every vertex (``0 * NaN`` in the chain rule) even where its output is
+    not used."""
+    ok = torch.isfinite(points).all(1)
+    return torch.where(ok[:, None], points, torch.zeros_like(points)), ok

@@ -19,6 +19,7 @@ from typing import NamedTuple, Optional
 
 import torch
 
+from torch_isc.core.locate import finite_rows
 from torch_isc.core.segments import expand_in_chunks
 
 __all__ = ["area", "length", "centroid", "curvature", "point_curve_distance", "TriangleSegments",
@@ -45,6 +46,15 @@ class TriangleSegments(NamedTuple):
     lone_neg: torch.Tensor
     t1: torch.Tensor
     t2: torch.Tensor
+
+
+def check_curve(curve, what: str) -> None:
+    """A clear error where an :class:`~torch_isc.core.curve.ImplicitCurve` is expected (a
+    reconstruction's result has one: ``result.curve``)."""
+    from torch_isc.core.curve import ImplicitCurve
+    if not isinstance(curve, ImplicitCurve):
+        hint = " (use result.curve)" if hasattr(curve, "curve") else ""
+        raise TypeError(f"{what}: expected an ImplicitCurve{hint}, got {type(curve).__name__}")
 
 
 def triangle_segments(mesh, values: torch.Tensor) -> TriangleSegments:
@@ -100,6 +110,7 @@ def area(curve) -> torch.Tensor:
         >>> area(c)
         tensor([1.4400], dtype=torch.float64)
     """
+    check_curve(curve, "area")
     mesh, values, det, all_neg, seg = _area_parts(curve)
     full = torch.where(all_neg, 0.5 * det, torch.zeros_like(det))
     out = _per_item(mesh, mesh.face_item, full)
@@ -125,6 +136,7 @@ def length(curve) -> torch.Tensor:
         >>> length(c)
         tensor([4.8000], dtype=torch.float64)
     """
+    check_curve(curve, "length")
     mesh = curve.mesh
     seg = triangle_segments(mesh, curve.values)
     d = seg.b - seg.a
@@ -142,6 +154,7 @@ def centroid(curve) -> torch.Tensor:
         >>> centroid(c)
         tensor([[-0.3500,  0.0000]], dtype=torch.float64)
     """
+    check_curve(curve, "centroid")
     mesh, values, det, all_neg, seg = _area_parts(curve)
     v = mesh.verts
     cT = v[mesh.faces].mean(1)                                    # (T,2)
@@ -165,7 +178,10 @@ def centroid(curve) -> torch.Tensor:
         cr = w * (a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])
         mom = mom.index_add(0, item, -(a + b) * cr[:, None] / 6.0)
         ar = ar.index_add(0, item, -0.5 * cr)
-    return mom / ar[:, None]
+    # an item with no inside region: NaN, with a zero gradient (0/0 would poison the shared graph)
+    empty = ar == 0
+    out = mom / torch.where(empty, torch.ones_like(ar), ar)[:, None]
+    return torch.where(empty[:, None], torch.full_like(out, float("nan")), out)
 
 
 def curvature(curve, polylines=None, method: str = "turning") -> torch.Tensor:
@@ -200,6 +216,7 @@ def curvature(curve, polylines=None, method: str = "turning") -> torch.Tensor:
         >>> curvature(ImplicitCurve(m, vals))                          # (pi/3) / (1/2)
         tensor([2.0944, 2.0944, 2.0944, 2.0944, 2.0944, 2.0944], dtype=torch.float64)
     """
+    check_curve(curve, "curvature")
     pl = curve.zero_set() if polylines is None else polylines
     pts = pl.points
     Q = pts.shape[0]
@@ -261,11 +278,14 @@ def point_curve_distance(curve, points: torch.Tensor, point_item: Optional[torch
         >>> point_curve_distance(c, torch.tensor([[0., 0.], [0.9, 0.], [0.8, 0.9]], dtype=torch.float64))
         tensor([0.6000, 0.3000, 0.3606], dtype=torch.float64)
     """
+    check_curve(curve, "point_curve_distance")
     mesh = curve.mesh
     pts = points.to(mesh.dtype)
     N = pts.shape[0]
     dev = pts.device
     point_item = curve._point_item(pts, point_item)
+    raw = pts
+    pts, ok = finite_rows(pts)
     seg = triangle_segments(mesh, curve.values)
     with torch.no_grad():
         B = mesh.num_items
@@ -292,4 +312,9 @@ def point_curve_distance(curve, points: torch.Tensor, point_item: Optional[torch
         d2 = _point_segment_dist2(pts, seg.a[bc], seg.b[bc])
         d = torch.sqrt(d2.clamp_min(torch.finfo(pts.dtype).tiny))
         d = torch.where(has, d, torch.full_like(d, float("inf")))
+    if not bool(ok.all()):
+        # a point at infinity is infinitely far, a NaN point's distance is NaN (no gradient)
+        bad = torch.where(raw.isnan().any(1), float("nan"), float("inf")).to(d.dtype)
+        d = torch.where(ok, d, bad)
+        best = torch.where(ok, best, torch.full_like(best, -1))
     return (d, best) if return_segment else d

@@ -792,6 +792,14 @@ def _ask(oracle: Callable, what: str, device, *args) -> torch.Tensor:
     except Exception as e:
         raise SignOracleError(f"{what} raised {type(e).__name__}: {one_line(e, '(no message)')}") from e
     try:
-        return torch.as_tensor(got, device=device).bool().reshape(-1)
-    except (TypeError, ValueError, RuntimeError) as e:
+        t = torch.as_tensor(got, device=device)
+    except (TypeError, ValueError, RuntimeError):
         raise SignOracleError(f"{what} returned {type(got).__name__}, not an array of booleans") from None
+    if t.dtype == torch.bool:
+        return t.reshape(-1)
+    # a number is not a side: a signed distance read as bool would be "inside" wherever it is
+    # not 0 (both sides of the curve), so only integer 0/1 answers pass besides booleans
+    if t.is_floating_point() or t.is_complex() or t.numel() and not bool(((t == 0) | (t == 1)).all()):
+        raise SignOracleError(f"{what} returned {t.dtype} values, not booleans (True inside; e.g. f(p) < 0 "
+                              f"for a function negative inside)")
+    return t.bool().reshape(-1)

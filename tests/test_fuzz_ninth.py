@@ -1,0 +1,118 @@
+"""Fuzzing, ninth round (issue 18, the session-19 report): one fast regression test per failure.
+
+=====================================================  ==========================================
+case (what happened before)                            tests
+=====================================================  ==========================================
+a sign oracle answering numbers (a signed distance)    test_sign_oracle_numbers_are_refused
+was read as bool: "inside" on both sides (area 10.42
+for a unit disc)
+one NaN query point gave NaN gradients to every vertex  test_non_finite_query_points_do_not_poison_gradients
+(``c(P)``, ``point_curve_distance``, ``soft_inside``)
+``centroid`` of an item with no inside region: NaN      test_centroid_of_an_empty_item_has_a_zero_gradient
+gradients for the whole batch's vertices
+=====================================================  ==========================================
+"""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from torch_isc import ImplicitCurve, hexagon_mesh, reconstruct_batch
+from torch_isc.core.measures import area, centroid, point_curve_distance
+from torch_isc.core.render import soft_inside
+from torch_isc.pipeline.signs import SignOracleError
+
+
+def _disc(r=0.5, res=3):
+    m = hexagon_mesh(torch.zeros(1, 2, dtype=torch.float64), torch.ones(1), res)
+    return m, m.verts.norm(dim=1) - r
+
+
+def test_sign_oracle_numbers_are_refused():
+    t = torch.linspace(0, 2 * math.pi, 41, dtype=torch.float64)[:-1]
+    circ = torch.stack([t.cos(), t.sin()], 1)
+    with pytest.raises(SignOracleError, match="returned torch.float64 values, not booleans"):
+        reconstruct_batch([circ], sign_oracles=[lambda p: p.norm(dim=1) - 1.0])
+    with pytest.raises(SignOracleError, match="not booleans"):
+        reconstruct_batch([circ], sign_oracles=[lambda p: 2 * (p.norm(dim=1) < 1).long()])
+    # booleans and integer 0/1 answers: the same curve, the unit disc (area within 2% of pi)
+    a = reconstruct_batch([circ, circ], sign_oracles=[lambda p: p.norm(dim=1) < 1, lambda p: (p.norm(dim=1) < 1).long()])
+    assert torch.equal(a[0].curve.values, a[1].curve.values)
+    assert float(area(a[0].curve)[0]) == pytest.approx(math.pi, rel=0.02)
+
+
+def test_non_finite_query_points_do_not_poison_gradients():
+    m, v = _disc()
+    vals = v.clone().requires_grad_()
+    c = ImplicitCurve(m, vals)
+    bad = torch.tensor([[float("nan"), 0.0], [float("inf"), 1.0]], dtype=torch.float64)
+    good = torch.tensor([[0.0, 0.0], [0.3, 0.1]], dtype=torch.float64)
+    P = torch.cat([bad, good])
+    # the values for the good rows equal the all-good query's, bit for bit
+    f, f_ref = c(P), c(good)
+    assert torch.equal(f[2:], f_ref) and bool((f[:2] == float("inf")).all())
+    d, d_ref = point_curve_distance(c, P), point_curve_distance(c, good)
+    assert torch.equal(d[2:], d_ref) and math.isnan(float(d[0].detach())) and float(d[1].detach()) == float("inf")
+    s, s_ref = soft_inside(c, P, 0.05), soft_inside(c, good, 0.05)
+    assert torch.equal(s[2:], s_ref) and s[:2].tolist() == [0.0, 0.0]
+    for fn in (lambda q: c(q), lambda q: point_curve_distance(c, q), lambda q: soft_inside(c, q, 0.05),
+               lambda q: soft_inside(c, q, 0.05, mode="local")):
+        g_all = torch.autograd.grad(fn(P)[2:].sum(), vals)[0]
+        g_ref = torch.autograd.grad(fn(good).sum(), vals)[0]
+        assert bool(torch.isfinite(g_all).all()) and torch.equal(g_all, g_ref)
+
+
+def test_centroid_of_an_empty_item_has_a_zero_gradient():
+    m, v = _disc()
+    c2 = ImplicitCurve.cat([ImplicitCurve(m, v), ImplicitCurve(m, m.verts.norm(dim=1) + 0.5)])   # item 1: all outside
+    verts = c2.mesh.verts.clone().requires_grad_()
+    cc = ImplicitCurve(c2.mesh.with_verts(verts), c2.values)
+    cen = centroid(cc)
+    assert torch.isnan(cen[1]).all() and cen[0].abs().max() < 1e-12          # the disc's centre is 0
+    g = torch.autograd.grad(torch.nan_to_num(cen).sum(), verts)[0]
+    assert bool(torch.isfinite(g).all())
+    assert float(g[c2.mesh.vert_item == 1].abs().max()) == 0.0
+    # item 0's gradient is its own alone: the same as for the disc by itself
+    v0 = m.verts.clone().requires_grad_()
+    g0 = torch.autograd.grad(centroid(ImplicitCurve(m.with_verts(v0), v)).sum(), v0)[0]
+    torch.testing.assert_close(g[c2.mesh.vert_item == 0], g0, rtol=1e-12, atol=1e-15)
+
+
+def test_arguments_on_another_device_or_of_another_kind_are_named():
+    """meta tensors stand in for a GPU: each call raised a raw torch error (``Tensor.item()``
+    on meta, a device RuntimeError, ``'ReconstructionResult' object has no attribute 'mesh'``)."""
+    from torch_isc.core.curve import InvalidValuesError
+    from torch_isc.core.mesh import InvalidMeshError
+    from torch_isc.core.render import rasterize
+
+    m, v = _disc()
+    c = ImplicitCurve(m, v)
+    with pytest.raises(InvalidValuesError, match="values are on meta, the mesh on cpu"):
+        ImplicitCurve(m, v.to("meta"))
+    with pytest.raises(ValueError, match="cat: curve 1 is on meta, curve 0 on cpu"):
+        ImplicitCurve.cat([c, ImplicitCurve(m.to("meta"), v.to("meta"), validate=False)])
+    with pytest.raises(InvalidMeshError, match="deform: verts are on meta, the curve on cpu"):
+        c.deform(m.verts.to("meta"))
+    with pytest.raises(InvalidMeshError, match="deform: verts must be a real floating tensor, got a torch.bool"):
+        c.deform(m.verts > 0)
+    with pytest.raises(InvalidValuesError, match="magnitudes are on meta, the curve on cpu"):
+        c.rescale(v.abs().to("meta"))
+    with pytest.raises(ValueError, match="tau is on meta, the curve on cpu"):
+        soft_inside(c, torch.zeros(1, 2, dtype=torch.float64), torch.tensor(0.1, device="meta"))
+    with pytest.raises(ValueError, match=r"tau must be one real floating number, got a \(2,\)"):
+        rasterize(c, 4, 4, torch.tensor([0.1, 0.2]))
+    res = reconstruct_batch([m.verts[m.vert_item == 0] * 3.0])[0]      # any result object
+    for fn in (area, centroid, lambda x: point_curve_distance(x, torch.zeros(1, 2)), lambda x: rasterize(x, 4, 4, 0.1)):
+        with pytest.raises(TypeError, match=r"expected an ImplicitCurve \(use result.curve\), got ReconstructionResult"):
+            fn(res)
+    # float64 positions for a float32 curve: both float64 in the clamped and the strict motion
+    c32 = c.to(dtype=torch.float32)
+    target = c32.mesh.verts.double()
+    k = int(m.verts.norm(dim=1).argmin())                   # the centre: an interior vertex
+    target[k] += 0.01
+    moved, t = c32.deform(target, clamp=True)
+    assert moved.mesh.verts.dtype == torch.float64 and float(t) == 1.0
+    torch.testing.assert_close(moved.mesh.verts, target, rtol=0, atol=1e-15)
+    assert torch.equal(c32.deform(target).mesh.verts, target)

@@ -116,3 +116,39 @@ def test_arguments_on_another_device_or_of_another_kind_are_named():
     assert moved.mesh.verts.dtype == torch.float64 and float(t) == 1.0
     torch.testing.assert_close(moved.mesh.verts, target, rtol=0, atol=1e-15)
     assert torch.equal(c32.deform(target).mesh.verts, target)
+
+
+@pytest.mark.parametrize("dtype,scales", [(torch.float64, (1e-300, 1e-200, 1e-160, 1e160, 1e200, 1e300)),
+                                          (torch.float32, (1e-30, 1e-20, 1e20, 1e30))])
+def test_curve_queries_hold_at_every_scale(dtype, scales):
+    """A unit circle's curve scaled by k (exactly: the same mesh and values, positions times k)
+    answers every query as the unit one does, times k: the centre was "outside" at 1e200
+    (triangle areas overflowed), the length 8e7 times too large at 1e-160 (squared lengths
+    floored at the smallest normal), soft_inside 0.5 everywhere in "local" mode."""
+    from torch_isc.core.measures import length
+    from torch_isc.core.render import rasterize
+
+    m, v = _disc(0.6, 4)
+    m, v = m.to(dtype=dtype), v.to(dtype)
+    c1 = ImplicitCurve(m, v)
+    q1 = torch.tensor([[0.0, 0.0], [0.9, 0.1], [0.5, -0.2], [3.0, 0.0]], dtype=dtype)
+    rtol = 1e-12 if dtype == torch.float64 else 1e-5
+    ref = dict(inside=c1.inside(q1), f=c1(q1), length=length(c1), centroid=centroid(c1),
+               dist=point_curve_distance(c1, q1), soft=soft_inside(c1, q1, 0.05),
+               local=soft_inside(c1, q1, 0.05, mode="local"), raster=rasterize(c1, 8, 8, 0.05))
+    for k in scales:
+        ck = ImplicitCurve(m.with_verts(m.verts * k), v * k)        # values scale with the distances
+        qk = q1 * k
+        assert torch.equal(ck.inside(qk), ref["inside"]), k
+        torch.testing.assert_close(ck(qk)[:3] / k, ref["f"][:3], rtol=rtol, atol=0)
+        torch.testing.assert_close(length(ck) / k, ref["length"], rtol=rtol, atol=0)
+        torch.testing.assert_close(centroid(ck) / k, ref["centroid"], rtol=rtol, atol=rtol)
+        torch.testing.assert_close(point_curve_distance(ck, qk) / k, ref["dist"], rtol=rtol, atol=0)
+        torch.testing.assert_close(soft_inside(ck, qk, 0.05 * k), ref["soft"], rtol=rtol, atol=rtol)
+        torch.testing.assert_close(soft_inside(ck, qk, 0.05 * k, mode="local"), ref["local"], rtol=rtol, atol=rtol)
+        torch.testing.assert_close(rasterize(ck, 8, 8, 0.05 * k), ref["raster"], rtol=rtol, atol=rtol)
+    # the area scales by k^2: representable at 1e100 (float64), an honest inf / 0 beyond
+    if dtype == torch.float64:
+        ck = ImplicitCurve(m.with_verts(m.verts * 1e100), v * 1e100)
+        torch.testing.assert_close(area(ck) / 1e200, area(c1), rtol=1e-12, atol=0)
+        assert float(area(ImplicitCurve(m.with_verts(m.verts * 1e200), v * 1e200))[0]) == float("inf")

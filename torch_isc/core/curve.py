@@ -17,6 +17,7 @@ from torch_isc.core.extract import Polylines, extract_zero_set
 from torch_isc.core.locate import barycentric, finite_rows, locate_grid
 from torch_isc.core.mesh import InvalidMeshError, MeshBatch
 from torch_isc.core.points import PointSetError
+from torch_isc.core.segments import segment_max
 
 __all__ = ["ImplicitCurve", "InvalidValuesError", "check_values", "crossed_triangles", "max_orientation_fraction"]
 
@@ -261,6 +262,19 @@ class ImplicitCurve:
         """A curve on ``mesh`` with ``values`` and this one's ``enclosed`` items (no checks)."""
         return ImplicitCurve(mesh, values, validate=False, enclosed=self.enclosed)
 
+    def unit_scaled(self) -> Tuple["ImplicitCurve", torch.Tensor]:
+        """``(curve, s (B,))``: this curve with each item's positions multiplied by the power of
+        two ``s_b`` that brings its largest coordinate into ``[0.5, 1)``. Multiplying by a power
+        of two is exact, so signs, barycentrics and every ratio keep their bits, while the
+        products of coordinates (triangle areas, squared lengths) no longer overflow or
+        underflow: the queries compute there (lengths and distances divided by ``s`` after,
+        areas by ``s²``), so they hold over the whole float range (a 1e200 curve's centre was
+        "outside"). Differentiable (``s`` is a constant)."""
+        with torch.no_grad():
+            mag = segment_max(self.mesh.verts.detach().abs().amax(1), self.mesh.vert_item, self.num_items, fill=0)
+            s = torch.ldexp(torch.ones_like(mag), -torch.frexp(mag)[1])
+        return self._like(self.mesh.with_verts(self.mesh.verts * s[self.mesh.vert_item][:, None]), self.values), s
+
     # --------------------------------------------------------------- basics
     @property
     def num_items(self) -> int:
@@ -362,7 +376,8 @@ class ImplicitCurve:
 
     def locate(self, points: torch.Tensor, point_item: Optional[torch.Tensor] = None) -> Tuple[torch.Tensor, torch.Tensor]:
         point_item = self._point_item(points, point_item)
-        return locate_grid(self.mesh, points, point_item)
+        sc, s = self.unit_scaled()
+        return locate_grid(sc.mesh, points * s.to(points.dtype)[point_item][:, None], point_item)
 
     def __call__(self, points: torch.Tensor, point_item: Optional[torch.Tensor] = None) -> torch.Tensor:
         """``f(points)``: ``points (P, 2)``, ``point_item (P,)`` (default: all item 0).
@@ -373,12 +388,14 @@ class ImplicitCurve:
         if self.mesh.faces.shape[0] == 0:          # no triangle (an all-black mask's curve): outside
             return torch.full((points.shape[0],), float("inf"), dtype=self.values.dtype, device=points.device)
         points, ok = finite_rows(points)
-        face, _ = locate_grid(self.mesh, points, point_item)
-        bary = barycentric(self.mesh.verts, self.mesh.faces, face, points.to(self.mesh.dtype))
+        sc, s = self.unit_scaled()
+        points = points.to(self.mesh.dtype) * s[point_item][:, None]
+        face, _ = locate_grid(sc.mesh, points, point_item)
+        bary = barycentric(sc.mesh.verts, sc.mesh.faces, face, points)
         f = self.eval_at(face, torch.nan_to_num(bary))
         off = torch.full_like(f, float("inf"))
         if self.enclosed is not None:
-            off = torch.where(self.off_mesh_inside(points, point_item, face < 0), -off, off)
+            off = torch.where(sc.off_mesh_inside(points, point_item, face < 0), -off, off)
         return torch.where((face >= 0) & ok, f, torch.where(ok, off, torch.full_like(off, float("inf"))))
 
     def inside(self, points: torch.Tensor, point_item: Optional[torch.Tensor] = None) -> torch.Tensor:

@@ -111,6 +111,7 @@ def area(curve) -> torch.Tensor:
         tensor([1.4400], dtype=torch.float64)
     """
     check_curve(curve, "area")
+    curve, sc = curve.unit_scaled()              # exact; areas back by / s / s (no overflow first)
     mesh, values, det, all_neg, seg = _area_parts(curve)
     full = torch.where(all_neg, 0.5 * det, torch.zeros_like(det))
     out = _per_item(mesh, mesh.face_item, full)
@@ -123,7 +124,7 @@ def area(curve) -> torch.Tensor:
         ab, w, item = curve.hole_edges()
         a, b = mesh.verts[ab[:, 0]], mesh.verts[ab[:, 1]]
         out = out.index_add(0, item, -0.5 * w * (a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]))
-    return out
+    return out / sc / sc
 
 
 def length(curve) -> torch.Tensor:
@@ -137,11 +138,12 @@ def length(curve) -> torch.Tensor:
         tensor([4.8000], dtype=torch.float64)
     """
     check_curve(curve, "length")
+    curve, sc = curve.unit_scaled()
     mesh = curve.mesh
     seg = triangle_segments(mesh, curve.values)
     d = seg.b - seg.a
     ln = torch.sqrt((d * d).sum(1).clamp_min(torch.finfo(d.dtype).tiny))
-    return torch.zeros(mesh.num_items, dtype=d.dtype, device=d.device).index_add(0, seg.item, ln)
+    return torch.zeros(mesh.num_items, dtype=d.dtype, device=d.device).index_add(0, seg.item, ln) / sc
 
 
 def centroid(curve) -> torch.Tensor:
@@ -155,6 +157,7 @@ def centroid(curve) -> torch.Tensor:
         tensor([[-0.3500,  0.0000]], dtype=torch.float64)
     """
     check_curve(curve, "centroid")
+    curve, sc = curve.unit_scaled()
     mesh, values, det, all_neg, seg = _area_parts(curve)
     v = mesh.verts
     cT = v[mesh.faces].mean(1)                                    # (T,2)
@@ -180,7 +183,7 @@ def centroid(curve) -> torch.Tensor:
         ar = ar.index_add(0, item, -0.5 * cr)
     # an item with no inside region: NaN, with a zero gradient (0/0 would poison the shared graph)
     empty = ar == 0
-    out = mom / torch.where(empty, torch.ones_like(ar), ar)[:, None]
+    out = mom / torch.where(empty, torch.ones_like(ar), ar)[:, None] / sc[:, None]
     return torch.where(empty[:, None], torch.full_like(out, float("nan")), out)
 
 
@@ -286,6 +289,10 @@ def point_curve_distance(curve, points: torch.Tensor, point_item: Optional[torch
     point_item = curve._point_item(pts, point_item)
     raw = pts
     pts, ok = finite_rows(pts)
+    curve, sc = curve.unit_scaled()               # exact; distances back by / s
+    mesh = curve.mesh
+    s_p = sc[point_item]
+    pts = pts * s_p[:, None]
     seg = triangle_segments(mesh, curve.values)
     with torch.no_grad():
         B = mesh.num_items
@@ -310,7 +317,7 @@ def point_curve_distance(curve, points: torch.Tensor, point_item: Optional[torch
         d = torch.full((N,), float("inf"), dtype=pts.dtype, device=dev)
     else:
         d2 = _point_segment_dist2(pts, seg.a[bc], seg.b[bc])
-        d = torch.sqrt(d2.clamp_min(torch.finfo(pts.dtype).tiny))
+        d = torch.sqrt(d2.clamp_min(torch.finfo(pts.dtype).tiny)) / s_p
         d = torch.where(has, d, torch.full_like(d, float("inf")))
     if not bool(ok.all()):
         # a point at infinity is infinitely far, a NaN point's distance is NaN (no gradient)

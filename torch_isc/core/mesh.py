@@ -21,7 +21,7 @@ from typing import List, Optional, Sequence, Tuple
 
 import torch
 
-from torch_isc.core.segments import first_index, segment_any, segment_count, segment_rows
+from torch_isc.core.segments import first_index, segment_any, segment_count, segment_max, segment_rows
 from torch_isc.core.simplex import TRIANGLES
 
 __all__ = ["MeshBatch", "hexagon_mesh", "square_mesh", "InvalidMeshError"]
@@ -229,6 +229,16 @@ class MeshBatch:
         return m, vkeep, fkeep
 
     # ---------------------------------------------------------- geometry
+    def unit_verts(self) -> torch.Tensor:
+        """``(V, 2)`` the positions times each item's power of two that brings its largest
+        coordinate into ``[0.5, 1)`` (exact): orientation tests on them hold at any scale (a
+        triangle of 1e-160 has a determinant of 1e-320, below the smallest normal)."""
+        with torch.no_grad():
+            v = self.verts.detach()
+            mag = segment_max(v.abs().amax(1), self.vert_item, self.num_items, fill=0)
+            s = torch.ldexp(torch.ones_like(mag), -torch.frexp(mag)[1])
+            return v * s[self.vert_item][:, None]
+
     def signed_areas(self, verts: Optional[torch.Tensor] = None) -> torch.Tensor:
         """``(T,)`` the determinants of eq. 2.2 (twice the signed areas); differentiable."""
         v = self.verts if verts is None else verts
@@ -389,7 +399,7 @@ class MeshBatch:
             f = self.faces
             if ((f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])).any():
                 raise InvalidMeshError("a triangle repeats a vertex")
-            det = self.signed_areas()
+            det = self.signed_areas(self.unit_verts() if min_det == 0 else None)
             bad = det <= min_det
             if bad.any():
                 t = int(bad.nonzero()[0])
@@ -409,7 +419,7 @@ class MeshBatch:
         repeated (:meth:`with_verts` cannot break them)."""
         with torch.no_grad():
             torch._assert_async(torch.isfinite(self.verts).all(), "vertex positions contain NaN or Inf")
-            torch._assert_async((self.signed_areas() > min_det).all(),
+            torch._assert_async((self.signed_areas(self.unit_verts() if min_det == 0 else None) > min_det).all(),
                                 "a triangle is not positively oriented")
 
     def is_valid(self, min_det: float = 0.0) -> bool:

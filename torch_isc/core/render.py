@@ -20,6 +20,7 @@ import torch
 from torch_isc.core.locate import barycentric, finite_rows, locate_grid
 from torch_isc.core.measures import check_curve
 from torch_isc.core.mesh import _segment_bbox
+from torch_isc.core.segments import segment_max
 from torch_isc.core.measures import point_curve_distance
 
 __all__ = ["soft_inside", "rasterize", "pixel_centers"]
@@ -52,6 +53,10 @@ def soft_inside(curve, points: torch.Tensor, tau: float, point_item: Optional[to
     if not bool(ok.all()):                         # a NaN or infinite point is outside: 0, no gradient
         out = soft_inside(curve, pts, tau, point_item, mode)
         return torch.where(ok, out, torch.zeros_like(out))
+    curve, sc = curve.unit_scaled()               # exact (see ImplicitCurve.unit_scaled)
+    mesh = curve.mesh
+    s_p = sc[point_item]
+    pts = pts * s_p[:, None]
     with torch.no_grad():
         face, _ = locate_grid(mesh, pts, point_item)
         on = face >= 0
@@ -61,14 +66,20 @@ def soft_inside(curve, points: torch.Tensor, tau: float, point_item: Optional[to
     bary = barycentric(mesh.verts, mesh.faces, fc, pts)          # fc: never -1
     f = (curve.values[mesh.faces[fc]] * bary).sum(1)
     if mode == "local":
+        # f / |grad f| does not change when the values are multiplied by a power of two: bring
+        # each item's into [0.5, 1) first, so |grad f|^2 neither overflows nor underflows
+        with torch.no_grad():
+            vmag = segment_max(curve.values.detach().abs(), mesh.vert_item, mesh.num_items, fill=0)
+            sv = torch.ldexp(torch.ones_like(vmag), -torch.frexp(vmag)[1])[point_item]
+        f = f * sv
         G = mesh.bary_gradients()[fc]
-        g = (G * curve.values[mesh.faces[fc]][..., None]).sum(1)
-        r = f / torch.sqrt((g * g).sum(1).clamp_min(torch.finfo(pts.dtype).tiny))
+        g = (G * curve.values[mesh.faces[fc]][..., None]).sum(1) * sv[:, None]
+        r = f / torch.sqrt((g * g).sum(1).clamp_min(torch.finfo(pts.dtype).tiny)) / s_p
         s = torch.sigmoid(-r / tau)
         return torch.where(on, s, hole.to(s.dtype))
     if mode != "distance":
         raise ValueError(f"mode must be 'distance' or 'local', got {mode!r}")
-    d = point_curve_distance(curve, pts, point_item)
+    d = point_curve_distance(curve, pts, point_item) / s_p
     with torch.no_grad():
         sign = torch.where((on & (f < 0)) | hole, -1.0, 1.0).to(pts.dtype)
     return torch.sigmoid(-sign * d / tau)

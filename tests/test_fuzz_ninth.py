@@ -10,6 +10,16 @@ one NaN query point gave NaN gradients to every vertex  test_non_finite_query_po
 (``c(P)``, ``point_curve_distance``, ``soft_inside``)
 ``centroid`` of an item with no inside region: NaN      test_centroid_of_an_empty_item_has_a_zero_gradient
 gradients for the whole batch's vertices
+arguments on another device (meta for a GPU), a result  test_arguments_on_another_device_or_of_another_kind_are_named
+for a curve, a tensor tau of two numbers, float64
+positions for a float32 curve: raw torch errors
+queries of a curve at 1e200 or 1e-160 (float32: 1e20,   test_curve_queries_hold_at_every_scale
+1e-18): centre "outside", length 8e7x too large,
+"local" occupancy 0.5 everywhere
+``c[0:1]``, ``pixel_centers`` and ``rasterize`` extents, test_indexing_and_image_arguments_are_checked
+``render_curve(size=10**9)``: raw errors, a 2.6 EiB
+allocation
+``refit`` dropped NaN/Inf points silently               test_refit_refuses_non_finite_points
 =====================================================  ==========================================
 """
 from __future__ import annotations
@@ -152,3 +162,55 @@ def test_curve_queries_hold_at_every_scale(dtype, scales):
         ck = ImplicitCurve(m.with_verts(m.verts * 1e100), v * 1e100)
         torch.testing.assert_close(area(ck) / 1e200, area(c1), rtol=1e-12, atol=0)
         assert float(area(ImplicitCurve(m.with_verts(m.verts * 1e200), v * 1e200))[0]) == float("inf")
+
+
+def test_indexing_and_image_arguments_are_checked():
+    """``c[0:1]`` raised a TypeError from ``int()``, ``c[0.5]`` torch's IndexError;
+    ``pixel_centers`` with a 1-D extent an IndexError, a negative size torch's range error;
+    ``rasterize(extent=['a'] * 4)`` "too many dimensions 'str'"; ``render_curve(size=10**9)``
+    numpy's MemoryError (2.6 EiB), ``size=nan`` a ValueError from ``int()``."""
+    from torch_isc.core.render import pixel_centers, rasterize
+    from torch_isc.io.png import MAX_RENDER_SIZE, render_curve
+
+    m, v = _disc()
+    c = ImplicitCurve.cat([ImplicitCurve(m, v), ImplicitCurve(m, m.verts.norm(dim=1) - 0.3), ImplicitCurve(m, v + 0.1)])
+    two = c[1:3]
+    assert two.num_items == 2
+    assert torch.equal(two.values, torch.cat([c[1].values, c[2].values]))
+    assert torch.equal(two.mesh.verts, torch.cat([c[1].mesh.verts, c[2].mesh.verts]))
+    assert torch.equal(c[0::2].values, torch.cat([c[0].values, c[2].values]))
+    assert torch.equal(c[-1].values, c[2].values)
+    for bad, err, why in ((0.5, TypeError, "integer or a slice, got float"), (3, IndexError, "out of range"),
+                          (slice(2, 2), IndexError, "selects no item"), (slice(None, None, -1), IndexError, "item order")):
+        with pytest.raises(err, match=why):
+            c[bad]
+    ext = torch.tensor([[0.0, 0.0, 1.0, 1.0]], dtype=torch.float64)
+    assert pixel_centers(2, 2, ext)[0, 1, 0].tolist() == [0.25, 0.75]      # row 1 grows with y, column 0
+    for h, e, why in ((-1, ext, "height must be an integer >= 0"), (2, ext[0], r"extent must be a \(B, 4\)"),
+                      (2, [[0, 0, 1, 1]], r"extent must be a \(B, 4\) floating tensor, got list")):
+        with pytest.raises(ValueError, match=why):
+            pixel_centers(h, 2, e)
+    for extent in (["a"] * 4, [None] * 4):
+        with pytest.raises(ValueError, match="extent must be 4 numbers"):
+            rasterize(c, 4, 4, 0.1, extent=extent)
+    for size in (10 ** 9, float("nan"), 8.5, MAX_RENDER_SIZE + 1, 15):
+        with pytest.raises(ValueError, match=f"size must be an integer of 16 to {MAX_RENDER_SIZE} pixels"):
+            render_curve(c[0], size=size)
+    assert render_curve(c[0], size=16).shape == (16, 16, 3)
+
+
+def test_refit_refuses_non_finite_points():
+    """refit dropped NaN and Inf points without a word (reconstruct raises for them)."""
+    from torch_isc import PointSetError
+    from torch_isc.pipeline.refit import refit
+
+    m, v = _disc()
+    c = ImplicitCurve(m, v)
+    t = torch.linspace(0, 2 * math.pi, 25, dtype=torch.float64)[:-1]
+    p = 0.5 * torch.stack([t.cos(), t.sin()], 1)
+    for bad in (float("nan"), float("inf")):
+        q = p.clone()
+        q[3, 1] = bad
+        with pytest.raises(PointSetError, match=r"refit: points: 1 row\(s\) hold NaN or Inf \(first at row 3\)"):
+            refit(c, q)
+    assert torch.isfinite(refit(c, p).values).all()

@@ -8,6 +8,7 @@ inside, ``f > 0`` outside, and the outer boundary of each mesh is outside.
 from __future__ import annotations
 
 import numbers
+import operator
 from functools import cached_property
 from typing import Optional, Sequence, Tuple
 
@@ -285,7 +286,23 @@ class ImplicitCurve:
         """``(V,)`` ±1 (the topology)."""
         return torch.sign(self.values.detach())
 
-    def __getitem__(self, b: int) -> "ImplicitCurve":
+    def __getitem__(self, b) -> "ImplicitCurve":
+        """Item ``b`` (an integer, negative from the end) or the items of a slice, as a curve."""
+        B = self.num_items
+        if isinstance(b, slice):
+            idx = list(range(B))[b]
+            if not idx:
+                raise IndexError(f"the slice {b} selects no item of {B}")
+            if idx != sorted(idx):
+                raise IndexError(f"the slice {b} is not in item order (select with a positive step)")
+            sel = torch.tensor(idx, dtype=torch.long, device=self.mesh.device)
+            m, vk, _ = self.mesh.select_items(sel)
+            enc = None if self.enclosed is None else self.enclosed[sel]
+            return ImplicitCurve(m, self.values[vk], validate=False, enclosed=enc)
+        try:
+            b = operator.index(b)
+        except TypeError:
+            raise TypeError(f"a curve's items are indexed by an integer or a slice, got {type(b).__name__}") from None
         m = self.mesh[b]
         v0 = int(self.mesh.verts_first_idx[b])
         enc = None if self.enclosed is None else self.enclosed[b:b + 1] if b >= 0 else self.enclosed[b:][:1]

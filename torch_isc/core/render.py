@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numbers
 import operator
-from typing import Optional, Sequence, Union
+from typing import Optional, Sequence, Tuple, Union
 
 import torch
 
@@ -99,10 +99,28 @@ def _check_tau(tau, device=None) -> None:
         raise ValueError(f"tau must be a finite distance > 0, got {tau!r}")
 
 
+def _image_size(height, width) -> Tuple[int, int]:
+    size = []
+    for name, v in (("height", height), ("width", width)):
+        try:
+            n = operator.index(v)             # int, numpy and 0-d integer tensors; not 8.5
+        except TypeError:
+            n = -1
+        if n < 0 or isinstance(v, bool):
+            raise ValueError(f"{name} must be an integer >= 0, got {v!r:.40}")
+        size.append(n)
+    return size[0], size[1]
+
+
 def pixel_centers(height: int, width: int, extent: torch.Tensor) -> torch.Tensor:
     """``(B, H, W, 2)`` pixel centres: pixel ``(i, j)`` of item ``b`` is at
     ``(xmin + (j + 1/2) dx, ymin + (i + 1/2) dy)``, ``dx = (xmax - xmin) / W``,
-    ``dy = (ymax - ymin) / H`` (row ``i`` grows with ``y``; flip rows to show y up)."""
+    ``dy = (ymax - ymin) / H`` (row ``i`` grows with ``y``; flip rows to show y up).
+    ``extent``: a ``(B, 4)`` floating tensor."""
+    height, width = _image_size(height, width)
+    if not torch.is_tensor(extent) or extent.dim() != 2 or extent.shape[1] != 4 or not extent.is_floating_point():
+        got = f"a {tuple(extent.shape)} {extent.dtype} tensor" if torch.is_tensor(extent) else type(extent).__name__
+        raise ValueError(f"extent must be a (B, 4) floating tensor, got {got}")
     ext = extent
     dev, dt = ext.device, ext.dtype
     i = (torch.arange(height, device=dev, dtype=dt) + 0.5) / height
@@ -140,16 +158,7 @@ def rasterize(curve, height: int, width: int, tau: float,
                  [0, 0, 0, 0]]], dtype=torch.int32)
     """
     check_curve(curve, "rasterize")
-    size = []
-    for name, v in (("height", height), ("width", width)):
-        try:
-            n = operator.index(v)             # int, numpy and 0-d integer tensors; not 8.5
-        except TypeError:
-            n = -1
-        if n < 0 or isinstance(v, bool):
-            raise ValueError(f"{name} must be an integer >= 0, got {v!r}")
-        size.append(n)
-    height, width = size
+    height, width = _image_size(height, width)
     _check_tau(tau, curve.mesh.device)
     mesh = curve.mesh
     B, dt, dev = mesh.num_items, mesh.dtype, mesh.device
@@ -162,7 +171,10 @@ def rasterize(curve, height: int, width: int, tau: float,
         # that ignored it: -1.03 by finite differences against 13.31 for a uniform scaling)
         ext = _segment_bbox(mesh.verts, mesh.vert_item, mesh.num_items)
     else:
-        ext = torch.as_tensor(extent, dtype=dt, device=dev)
+        try:
+            ext = torch.as_tensor(extent, dtype=dt, device=dev)
+        except (TypeError, ValueError, RuntimeError):
+            raise ValueError(f"extent must be 4 numbers or a ({B}, 4) tensor, got {extent!r:.60}") from None
         if ext.dim() == 1 and ext.numel() == 4:
             ext = ext[None].expand(B, 4)
         if ext.shape != (B, 4):

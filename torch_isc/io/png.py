@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+import operator
 from pathlib import Path
 from typing import BinaryIO, Optional, Tuple
 
@@ -56,6 +57,10 @@ def _unit(verts: torch.Tensor) -> float:
     return math.ldexp(1.0, math.frexp(m)[1]) if m > 0 else 1.0
 
 
+#: the largest PNG side :func:`render_curve` draws (16384^2 x 3 bytes: 805 MB)
+MAX_RENDER_SIZE = 16384
+
+
 def render_curve(curve: ImplicitCurve, points: Optional[torch.Tensor] = None, size: int = 800,
                  draw_mesh: bool = True, draw_signs: bool = True, y_down: bool = False) -> np.ndarray:
     """Draw one curve: a ``(size, size, 3)`` uint8 BGR image.
@@ -73,9 +78,13 @@ def render_curve(curve: ImplicitCurve, points: Optional[torch.Tensor] = None, si
     """
     if curve.num_items != 1:
         raise ValueError(f"render_png draws one curve, got a batch of {curve.num_items}")
-    size = int(size)
-    if size < 16:
-        raise ValueError(f"size must be >= 16 pixels, got {size}")
+    try:
+        n = operator.index(size)
+    except TypeError:
+        n = -1
+    if isinstance(size, bool) or not 16 <= n <= MAX_RENDER_SIZE:
+        raise ValueError(f"size must be an integer of 16 to {MAX_RENDER_SIZE} pixels, got {size!r:.40}")
+    size = n
     cv2 = import_cv2()
     c = curve.detach()
     # work in units of a power of 2 near the largest coordinate: exact, and no spans or

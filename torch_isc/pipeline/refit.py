@@ -64,6 +64,7 @@ import torch
 from torch_isc.core.curve import ImplicitCurve
 from torch_isc.core.locate import barycentric, locate_grid
 from torch_isc.core.mesh import _segment_bbox
+from torch_isc.core.points import PointSetError
 from torch_isc.pipeline.evidence import triangle_moments
 from torch_isc.pipeline import budget
 
@@ -628,7 +629,8 @@ def refit(curve: ImplicitCurve, points: torch.Tensor, point_item: Optional[torch
     """Re-fit the magnitudes of ``curve`` to ``points (N, 2)`` (``point_item (N,)``, default 0),
     mesh and signs held fixed; differentiable in the points (implicit differentiation).
 
-    Points off their item's mesh are ignored; an item without points keeps its values.
+    Points off their item's mesh are ignored; an item without points keeps its values; a NaN or
+    infinite point is a :class:`PointSetError`.
     Returns a curve on the same mesh with values ``σ ⊙ exp(s*)`` (see the module docstring).
 
     Example:
@@ -649,6 +651,9 @@ def refit(curve: ImplicitCurve, points: torch.Tensor, point_item: Optional[torch
     mesh = curve.mesh.detach()
     # the queries' checks: an (N, 2) real tensor, integer items in range (-1 meant the last item)
     point_item = curve._point_item(points, point_item)
+    bad = ~torch.isfinite(points.detach()).all(1)
+    if bool(bad.any()):            # as reconstruct: a NaN is a broken input, not a point off the mesh
+        raise PointSetError(f"refit: points: {int(bad.sum())} row(s) hold NaN or Inf (first at row {int(bad.nonzero()[0])})")
     pts = points.to(mesh.dtype)
     with torch.no_grad():
         face, _ = locate_grid(mesh, pts, point_item)

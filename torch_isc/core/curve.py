@@ -18,7 +18,6 @@ from torch_isc.core.extract import Polylines, extract_zero_set
 from torch_isc.core.locate import barycentric, finite_rows, locate_grid
 from torch_isc.core.mesh import InvalidMeshError, MeshBatch
 from torch_isc.core.points import PointSetError
-from torch_isc.core.segments import segment_max
 
 __all__ = ["ImplicitCurve", "InvalidValuesError", "check_values", "crossed_triangles", "max_orientation_fraction"]
 
@@ -271,9 +270,7 @@ class ImplicitCurve:
         underflow: the queries compute there (lengths and distances divided by ``s`` after,
         areas by ``s²``), so they hold over the whole float range (a 1e200 curve's centre was
         "outside"). Differentiable (``s`` is a constant)."""
-        with torch.no_grad():
-            mag = segment_max(self.mesh.verts.detach().abs().amax(1), self.mesh.vert_item, self.num_items, fill=0)
-            s = torch.ldexp(torch.ones_like(mag), -torch.frexp(mag)[1])
+        s = self.mesh.unit_scale()
         return self._like(self.mesh.with_verts(self.mesh.verts * s[self.mesh.vert_item][:, None]), self.values), s
 
     # --------------------------------------------------------------- basics

@@ -31,6 +31,12 @@ class InvalidMeshError(ValueError):
     """A mesh that violates the ISC requirements (orientation, manifoldness, ...)."""
 
 
+def pow2_unit(mag: torch.Tensor) -> torch.Tensor:
+    """``2^-e`` for each ``mag = m 2^e`` (``0.5 <= m < 1``): the power of two that brings a
+    magnitude into ``[0.5, 1)``, exactly (1 for 0)."""
+    return torch.ldexp(torch.ones_like(mag), -torch.frexp(mag)[1])
+
+
 class MeshBatch:
     """A batch of triangle meshes in packed form.
 
@@ -229,15 +235,19 @@ class MeshBatch:
         return m, vkeep, fkeep
 
     # ---------------------------------------------------------- geometry
-    def unit_verts(self) -> torch.Tensor:
-        """``(V, 2)`` the positions times each item's power of two that brings its largest
-        coordinate into ``[0.5, 1)`` (exact): orientation tests on them hold at any scale (a
-        triangle of 1e-160 has a determinant of 1e-320, below the smallest normal)."""
+    def unit_scale(self) -> torch.Tensor:
+        """``(B,)`` each item's power of two that brings its largest coordinate into
+        ``[0.5, 1)`` (1 for an item at the origin). Multiplying by it is exact: products of
+        coordinates computed after it neither overflow nor underflow (a triangle of 1e-160 has
+        a determinant of 1e-320, below the smallest normal), and their ratios keep their bits."""
         with torch.no_grad():
-            v = self.verts.detach()
-            mag = segment_max(v.abs().amax(1), self.vert_item, self.num_items, fill=0)
-            s = torch.ldexp(torch.ones_like(mag), -torch.frexp(mag)[1])
-            return v * s[self.vert_item][:, None]
+            mag = segment_max(self.verts.detach().abs().amax(1), self.vert_item, self.num_items, fill=0)
+            return pow2_unit(mag)
+
+    def unit_verts(self) -> torch.Tensor:
+        """``(V, 2)`` the positions times :meth:`unit_scale` (detached): orientation tests on
+        them hold at any scale."""
+        return self.verts.detach() * self.unit_scale()[self.vert_item][:, None]
 
     def signed_areas(self, verts: Optional[torch.Tensor] = None) -> torch.Tensor:
         """``(T,)`` the determinants of eq. 2.2 (twice the signed areas); differentiable."""

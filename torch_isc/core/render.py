@@ -19,7 +19,7 @@ import torch
 
 from torch_isc.core.locate import barycentric, finite_rows, locate_grid
 from torch_isc.core.measures import check_curve
-from torch_isc.core.mesh import _segment_bbox
+from torch_isc.core.mesh import _segment_bbox, pow2_unit
 from torch_isc.core.segments import segment_max
 from torch_isc.core.measures import point_curve_distance
 
@@ -70,7 +70,7 @@ def soft_inside(curve, points: torch.Tensor, tau: float, point_item: Optional[to
         # each item's into [0.5, 1) first, so |grad f|^2 neither overflows nor underflows
         with torch.no_grad():
             vmag = segment_max(curve.values.detach().abs(), mesh.vert_item, mesh.num_items, fill=0)
-            sv = torch.ldexp(torch.ones_like(vmag), -torch.frexp(vmag)[1])[point_item]
+            sv = pow2_unit(vmag)[point_item]
         f = f * sv
         G = mesh.bary_gradients()[fc]
         g = (G * curve.values[mesh.faces[fc]][..., None]).sum(1) * sv[:, None]

@@ -20,6 +20,8 @@ queries of a curve at 1e200 or 1e-160 (float32: 1e20,   test_curve_queries_hold_
 ``render_curve(size=10**9)``: raw errors, a 2.6 EiB
 allocation
 ``refit`` dropped NaN/Inf points silently               test_refit_refuses_non_finite_points
+a directory where an output goes: the line named the    test_an_output_blocked_by_a_directory_is_named
+folder or a temporary file, not the output
 =====================================================  ==========================================
 """
 from __future__ import annotations
@@ -214,3 +216,17 @@ def test_refit_refuses_non_finite_points():
         with pytest.raises(PointSetError, match=r"refit: points: 1 row\(s\) hold NaN or Inf \(first at row 3\)"):
             refit(c, q)
     assert torch.isfinite(refit(c, p).values).all()
+
+
+def test_an_output_blocked_by_a_directory_is_named(tmp_path, capsys):
+    """A directory where ``a.json`` goes: the line said "cannot write outputs in out (Is a
+    directory)", or named the temporary file, not the output."""
+    import numpy as np
+    from torch_isc.cli import main
+
+    t = np.linspace(0, 2 * np.pi, 60, endpoint=False)
+    np.savetxt(tmp_path / "a.xy", np.stack([np.cos(t), np.sin(t)], 1))
+    (tmp_path / "out" / "a.json").mkdir(parents=True)
+    assert main(["reconstruct", str(tmp_path / "a.xy"), "--out", str(tmp_path / "out")]) == 1
+    err = capsys.readouterr().err
+    assert f"cannot write outputs in {tmp_path / 'out' / 'a.json'} (Is a directory)" in err, err

@@ -736,7 +736,10 @@ class _Run:
             try:
                 job.record.outputs = self.write(job, res, image)
             except OSError as e:
-                self.finish(job, "failed", f"{shown(job.source)}: cannot write outputs in {shown(self.out_dir)} "
+                # os.replace(tmp, dst) names dst second: the output the user sees
+                name = getattr(e, "filename2", None) or getattr(e, "filename", None)
+                where = shown(name) if name else shown(self.out_dir)
+                self.finish(job, "failed", f"{shown(job.source)}: cannot write outputs in {where} "
                                            f"({e.strerror or one_line(e, type(e).__name__)})")
                 continue
             except Exception as e:  # an exporter bug: report it as one line, keep going

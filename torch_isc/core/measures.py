@@ -319,9 +319,8 @@ def point_curve_distance(curve, points: torch.Tensor, point_item: Optional[torch
         d2 = _point_segment_dist2(pts, seg.a[bc], seg.b[bc])
         d = torch.sqrt(d2.clamp_min(torch.finfo(pts.dtype).tiny)) / s_p
         d = torch.where(has, d, torch.full_like(d, float("inf")))
-    if not bool(ok.all()):
-        # a point at infinity is infinitely far, a NaN point's distance is NaN (no gradient)
-        bad = torch.where(raw.isnan().any(1), float("nan"), float("inf")).to(d.dtype)
-        d = torch.where(ok, d, bad)
-        best = torch.where(ok, best, torch.full_like(best, -1))
+    # a point at infinity is infinitely far, a NaN point's distance is NaN (no gradient; no sync)
+    bad = torch.where(raw.isnan().any(1), float("nan"), float("inf")).to(d.dtype)
+    d = torch.where(ok, d, bad)
+    best = torch.where(ok, best, torch.full_like(best, -1))
     return (d, best) if return_segment else d

@@ -49,10 +49,7 @@ def soft_inside(curve, points: torch.Tensor, tau: float, point_item: Optional[to
     pts = points.to(mesh.dtype)
     if mesh.faces.shape[0] == 0:                   # no triangle (an all-black mask's curve): empty
         return torch.zeros(pts.shape[0], dtype=pts.dtype, device=pts.device)
-    pts, ok = finite_rows(pts)
-    if not bool(ok.all()):                         # a NaN or infinite point is outside: 0, no gradient
-        out = soft_inside(curve, pts, tau, point_item, mode)
-        return torch.where(ok, out, torch.zeros_like(out))
+    pts, ok = finite_rows(pts)                     # a NaN or infinite point is outside: 0, no gradient
     curve, sc = curve.unit_scaled()               # exact (see ImplicitCurve.unit_scaled)
     mesh = curve.mesh
     s_p = sc[point_item]
@@ -76,13 +73,14 @@ def soft_inside(curve, points: torch.Tensor, tau: float, point_item: Optional[to
         g = (G * curve.values[mesh.faces[fc]][..., None]).sum(1) * sv[:, None]
         r = f / torch.sqrt((g * g).sum(1).clamp_min(torch.finfo(pts.dtype).tiny)) / s_p
         s = torch.sigmoid(-r / tau)
-        return torch.where(on, s, hole.to(s.dtype))
+        return torch.where(ok, torch.where(on, s, hole.to(s.dtype)), torch.zeros_like(s))
     if mode != "distance":
         raise ValueError(f"mode must be 'distance' or 'local', got {mode!r}")
     d = point_curve_distance(curve, pts, point_item) / s_p
     with torch.no_grad():
         sign = torch.where((on & (f < 0)) | hole, -1.0, 1.0).to(pts.dtype)
-    return torch.sigmoid(-sign * d / tau)
+    s = torch.sigmoid(-sign * d / tau)
+    return torch.where(ok, s, torch.zeros_like(s))
 
 
 def _check_tau(tau, device=None) -> None:

@@ -67,7 +67,7 @@ class TestConfig:
     far_cluster_ratio: float = knob(0.75, gt=0)
     #: ...and splits its triangles down to this many effective tolerances, below min_split_size
     #: (a cluster of points off the curve is structure, not noise); min_split_size or more: no lower
-    cluster_split_size: float = knob(2.0, ge=0)
+    cluster_split_size: float = knob(1.5, ge=0)
 
     def __post_init__(self):
         check_section(self)

@@ -1,19 +1,20 @@
 #!/usr/bin/env bash
-# The one prepared run on a lent GPU machine (README, "On a GPU"): the machine, CPU against GPU
+# The one prepared run on a lent GPU machine (README, Speed; docs/device_runs.md): the machine, CPU against GPU
 # on the same inputs, the device-parametrized tests on CUDA, the benchmark on CUDA, a profile.
-#   bash scripts/device_check.sh                       # every step; logs under $OUT
+#   bash scripts/device_check.sh                       # every step; logs under $OUT (default out/device_check)
 #   STEPS="tests profile" bash scripts/device_check.sh # some of them
 # Steps: agreement tests bench_bd bench_a profile compile. Each has its own time limit (T_<STEP>
 # seconds), so one that hangs costs only its share. Wheels in .whl/ (packages the machine's image
 # lacks: kornia, kornia_rs, shapely) are installed first.
 set -u
-OUT=${OUT:-/tmp/device_check}
+OUT=${OUT:-out/device_check}
 STEPS=${STEPS:-agreement tests bench_bd bench_a profile}
 mkdir -p "$OUT"
 export PYTHONUNBUFFERED=1 OMP_NUM_THREADS=1
 if ls .whl/*.whl >/dev/null 2>&1; then
-    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
-        && export PYTHONPATH=/tmp/site
+    site="$PWD/build/device_site"                # git-ignored, inside the checkout
+    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target "$site" .whl/*.whl \
+        && export PYTHONPATH=$site
 fi
 export PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH}
 { nvidia-smi --query-gpu=name,memory.total,driver_version,clocks.sm,clocks.max.sm --format=csv

@@ -19,6 +19,7 @@ from typing import NamedTuple, Optional
 
 import torch
 
+from torch_isc.core.curve import ImplicitCurve
 from torch_isc.core.locate import finite_rows
 from torch_isc.core.segments import expand_in_chunks
 
@@ -51,7 +52,6 @@ class TriangleSegments(NamedTuple):
 def check_curve(curve, what: str) -> None:
     """A clear error where an :class:`~torch_isc.core.curve.ImplicitCurve` is expected (a
     reconstruction's result has one: ``result.curve``)."""
-    from torch_isc.core.curve import ImplicitCurve
     if not isinstance(curve, ImplicitCurve):
         hint = " (use result.curve)" if hasattr(curve, "curve") else ""
         raise TypeError(f"{what}: expected an ImplicitCurve{hint}, got {type(curve).__name__}")
@@ -282,17 +282,25 @@ def point_curve_distance(curve, points: torch.Tensor, point_item: Optional[torch
         tensor([0.6000, 0.3000, 0.3606], dtype=torch.float64)
     """
     check_curve(curve, "point_curve_distance")
-    mesh = curve.mesh
-    pts = points.to(mesh.dtype)
-    N = pts.shape[0]
-    dev = pts.device
+    pts = points.to(curve.mesh.dtype)
     point_item = curve._point_item(pts, point_item)
-    raw = pts
-    pts, ok = finite_rows(pts)
-    curve, sc = curve.unit_scaled()               # exact; distances back by / s
-    mesh = curve.mesh
+    safe, ok = finite_rows(pts)
+    unit, sc = curve.unit_scaled()                # exact; distances back by / s
     s_p = sc[point_item]
-    pts = pts * s_p[:, None]
+    d, best = unit_distance(unit, safe * s_p[:, None], point_item)
+    # a point at infinity is infinitely far, a NaN point's distance is NaN (no gradient; no sync)
+    bad = torch.where(pts.isnan().any(1), float("nan"), float("inf")).to(d.dtype)
+    d = torch.where(ok, d / s_p, bad)
+    best = torch.where(ok, best, torch.full_like(best, -1))
+    return (d, best) if return_segment else d
+
+
+def unit_distance(curve, pts: torch.Tensor, point_item: torch.Tensor):
+    """:func:`point_curve_distance` of finite ``pts (N, 2)`` on a curve already brought to unit
+    size (:meth:`~torch_isc.core.curve.ImplicitCurve.unit_scaled`), arguments already checked:
+    ``(d (N,), best (N,))``."""
+    mesh = curve.mesh
+    N, dev = pts.shape[0], pts.device
     seg = triangle_segments(mesh, curve.values)
     with torch.no_grad():
         B = mesh.num_items
@@ -312,15 +320,9 @@ def point_curve_distance(curve, points: torch.Tensor, point_item: Optional[torch
             bs = bs.scatter_reduce(0, (cp - i0)[hit], cs[hit], "amin")
             best[i0:i1] = torch.where(bs == big, torch.full_like(bs, -1), bs)
         has = best >= 0
-    bc = best.clamp_min(0)
     if seg.a.shape[0] == 0:
-        d = torch.full((N,), float("inf"), dtype=pts.dtype, device=dev)
-    else:
-        d2 = _point_segment_dist2(pts, seg.a[bc], seg.b[bc])
-        d = torch.sqrt(d2.clamp_min(torch.finfo(pts.dtype).tiny)) / s_p
-        d = torch.where(has, d, torch.full_like(d, float("inf")))
-    # a point at infinity is infinitely far, a NaN point's distance is NaN (no gradient; no sync)
-    bad = torch.where(raw.isnan().any(1), float("nan"), float("inf")).to(d.dtype)
-    d = torch.where(ok, d, bad)
-    best = torch.where(ok, best, torch.full_like(best, -1))
-    return (d, best) if return_segment else d
+        return torch.full((N,), float("inf"), dtype=pts.dtype, device=dev), best
+    bc = best.clamp_min(0)
+    d2 = _point_segment_dist2(pts, seg.a[bc], seg.b[bc])
+    d = torch.sqrt(d2.clamp_min(torch.finfo(pts.dtype).tiny))
+    return torch.where(has, d, torch.full_like(d, float("inf"))), best

@@ -18,10 +18,9 @@ from typing import Optional, Sequence, Tuple, Union
 import torch
 
 from torch_isc.core.locate import barycentric, finite_rows, locate_grid
-from torch_isc.core.measures import check_curve
 from torch_isc.core.mesh import _segment_bbox, pow2_unit
 from torch_isc.core.segments import segment_max
-from torch_isc.core.measures import point_curve_distance
+from torch_isc.core.measures import check_curve, unit_distance
 
 __all__ = ["soft_inside", "rasterize", "pixel_centers"]
 
@@ -76,7 +75,7 @@ def soft_inside(curve, points: torch.Tensor, tau: float, point_item: Optional[to
         return torch.where(ok, torch.where(on, s, hole.to(s.dtype)), torch.zeros_like(s))
     if mode != "distance":
         raise ValueError(f"mode must be 'distance' or 'local', got {mode!r}")
-    d = point_curve_distance(curve, pts, point_item) / s_p
+    d = unit_distance(curve, pts, point_item)[0] / s_p
     with torch.no_grad():
         sign = torch.where((on & (f < 0)) | hole, -1.0, 1.0).to(pts.dtype)
     s = torch.sigmoid(-sign * d / tau)
@@ -130,8 +129,8 @@ def pixel_centers(height: int, width: int, extent: torch.Tensor) -> torch.Tensor
 
 
 #: the most pixels one :func:`rasterize` call renders (all items together): each costs about
-#: 1.2 KB of intermediate and saved tensors (float64, measured at 1000 x 1000: +1.17 GB), so
-#: 2**23 pixels are about 10 GB; a larger image is rendered in tiles (an ``extent`` per call)
+#: 1.2 KB of intermediate and saved tensors (float64 at 1000 x 1000, scripts/benchmark_raster.py),
+#: so 2**23 pixels are about 10 GB; a larger image is rendered in tiles (an ``extent`` per call)
 MAX_RASTER_PIXELS = 1 << 23
 
 

@@ -972,7 +972,7 @@ def trace_masks(masks: Sequence[torch.Tensor], connectivity: int = 8, smooth: in
     sz = sizes.to(dev)
     pad = (pi == 0) | (pj == 0) | (pi == sz[vi, 0] + 1) | (pj == sz[vi, 1] + 1)      # padding pixels
     if corners and smooth > 0:
-        frame = sizes.to(dev).flip(1).to(dtype)                   # (W, H) of each item
+        frame = sz.flip(1).to(dtype)                              # (W, H) of each item
 
         def stretch(nodes, tip, convex, out_dir):
             nonlocal mesh

@@ -148,10 +148,10 @@ def mark_triangles(mesh: MeshBatch, residual: torch.Tensor, face: torch.Tensor, 
             # a piece across the data (a bridge between two close curves a few spacings apart)
             # is topology, not a detail the sampling cannot place: split below the reach and
             # below the size guard, down to its own floor
-            # on noise-free data the reach already resolves the sampling, and splitting below it
-            # there only cuts notches at the ends of sampling gaps: noisy items only
             across = off & (coverage[2] < cfg.coverage_transverse) & (longest > cfg.transverse_split_size * eff[fi])
             if cfg.transverse_noisy > 0:
+                # on noise-free data the reach already resolves the sampling, and splitting below
+                # it there only cuts notches at the ends of sampling gaps: noisy items only
                 across &= (noise > cfg.transverse_noisy * tol)[fi]
     by_cluster = None
     if clusters is not None:

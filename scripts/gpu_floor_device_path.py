@@ -8,16 +8,23 @@ and a sum per part, faster there), its random numbers hashed in blocks of ``2**2
 This script forces the non-CPU choices, counts with gpu_floor's ``OpCounter`` on its shapes, and
 extrapolates to B=4096 as gpu_floor does (linear in log B between the two batch sizes given).
 
-    OMP_NUM_THREADS=1 python scripts/gpu_floor_device_path.py --B 64,256
+With ``--graphs`` the loops replay their rounds as on CUDA with ``run.cuda_graphs``
+(pipeline/graphs.py, emulated: the step runs eagerly): a graph's first replay is counted op by
+op (recording it costs the host about what launching its kernels would), every later replay as
+one launch.
+
+    OMP_NUM_THREADS=1 python scripts/gpu_floor_device_path.py --B 64,256 [--graphs]
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import sys
 from pathlib import Path
 
 import torch
+from torch.utils._python_dispatch import _disable_current_modes
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
@@ -30,13 +37,14 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--B", default="64,256", help="two batch sizes, comma-separated")
     ap.add_argument("--points", type=int, default=500)
+    ap.add_argument("--graphs", action="store_true", help="replay the loops' rounds as CUDA graphs would")
     a = ap.parse_args()
     try:
         from gpu_floor import LAUNCH_S, SYNC_S, OpCounter, make_shapes
     except ImportError:
         sys.exit("gpu_floor_device_path: ../shared/tools/gpu_floor.py not found")
     import torch_isc
-    from torch_isc.pipeline import signs
+    from torch_isc.pipeline import graphs, signs
     from torch_isc.pipeline.config import ReconstructConfig
     torch.set_num_threads(1)
     signs._FIELDS_BY_BAG["cpu"] = True
@@ -44,11 +52,31 @@ def main() -> None:
     cfg = ReconstructConfig().replace(lbfgs_trials=3)
     Bs = [int(b) for b in a.B.split(",")]
     shapes = make_shapes(max(Bs), a.points)
-    torch_isc.reconstruct_batch(shapes[:2], cfg)
+    counter = [None]
+
+    class Counted(graphs._Emulated):
+        first = True
+
+        def replay(self):
+            if self.first or counter[0] is None:
+                self.first = False
+                return super().replay()
+            with _disable_current_modes():
+                super().replay()
+            counter[0].kinds["kernel"] += 1
+
+    graphs._Emulated = Counted
+
+    def mode():
+        return graphs.use("emulate") if a.graphs else contextlib.nullcontext()
+
+    with mode():
+        torch_isc.reconstruct_batch(shapes[:2], cfg)
     rows = []
     print("| B | kernels | syncs | floor s | floor shapes/s |\n|---:|---:|---:|---:|---:|")
     for B in Bs:
-        with OpCounter() as c:
+        with OpCounter() as c, mode():
+            counter[0] = c
             torch_isc.reconstruct_batch(shapes[:B], cfg)
         rows.append((B, c.kernels, c.syncs))
         f = c.floor_seconds()

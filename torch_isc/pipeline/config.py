@@ -75,6 +75,9 @@ class RunConfig:
     """Seed and working precision."""
     seed: int = knob(0, ge=0)
     dtype: str = knob("float32", choices=("float32", "float64"))
+    #: on a CUDA device, record a round of the fits and a sweep of the annealer once as a CUDA
+    #: graph and replay it (the same kernels, one launch; pipeline/graphs.py); no effect elsewhere
+    cuda_graphs: bool = knob(True)
 
     def __post_init__(self):
         check_section(self)

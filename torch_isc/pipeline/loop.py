@@ -28,7 +28,7 @@ from torch_isc.core.mesh import MeshBatch, hexagon_mesh, square_mesh
 from torch_isc.core.points import PointBatch, PointSetError, PointsLike, check_extent, prepare_points
 from torch_isc.core.segments import segment_count, segment_sum
 from torch_isc.pipeline.config import ConfigError, MeshConfig, ReconstructConfig, from_dict, initial_triangles
-from torch_isc.pipeline import budget
+from torch_isc.pipeline import budget, graphs
 from torch_isc.pipeline.band import band_stage
 from torch_isc.pipeline.blobs import snap_blobs, start_blobs
 from torch_isc.pipeline.denoise import denoise_points
@@ -255,7 +255,7 @@ def run_loop(batch: PointBatch, cfg: ReconstructConfig, source: SignSource,
     """The loop of Fig. 3 over a prepared batch, signs from ``source``. ``limits.max_seconds``
     holds within a level too: the inner loops stop at the deadline (:mod:`budget`)."""
     t_start = time.perf_counter()
-    with budget.deadline(cfg.limits.max_seconds, t_start):
+    with budget.deadline(cfg.limits.max_seconds, t_start), graphs.use(cfg.run.cuda_graphs):
         return _run_loop(batch, cfg, source, names, t_start)
 
 

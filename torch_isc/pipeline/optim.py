@@ -27,7 +27,7 @@ from typing import Callable, Optional, Tuple
 import torch
 
 from torch_isc.core.segments import segment_sum
-from torch_isc.pipeline import budget
+from torch_isc.pipeline import budget, graphs
 
 __all__ = ["batched_lbfgs", "true_indices"]
 
@@ -198,15 +198,18 @@ def batched_lbfgs(fun: Callable[..., torch.Tensor], x0: torch.Tensor, seg: torch
     cols = torch.arange(n, device=dev)
     blocks = {}                                              # trials per block -> (j, 2^-j) as (k, 1)
 
+    def halves(K):
+        if K not in blocks:
+            j = torch.arange(K, device=dev)[:, None]
+            blocks[K] = j, torch.pow(0.5, j.to(dt))          # exact powers of two
+        return blocks[K]
+
     def search(XG, f, d, gd, step0, left, K=K):
         """One stacked block of trials ``step0 / 2^j`` (``j < K``) for the segments with
         ``j < left``: whether each accepted one, and the first accepted point with its gradient
         (stacked, ``(2, n)``) and objective."""
-        if K not in blocks:
-            j = torch.arange(K, device=dev)[:, None]
-            blocks[K] = j, torch.pow(0.5, j.to(dt))          # exact powers of two
-        jj, halves = blocks[K]
-        step = step0[None] if K == 1 else step0 * halves     # (K, B); times 1 is exact
+        jj, hv = halves(K)
+        step = step0[None] if K == 1 else step0 * hv         # (K, B); times 1 is exact
         X = XG[0] + step[:, seg] * d                         # (K, n) every trial, whole set
         FT, GT = evaluate(X)
         # FT <= f + ... (f finite, the rest <= 0) is False for NaN and +inf: only -inf is left out
@@ -287,8 +290,39 @@ def batched_lbfgs(fun: Callable[..., torch.Tensor], x0: torch.Tensor, seg: torch
     x_out, f_out, it_out = XG[0], f, iters                  # the whole batch, once compacted
     ent = item = None                                        # the working set's entries and segments
     Bw = B
-    for r in budget.rounds((iterations - m) * -(-mb // Kc)):
+
+    def one_round(XG, H, Q, gamma, f, iters, left, step0):
+        """One fixed-shape round of the whole working set: the state after it."""
+        d, gd = descent(XG[1], H, Q, gamma, seg, Bw)
+        moved, xgt, ft = search(XG, f, d, gd, step0, left, Kc)
+        ms = moved[seg]
+        XGn = torch.where(ms, xgt, XG)
+        f_new = torch.where(moved, ft, f)
+        # the oldest pair drops out for a segment that moved; the others keep theirs
+        Hn, Qn, gam = _pair(H[:, 1:], Q[:, :, 1:, 1:], XGn - XG, seg, Bw, tiny, zero, one0, one64)
+        gamma = torch.where(moved, gam, gamma)
+        H = torch.where(ms, Hn, H)
+        Q = torch.where(moved[:, None, None, None], Qn, Q)
+        iters = iters + moved
+        # a segment that moved gets a new iteration unless it has converged or run out; one that
+        # did not has Kc trials fewer (left > 0 implies iters < iterations, so it cannot have run out)
+        stop = small_change(f, f_new) | (iters >= iterations)
+        left = torch.where(moved, torch.where(stop, zero_l, mb_t), (left - Kc).clamp_min(0))
+        step0 = torch.where(moved, one, step0 * 0.5 ** Kc)
+        return XGn, H, Q, gamma, f_new, iters, left, step0
+
+    state = (XG, H, Q, gamma, f, iters, left, step0)
+    # on a GPU one round is recorded once per working set and replayed check_every times a
+    # block (pipeline/graphs.py): the same kernels, one launch a round. One round, not a whole
+    # block: recording costs what launching its kernels would, and a working set lasts only tens
+    # of rounds between compactions
+    replay = graphs.active(dev)
+    graph = None
+    total = (iterations - m) * -(-mb // Kc)
+    r = 0
+    while r < total and not budget.stop(r):
         if r % check_every == 0:
+            XG, H, Q, gamma, f, iters, left, step0 = state
             alive = left > 0
             if restrict is None:
                 if not bool(alive.any()):
@@ -312,24 +346,37 @@ def batched_lbfgs(fun: Callable[..., torch.Tensor], x0: torch.Tensor, seg: torch
                     cols = torch.arange(XG.shape[1], device=dev)
                     fun, restrict = restrict(alive)
                     Kc = trials_for(XG.shape[1])
-        d, gd = descent(XG[1], H, Q, gamma, seg, Bw)
-        moved, xgt, ft = search(XG, f, d, gd, step0, left, Kc)
-        ms = moved[seg]
-        XGn = torch.where(ms, xgt, XG)
-        f_new = torch.where(moved, ft, f)
-        # the oldest pair drops out for a segment that moved; the others keep theirs
-        Hn, Qn, gam = _pair(H[:, 1:], Q[:, :, 1:, 1:], XGn - XG, seg, Bw, tiny, zero, one0, one64)
-        gamma = torch.where(moved, gam, gamma)
-        H = torch.where(ms, Hn, H)
-        Q = torch.where(moved[:, None, None, None], Qn, Q)
-        iters = iters + moved
-        # a segment that moved gets a new iteration unless it has converged or run out; one that
-        # did not has Kc trials fewer (left > 0 implies iters < iterations, so it cannot have run out)
-        stop = small_change(f, f_new) | (iters >= iterations)
-        left = torch.where(moved, torch.where(stop, zero_l, mb_t), (left - Kc).clamp_min(0))
-        step0 = torch.where(moved, one, step0 * 0.5 ** Kc)
-        XG, f = XGn, f_new
+                    state = (XG, H, Q, gamma, f, iters, left, step0)
+                    graph = None
+            if replay and r + check_every <= total:
+                if graph is None:
+                    halves(Kc)                               # made outside the graph's pool
+                    graph, state = _record_round(one_round, state, dev)
+                    replay = graph is not None
+                if graph is not None:
+                    for _ in range(check_every):
+                        graph.replay()
+                    r += check_every
+                    continue
+        state = one_round(*state)
+        graph = None                                         # the state is no longer the graph's
+        r += 1
+    XG, H, Q, gamma, f, iters, left, step0 = state
     return _put(x_out, f_out, it_out, ent, item, XG[0], f, iters)
+
+
+def _record_round(one_round: Callable, state, dev: torch.device):
+    """A graph of one application of ``one_round`` that writes the state after it into the
+    state's tensors, and those tensors: copies, owned by the graph (a state tensor can alias
+    another or a tensor the caller keeps, e.g. the unit step). ``(None, state)`` where
+    recording failed."""
+    static = tuple(t.clone() for t in state)
+
+    def step():
+        for t, v in zip(static, one_round(*static)):
+            t.copy_(v)
+    graph = graphs.capture(step, dev)
+    return (None, state) if graph is None else (graph, static)
 
 
 def _put(x_out, f_out, it_out, ent, item, x, f, iters):

@@ -20,7 +20,7 @@ from torch_isc.core.mesh import MeshBatch
 from torch_isc.core.points import PointSetError
 from torch_isc.core.segments import edge_components, first_index, hash_keys, hash_to_unit, mix32, segment_count, segment_max, segment_min
 from torch_isc.pipeline.knobs import check_section, knob
-from torch_isc.pipeline import budget
+from torch_isc.pipeline import budget, graphs
 
 if TYPE_CHECKING:
     from torch_isc.pipeline.evidence import Evidence, EvidenceConfig
@@ -503,6 +503,14 @@ def ising_energy(mesh: MeshBatch, H: torch.Tensor, signs: torch.Tensor, field: O
     return out if signs.dim() == 2 else out[:, 0]
 
 
+def _sweep_classes(classes, half, gcol: Optional[torch.Tensor]) -> None:
+    """One Metropolis sweep of every colour class: thresholds ``half (R, F)`` in state columns,
+    or the scalar 0.0 (zero temperature)."""
+    for cl in classes:
+        cl.sweep(half if isinstance(half, float) else half[:, cl.a:cl.a + cl.width],
+                 None if gcol is None else gcol[cl.a:cl.a + cl.width])
+
+
 def anneal(mesh: MeshBatch, H: torch.Tensor, init: torch.Tensor, fixed: torch.Tensor,
            cfg: Optional[TopologyConfig] = None, seed: int = 0, warm: bool = False,
            field: Optional[torch.Tensor] = None) -> torch.Tensor:
@@ -569,14 +577,29 @@ def anneal(mesh: MeshBatch, H: torch.Tensor, init: torch.Tensor, fixed: torch.Te
         # the memory (_RNG_NUMBERS)
         block = _rng_block(sweeps, F * R, dev)
         half = None
+        # on a GPU one sweep of every class is recorded once (after a first eager sweep, which
+        # makes the ops' lazy state) and replayed with its thresholds copied into a fixed row
+        # (pipeline/graphs.py): the same kernels, two launches a sweep
+        replay = graphs.active(dev) and bool(classes)
+        graph = hrow = None
         for k in budget.rounds(sweeps + greedy_sweeps):
             if k < sweeps and k % block == 0:
                 th = thalf[k:k + block] if thalf is not None else _temperature_rows(*sched, k, k + block) * 0.5
                 half = _metropolis_thresholds(hc, koff[k:k + block], th, dt)
             hk = half[k % block] if k < sweeps else None
-            for cl in classes:
-                cl.sweep(hk[:, cl.a:cl.a + cl.width] if k < sweeps else 0.0,
-                         None if gcol is None else gcol[cl.a:cl.a + cl.width])
+            if replay and k > 0:
+                if graph is None:
+                    hrow = torch.zeros(R, F, dtype=dt, device=dev)
+                    graph = graphs.capture(functools.partial(_sweep_classes, classes, hrow, gcol), dev)
+                    replay = graph is not None
+                if graph is not None:
+                    if hk is None:
+                        hrow.zero_()           # zero temperature: a threshold of 0, as the scalar
+                    else:
+                        hrow.copy_(hk)
+                    graph.replay()
+                    continue
+            _sweep_classes(classes, hk if k < sweeps else 0.0, gcol)
         s = s[:, pos].T
         E = ising_energy(mesh, H, s, field)                       # (B, R)
         best = torch.argmin(E, 1)                                 # first minimum

@@ -42,7 +42,7 @@ import torch
 
 from torch_isc.core.mesh import MeshBatch
 from torch_isc.core.segments import edge_components
-from torch_isc.pipeline import budget
+from torch_isc.pipeline import budget, graphs
 
 if TYPE_CHECKING:
     from torch_isc.pipeline.signs import TopologyConfig
@@ -110,8 +110,8 @@ def zero_set_distance(mesh: MeshBatch, signs: torch.Tensor, cap: torch.Tensor, r
         d = cap.clone()
         d = d.scatter_reduce(0, a, half, "amin").scatter_reduce(0, b, half, "amin")
         w = torch.where(same, ell, torch.full_like(ell, float("inf")))
-        for _ in budget.rounds(rounds):
-            d = d.scatter_reduce(0, a, d[b] + w, "amin").scatter_reduce(0, b, d[a] + w, "amin")
+        d = graphs.iterate(lambda d: d.scatter_reduce(0, a, d[b] + w, "amin").scatter_reduce(0, b, d[a] + w, "amin"),
+                           d, rounds)
         return torch.minimum(d, cap)
 
 
@@ -129,8 +129,8 @@ def ball_cover(mesh: MeshBatch, signs: torch.Tensor, depth: torch.Tensor, radius
         ell = (v[a] - v[b]).norm(dim=1).to(depth.dtype)
         w = torch.where(signs[a] == signs[b], ell, torch.full_like(ell, float("inf")))
         q = torch.where(depth >= radius, depth, torch.full_like(depth, -float("inf")))
-        for _ in budget.rounds(rounds):
-            q = q.scatter_reduce(0, a, q[b] - w, "amax").scatter_reduce(0, b, q[a] - w, "amax")
+        q = graphs.iterate(lambda q: q.scatter_reduce(0, a, q[b] - w, "amax").scatter_reduce(0, b, q[a] - w, "amax"),
+                           q, rounds)
         return q >= 0
 
 

@@ -185,3 +185,15 @@ def test_cuda_graphs_on_cuda_agree_with_eager():
             # runs of the hard mix differed by up to 2.9% of the diagonal, docs/device_runs.md)
             d = torch.cdist(p["points"].double(), q["points"].double())
             assert max(d.min(0).values.max(), d.min(1).values.max()) < 0.1 * diag
+
+
+def test_a_compiled_objective_is_not_recorded(recorded, monkeypatch):
+    # compile=true: the fits' rounds stay eager (a recompilation cannot run inside a capture),
+    # the annealer's sweeps still replay; the compiled objective stubbed by the eager one
+    from torch_isc.pipeline import values
+    monkeypatch.setattr(values, "_compiled_value_and_grad", lambda: values.GeometryObjective.value_and_grad)
+    cfg = ReconstructConfig().replace(compile=True)
+    with graphs.use("emulate"):
+        torch_isc.reconstruct_batch(_shapes()[:1], cfg)
+    names = {n for n, _ in recorded}
+    assert "_sweep_classes" in names and "step" not in names

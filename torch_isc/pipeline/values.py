@@ -7,6 +7,7 @@ once per partition, so an evaluation costs O(triangles), independent of the poin
 """
 from __future__ import annotations
 
+import contextlib
 import warnings
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Optional, Tuple
@@ -16,6 +17,7 @@ import torch
 from torch_isc.core.segments import segment_count, segment_sum
 
 from torch_isc.core.mesh import MeshBatch
+from torch_isc.pipeline import graphs
 from torch_isc.pipeline.optim import batched_lbfgs, true_indices
 from torch_isc.pipeline.evidence import TriangleMoments
 from torch_isc.pipeline.knobs import check_section, knob
@@ -493,11 +495,14 @@ def run_fit(obj: GeometryObjective, cfg: GeometryConfig, iterations: Optional[in
     """The batched L-BFGS of ``obj`` from its start (in the scaled variable where ``obj.pc`` is
     set): ``s (V,)``, the objectives ``(B,)`` and the iterations each item ran ``(B,)``."""
     pre = obj.pc is not None
-    x, f, it = batched_lbfgs(obj._evaluate_pre if pre else obj._evaluate, obj.s0 / obj.pc if pre else obj.s0,
-                             obj.vi, obj.B, iterations=cfg.lbfgs_iterations if iterations is None else iterations,
-                             history=cfg.lbfgs_history, with_grad=True, rel_tol=rel_tol, stacked=True,
-                             trials=cfg.lbfgs_trials or (1 if obj.dev.type == "cpu" else 3),
-                             restrict=obj._restricted_pre if pre else obj._restricted)
+    # a compiled objective is not recorded into CUDA graphs: a recompilation (a new working
+    # set's shapes) cannot run inside a capture
+    with graphs.use(False) if obj.compiled else contextlib.nullcontext():
+        x, f, it = batched_lbfgs(obj._evaluate_pre if pre else obj._evaluate, obj.s0 / obj.pc if pre else obj.s0,
+                                 obj.vi, obj.B, iterations=cfg.lbfgs_iterations if iterations is None else iterations,
+                                 history=cfg.lbfgs_history, with_grad=True, rel_tol=rel_tol, stacked=True,
+                                 trials=cfg.lbfgs_trials or (1 if obj.dev.type == "cpu" else 3),
+                                 restrict=obj._restricted_pre if pre else obj._restricted)
     return (x * obj.pc if pre else x), f, it
 
 

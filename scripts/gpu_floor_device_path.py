@@ -1,10 +1,11 @@
 """gpu_floor's count of the code a GPU would run, on this CPU.
 
-``../shared/tools/gpu_floor.py`` counts what the CPU runs; three choices of the solve depend on
-the device type and give the same results either way (tests/test_fit.py and tests/test_budget.py
-check them): the annealer's local fields by one ``embedding_bag`` (the CPU: a gather, a product
+``../shared/tools/gpu_floor.py`` counts what the CPU runs; four choices of the solve depend on
+the device type and give the same results either way, the last to rounding (tests/test_fit.py,
+tests/test_budget.py and tests/test_graphs.py check them): the annealer's local fields by one ``embedding_bag`` (the CPU: a gather, a product
 and a sum per part, faster there), its random numbers hashed in blocks of ``2**26`` (the CPU:
-``2**20``, cache-sized), and ``lbfgs_trials`` 3 step lengths per line-search round (the CPU: 1).
+``2**20``, cache-sized), ``lbfgs_trials`` 3 step lengths per line-search round (the CPU: 1), and
+the L-BFGS's fixed-shape rounds from the first (the CPU: lockstep rounds while its history fills).
 This script forces the non-CPU choices, counts with gpu_floor's ``OpCounter`` on its shapes, and
 extrapolates to B=4096 as gpu_floor does (linear in log B between the two batch sizes given).
 
@@ -44,11 +45,12 @@ def main() -> None:
     except ImportError:
         sys.exit("gpu_floor_device_path: ../shared/tools/gpu_floor.py not found")
     import torch_isc
-    from torch_isc.pipeline import graphs, signs
+    from torch_isc.pipeline import graphs, optim, signs
     from torch_isc.pipeline.config import ReconstructConfig
     torch.set_num_threads(1)
     signs._FIELDS_BY_BAG["cpu"] = True
     signs._RNG_NUMBERS["cpu"] = signs._RNG_NUMBERS_OTHER
+    optim._LOCKSTEP_FILL["cpu"] = False
     cfg = ReconstructConfig().replace(lbfgs_trials=3)
     Bs = [int(b) for b in a.B.split(",")]
     shapes = make_shapes(max(Bs), a.points)

@@ -78,6 +78,48 @@ def test_replayed_rounds_give_the_eager_bits(recorded):
     _same(eager, replayed)
 
 
+def test_fits_from_a_zero_history_replay_to_their_eager_bits(recorded, monkeypatch):
+    # the fixed-shape rounds from the first (as on a GPU): eager and replayed agree bit for bit,
+    # and both agree with the CPU's lockstep fill in topology and to rounding amplified
+    from torch_isc.pipeline import optim
+    shapes = _shapes()
+    lockstep = torch_isc.reconstruct_batch(shapes)
+    monkeypatch.setitem(optim._LOCKSTEP_FILL, "cpu", False)
+    eager = torch_isc.reconstruct_batch(shapes)
+    with graphs.use("emulate"):
+        replayed = torch_isc.reconstruct_batch(shapes)
+    _same(eager, replayed)
+    assert [x.num_components for x in eager] == [x.num_components for x in lockstep]
+    for x, y in zip(eager, lockstep):
+        diag = float((x.points.amax(0) - x.points.amin(0)).norm())
+        for p, q in zip(x.polylines, y.polylines):
+            d = torch.cdist(p["points"].double(), q["points"].double())
+            assert max(d.min(0).values.max(), d.min(1).values.max()) < 0.05 * diag
+
+
+def test_lbfgs_from_a_zero_history_follows_the_lockstep_trajectory(monkeypatch):
+    from torch_isc.pipeline import optim
+    torch.manual_seed(1)
+    B, n = 12, 5
+    seg = torch.arange(B).repeat_interleave(n)
+    scale = torch.logspace(-2, 2, B, dtype=torch.float64)
+    c = torch.randn(B * n, dtype=torch.float64)
+
+    def fun(X):                                       # a non-convex term: curvature pairs get skipped
+        d = X - c
+        e = scale[seg] * d * d + d ** 4 + 0.3 * torch.sin(3 * X)
+        g = 2 * scale[seg] * d + 4 * d ** 3 + 0.9 * torch.cos(3 * X)
+        return torch.zeros(X.shape[0], B, dtype=X.dtype).index_add_(1, seg, e), g
+    x0 = torch.zeros(B * n, dtype=torch.float64)
+    kw = dict(iterations=40, history=6, with_grad=True, stacked=True, trials=2, check_every=3)
+    a = batched_lbfgs(fun, x0, seg, B, **kw)
+    monkeypatch.setitem(optim._LOCKSTEP_FILL, "cpu", False)
+    b = batched_lbfgs(fun, x0, seg, B, **kw)
+    assert torch.equal(a[2], b[2]) and int(a[2].max()) > 6          # past the history's length
+    torch.testing.assert_close(b[0], a[0], rtol=0, atol=1e-12)
+    torch.testing.assert_close(b[1], a[1], rtol=0, atol=1e-12)
+
+
 def test_the_config_switch_turns_replay_off(recorded):
     cfg = ReconstructConfig().replace(cuda_graphs=False)
     with graphs.use("emulate"):

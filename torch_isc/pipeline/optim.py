@@ -32,6 +32,14 @@ from torch_isc.pipeline import budget, graphs
 __all__ = ["batched_lbfgs", "true_indices"]
 
 
+#: device types whose L-BFGS fills its history in lockstep rounds (host reads per block of
+#: trials, fewer evaluations); elsewhere the fixed-shape rounds start from a zero history: the
+#: same trajectories in exact arithmetic, the bits to rounding. On a CPU the lockstep blocks
+#: are cheaper (one trial a round there: carrying a long backtrack over rounds costs a whole
+#: evaluation of the working set a halving)
+_LOCKSTEP_FILL = {"cpu": True}
+
+
 def true_indices(mask: torch.Tensor, count: int) -> torch.Tensor:
     """``(count,)`` the indices where the 1-D ``mask`` is True, ``count`` being their number
     (read on the host already): no second host read, where the device has ``nonzero_static``."""
@@ -128,12 +136,14 @@ def batched_lbfgs(fun: Callable[..., torch.Tensor], x0: torch.Tensor, seg: torch
     whatever the batch, and whatever ``trials`` and ``check_every``: those change only how the
     work is laid out.
 
-    While the history fills (the first ``history`` rounds) the rounds run in lockstep: the
+    On a CPU (``_LOCKSTEP_FILL``), while the history fills (the first ``history`` rounds) the
+    rounds run in lockstep: the
     search tries ``trials`` steps in its first stacked call, twice as many in each further one,
     and reads on the host whether another block is needed. After that every round has fixed shapes and no host read: ``trials`` steps in
     one stacked call over the whole working set, the first accepted taken per segment; a segment
     that accepted none keeps its state (hence its direction) and carries on halving in the next
-    round; every segment keeps its own last ``history`` pairs in a fixed buffer. Whether any
+    round; every segment keeps its own last ``history`` pairs in a fixed buffer (on other devices
+    from the first round, the buffer starting with skipped pairs). Whether any
     segment is still running is read every ``check_every`` rounds.
 
     Args:
@@ -247,9 +257,17 @@ def batched_lbfgs(fun: Callable[..., torch.Tensor], x0: torch.Tensor, seg: torch
         return moved & small_change(f, f_new)
 
     # the history fills: lockstep rounds, a host read per block of trials; each block after the
-    # first tries twice as many steps (a few segments backtrack far: fewer blocks, fewer reads)
+    # first tries twice as many steps (a few segments backtrack far: fewer blocks, fewer reads).
+    # Elsewhere than on a CPU the fixed-shape rounds start at once, from a history of skipped
+    # (zero) pairs, which contribute nothing to the direction: no host read in the first rounds,
+    # and on CUDA every round replays
+    fill = min(m, iterations) if _LOCKSTEP_FILL.get(dev.type, False) else 0
+    if not fill:
+        H = torch.zeros(2, m, n, dtype=dt, device=dev)
+        Q = torch.zeros(B, 2, m, m, dtype=torch.float64, device=dev)
+        Q[:, 0].diagonal(dim1=1, dim2=2).fill_(1.0)          # a skipped pair's unit s·y pivot
     r = 0
-    while r < min(m, iterations) and not budget.stop(r):
+    while r < fill and not budget.stop(r):
         d, gd = descent(XG[1], H, Q, gamma, seg, B)
         XGn, f_new = XG, f
         moved = torch.zeros_like(active)
@@ -279,7 +297,7 @@ def batched_lbfgs(fun: Callable[..., torch.Tensor], x0: torch.Tensor, seg: torch
         XG, f = XGn, f_new
         active = active & moved & ~small
         r += 1
-    if iterations <= m:
+    if fill and iterations <= m:
         return XG[0], f, iters
 
     # fixed shapes from here on, no host read but every check_every rounds. left: trials left in
@@ -318,7 +336,7 @@ def batched_lbfgs(fun: Callable[..., torch.Tensor], x0: torch.Tensor, seg: torch
     # of rounds between compactions
     replay = graphs.active(dev)
     graph = None
-    total = (iterations - m) * -(-mb // Kc)
+    total = (iterations - fill) * -(-mb // Kc)
     r = 0
     while r < total and not budget.stop(r):
         if r % check_every == 0:

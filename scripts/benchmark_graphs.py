@@ -3,7 +3,10 @@ loops, in one process, runs alternated (a lent machine's speed drifts between ru
 
 Modes: ``off`` (eager), ``on`` (the annealer's sweeps and the fits' rounds replayed), ``anneal``
 (the annealer's sweeps only), ``quarter`` (``on``, the fits' working set compacted when a quarter
-of it is left running instead of a half: fewer recordings, more arithmetic). Per set and mode: the median wall time of a ``reconstruct_batch``
+of it is left running instead of a half: fewer recordings, more arithmetic), ``trials1`` (``on``
+with one step length per line-search round, ``lbfgs_trials: 1``, instead of the GPU's 3: once a
+round costs one launch, the two extra trials of a round that accepts its first are only
+arithmetic). Per set and mode: the median wall time of a ``reconstruct_batch``
 call, its stage seconds, and how many graphs were recorded and replayed, and the host seconds
 spent recording them.
 
@@ -33,7 +36,7 @@ import torch_isc  # noqa: E402
 from torch_isc.pipeline import graphs, optim, values  # noqa: E402
 from torch_isc.pipeline.config import ReconstructConfig  # noqa: E402
 
-MODES = ("off", "on", "anneal", "quarter")
+MODES = ("off", "on", "anneal", "quarter", "trials1")
 
 
 class _Counts:
@@ -71,6 +74,8 @@ class _NoFitGraphs:
 def _mode(mode: str, device: str):
     emulate = graphs.use("emulate") if torch.device(device).type == "cpu" and mode != "off" else contextlib.nullcontext()
     cfg = ReconstructConfig().replace(cuda_graphs=mode != "off")
+    if mode == "trials1":
+        cfg = cfg.replace(lbfgs_trials=1)
     return cfg, emulate
 
 

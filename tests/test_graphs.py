@@ -120,6 +120,23 @@ def test_lbfgs_from_a_zero_history_follows_the_lockstep_trajectory(monkeypatch):
     torch.testing.assert_close(b[1], a[1], rtol=0, atol=1e-12)
 
 
+def test_a_refused_recording_leaves_the_loops_eager(monkeypatch):
+    # as where the driver refuses a capture: capture() returns None, the loops run eagerly
+    # (the same bits) and stop asking after their first refusal
+    asked = []
+
+    def refuse(step, device):
+        asked.append(getattr(step, "func", step).__name__)
+        return None
+    shapes = _shapes()[:2]
+    eager = torch_isc.reconstruct_batch(shapes)
+    monkeypatch.setattr(graphs, "capture", refuse)
+    with graphs.use("emulate"):
+        refused = torch_isc.reconstruct_batch(shapes)
+    _same(eager, refused)
+    assert asked and len(asked) < 40                  # one ask per loop call at most, not per round
+
+
 def test_the_config_switch_turns_replay_off(recorded):
     cfg = ReconstructConfig().replace(cuda_graphs=False)
     with graphs.use("emulate"):

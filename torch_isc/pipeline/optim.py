@@ -10,7 +10,9 @@ Schnabel 1994), so one iteration costs a fixed handful of tensor ops whatever th
 length, instead of the two-loop recursion's four ops per stored pair.
 
 Once the history has filled (after ``history`` rounds run in lockstep, as a plain batched
-L-BFGS would), every round has fixed shapes and no host read (GPU-ready): each segment keeps
+L-BFGS would, on a CPU; elsewhere from the first round, the history starting as skipped pairs),
+every round has fixed shapes and no host read (GPU-ready; on CUDA recorded once as a graph and
+replayed, :mod:`torch_isc.pipeline.graphs`): each segment keeps
 its last ``history`` pairs in a fixed buffer, the backtracking line search tries ``trials``
 step lengths in one stacked call of the objective over the whole working set and takes the
 first accepted per segment, and a segment that accepted none carries on halving in the next

@@ -69,8 +69,9 @@ def test_replayed_rounds_give_the_eager_bits(recorded):
     with graphs.use("emulate"):
         replayed = torch_isc.reconstruct_batch(shapes)
     names = {n for n, _ in recorded}
-    # the annealer's sweeps, the fits' rounds, the region distances' relaxations (simplify.py)
-    assert names == {"_sweep_classes", "step", "iteration"}
+    # the annealer's sweeps (cooling, zero temperature), the fits' rounds, the region
+    # distances' relaxations (simplify.py)
+    assert names == {"_sweep_from_row", "_sweep_classes", "step", "iteration"}
     # replayed many times each, on average: recording is not the whole of it
     for name in names:
         caps = [k for n, k in recorded if n == name]
@@ -255,4 +256,4 @@ def test_a_compiled_objective_is_not_recorded(recorded, monkeypatch):
     with graphs.use("emulate"):
         torch_isc.reconstruct_batch(_shapes()[:1], cfg)
     names = {n for n, _ in recorded}
-    assert "_sweep_classes" in names and "step" not in names
+    assert "_sweep_from_row" in names and "step" not in names

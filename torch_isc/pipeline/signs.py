@@ -511,6 +511,13 @@ def _sweep_classes(classes, half, gcol: Optional[torch.Tensor]) -> None:
                  None if gcol is None else gcol[cl.a:cl.a + cl.width])
 
 
+def _sweep_from_row(classes, half: torch.Tensor, row: torch.Tensor, gcol: Optional[torch.Tensor]) -> None:
+    """:func:`_sweep_classes` with the thresholds ``half[row]`` (``half (n, R, F)``, ``row (1,)``
+    on the device), then ``row`` advanced by one: a recorded sweep, replayed sweep after sweep."""
+    _sweep_classes(classes, half.index_select(0, row)[0], gcol)
+    row.add_(1)
+
+
 def anneal(mesh: MeshBatch, H: torch.Tensor, init: torch.Tensor, fixed: torch.Tensor,
            cfg: Optional[TopologyConfig] = None, seed: int = 0, warm: bool = False,
            field: Optional[torch.Tensor] = None) -> torch.Tensor:
@@ -577,26 +584,27 @@ def anneal(mesh: MeshBatch, H: torch.Tensor, init: torch.Tensor, fixed: torch.Te
         # the memory (_RNG_NUMBERS)
         block = _rng_block(sweeps, F * R, dev)
         half = None
-        # on a GPU one sweep of every class is recorded once (after a first eager sweep, which
-        # makes the ops' lazy state) and replayed with its thresholds copied into a fixed row
-        # (pipeline/graphs.py): the same kernels, two launches a sweep
+        # on a GPU one sweep of every class is recorded (after a first eager sweep, which makes
+        # the ops' lazy state) and replayed, one launch a sweep (pipeline/graphs.py): a sweep
+        # reads its thresholds from the block's rows at a counter on the device and advances
+        # it; once per block of thresholds, and once for the zero-temperature sweeps
         replay = graphs.active(dev) and bool(classes)
-        graph = hrow = None
+        graph = cooling = None
         for k in budget.rounds(sweeps + greedy_sweeps):
             if k < sweeps and k % block == 0:
                 th = thalf[k:k + block] if thalf is not None else _temperature_rows(*sched, k, k + block) * 0.5
                 half = _metropolis_thresholds(hc, koff[k:k + block], th, dt)
+                graph = None                   # new rows: a new recording
             hk = half[k % block] if k < sweeps else None
             if replay and k > 0:
-                if graph is None:
-                    hrow = torch.zeros(R, F, dtype=dt, device=dev)
-                    graph = graphs.capture(functools.partial(_sweep_classes, classes, hrow, gcol), dev)
+                if graph is None or cooling != (k < sweeps):
+                    cooling = k < sweeps
+                    step = (functools.partial(_sweep_from_row, classes, half, torch.full(
+                        (1,), k % block, dtype=torch.long, device=dev), gcol) if cooling
+                        else functools.partial(_sweep_classes, classes, 0.0, gcol))
+                    graph = graphs.capture(step, dev)
                     replay = graph is not None
                 if graph is not None:
-                    if hk is None:
-                        hrow.zero_()           # zero temperature: a threshold of 0, as the scalar
-                    else:
-                        hrow.copy_(hk)
                     graph.replay()
                     continue
             _sweep_classes(classes, hk if k < sweeps else 0.0, gcol)

@@ -2,7 +2,7 @@
 loops, in one process, runs alternated (a lent machine's speed drifts between runs).
 
 Modes: ``off`` (eager), ``on`` (the annealer's sweeps and the fits' rounds replayed), ``anneal``
-(the annealer's sweeps only), ``quarter`` (``on``, the fits' working set compacted when a quarter
+(everything but the fits' rounds), ``quarter`` (``on``, the fits' working set compacted when a quarter
 of it is left running instead of a half: fewer recordings, more arithmetic), ``trials1`` (``on``
 with one step length per line-search round, ``lbfgs_trials: 1``, instead of the GPU's 3: once a
 round costs one launch, the two extra trials of a round that accepts its first are only
@@ -49,9 +49,9 @@ def _install(counts: _Counts) -> None:
     """Count and time every recording, count every replay."""
     capture = graphs.capture
 
-    def counted(step, device):
+    def counted(step, device, kind):
         t0 = time.perf_counter()
-        g = capture(step, device)
+        g = capture(step, device, kind)
         counts.seconds += time.perf_counter() - t0
         counts.captures += 1
         if g is None:
@@ -67,7 +67,7 @@ def _install(counts: _Counts) -> None:
 
 
 class _NoFitGraphs:
-    active = staticmethod(lambda device: False)
+    active = staticmethod(lambda device, kind: False)
     capture = staticmethod(graphs.capture)
 
 

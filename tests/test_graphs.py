@@ -47,8 +47,8 @@ def recorded(monkeypatch):
     seen = []
     capture = graphs.capture
 
-    def counting(step, device):
-        g = capture(step, device)
+    def counting(step, device, kind):
+        g = capture(step, device, kind)
         entry = [getattr(step, "func", step).__name__, 0]
         seen.append(entry)
         replay = g.replay
@@ -126,7 +126,7 @@ def test_a_refused_recording_leaves_the_loops_eager(monkeypatch):
     # (the same bits) and stop asking after their first refusal
     asked = []
 
-    def refuse(step, device):
+    def refuse(step, device, kind):
         asked.append(getattr(step, "func", step).__name__)
         return None
     shapes = _shapes()[:2]
@@ -195,9 +195,9 @@ def test_iterate_replays_to_the_loop_bits(recorded):
     want = d0
     for _ in range(7):
         want = relax(want)
-    assert graphs.iterate(relax, d0, 7) is not d0 and not recorded       # eager: off
+    assert graphs.iterate(relax, d0, 7, "test") is not d0 and not recorded       # eager: off
     with graphs.use("emulate"):
-        got = graphs.iterate(relax, d0, 7)
+        got = graphs.iterate(relax, d0, 7, "test")
     assert recorded == [["iteration", 7]]
     assert torch.equal(got, want) and torch.isinf(d0[1:]).all()          # the start untouched
     assert torch.isfinite(want).sum() > 1
@@ -210,22 +210,33 @@ def test_a_step_that_reads_the_host_is_refused():
         if bool(x.sum() > 0):                         # a host read: no graph can record it
             x.add_(1)
     with graphs.use("emulate"):
-        g = graphs.capture(step, x.device)
+        g = graphs.capture(step, x.device, "test")
         with pytest.raises(graphs.CaptureError, match="reads the device on the host"):
             g.replay()
 
 
+def test_a_failed_kind_stays_eager_alone(monkeypatch):
+    cuda = torch.device("cuda")
+    monkeypatch.setattr(graphs, "_FAILED", {"anneal": RuntimeError("refused")})
+    with graphs.use(True):
+        assert not graphs.active(cuda, "anneal")
+        assert graphs.active(cuda, "fit")             # the fits' graphs keep replaying
+
+
 def test_modes_nest():
     cpu = torch.device("cpu")
-    assert not graphs.active(cpu)
+    assert not graphs.active(cpu, "fit")
     with graphs.use(True):
-        assert not graphs.active(cpu)                 # a real capture needs CUDA
+        assert not graphs.active(cpu, "fit")          # a real capture needs CUDA
     with graphs.use("emulate"):
-        assert graphs.active(cpu)
+        assert graphs.active(cpu, "fit")
         with graphs.use(True):                        # the loop's config inside a test's emulation
-            assert graphs.active(cpu)
+            assert graphs.active(cpu, "fit")
         with graphs.use(False):                       # the config's off wins
-            assert not graphs.active(cpu)
+            assert not graphs.active(cpu, "fit")
+    cuda = torch.device("cuda")                       # a device object: no GPU needed to ask
+    with graphs.use(True):
+        assert graphs.active(cuda, "fit") and graphs.active(cuda, "anneal")
     with pytest.raises(ValueError, match="on, off or emulate"):
         with graphs.use("sometimes"):
             pass

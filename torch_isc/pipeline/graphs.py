@@ -9,7 +9,8 @@ the same tensors, so a replay gives the bits the eager round would.
 A step recorded here must read and write only tensors that outlive its graph (the loop's state,
 in place) and must not read the device on the host. A tensor it allocates lives in the graph's
 own memory pool and must not escape it. Where a capture fails (an op the driver refuses), a
-warning says so once and the loops run eagerly from then on.
+warning says so once and the loops of that kind (``fit``, ``anneal``, ...) run eagerly from then
+on; the other kinds keep replaying.
 
 ``emulate`` (tests) records nothing: :func:`capture` returns a replayer that runs the step
 eagerly, under a guard that raises on every host read of the device, so a CPU test checks both
@@ -30,7 +31,7 @@ from torch_isc.pipeline import budget
 __all__ = ["use", "active", "capture", "iterate", "CaptureError"]
 
 _MODE: contextvars.ContextVar[str] = contextvars.ContextVar("torch_isc_graphs", default="off")
-_FAILED: list = []                          # a capture failed in this process: eager from then on
+_FAILED: dict = {}                          # kind -> why its capture failed: that kind eager from then on
 _STREAMS: dict = {}                         # device index -> the side stream captures run on
 
 
@@ -55,12 +56,12 @@ def use(mode):
         _MODE.reset(token)
 
 
-def active(device: torch.device) -> bool:
-    """Whether the loops on ``device`` should record and replay their rounds."""
+def active(device: torch.device, kind: str) -> bool:
+    """Whether the loops of ``kind`` on ``device`` should record and replay their rounds."""
     mode = _MODE.get()
     if mode == "emulate":
         return True
-    return mode == "on" and device.type == "cuda" and not _FAILED
+    return mode == "on" and device.type == "cuda" and kind not in _FAILED
 
 
 _HOST_READS = {torch.ops.aten._local_scalar_dense.default, torch.ops.aten.nonzero.default,
@@ -88,11 +89,11 @@ class _Emulated:
             self.step()
 
 
-def capture(step: Callable[[], None], device: torch.device):
+def capture(step: Callable[[], None], device: torch.device, kind: str):
     """Record ``step()`` (in-place updates of tensors that outlive the graph) as a graph on
     ``device``; returns an object whose ``replay()`` runs it, or None where recording failed
-    (then the caller runs ``step`` eagerly). Recording runs nothing: the state is untouched
-    until the first replay."""
+    (then the caller runs ``step`` eagerly, and :func:`active` is False for ``kind`` from then
+    on). Recording runs nothing: the state is untouched until the first replay."""
     if _MODE.get() == "emulate":
         return _Emulated(step)
     stream = _STREAMS.get(device.index)
@@ -115,25 +116,25 @@ def capture(step: Callable[[], None], device: torch.device):
             finally:
                 g.capture_end()
     except Exception as exc:                 # an op the driver cannot record: eager from now on
-        _FAILED.append(exc)
-        warnings.warn(f"recording a CUDA graph failed ({type(exc).__name__}: {exc}); the inner loops run "
-                      "eagerly", RuntimeWarning, stacklevel=3)
+        _FAILED[kind] = exc
+        warnings.warn(f"recording a CUDA graph of the {kind} loop failed ({type(exc).__name__}: {exc}); "
+                      "that loop runs eagerly", RuntimeWarning, stacklevel=3)
         return None
     torch.cuda.current_stream(device).wait_stream(stream)
     return g
 
 
-def iterate(fn: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor, rounds: int) -> torch.Tensor:
+def iterate(fn: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor, rounds: int, kind: str) -> torch.Tensor:
     """``x`` after ``rounds`` applications of ``fn`` (a fixed-shape map with no host read),
     rounds counted by :func:`budget.rounds`; where :func:`active`, one application is recorded
     and replayed (the same bits)."""
     rounds = int(rounds)
-    if rounds > 2 and active(x.device):
+    if rounds > 2 and active(x.device, kind):
         static = x.clone()
 
         def iteration():
             static.copy_(fn(static))
-        g = capture(iteration, x.device)
+        g = capture(iteration, x.device, kind)
         if g is not None:
             for _ in budget.rounds(rounds):
                 g.replay()

@@ -336,7 +336,7 @@ def batched_lbfgs(fun: Callable[..., torch.Tensor], x0: torch.Tensor, seg: torch
     # block (pipeline/graphs.py): the same kernels, one launch a round. One round, not a whole
     # block: recording costs what launching its kernels would, and a working set lasts only tens
     # of rounds between compactions
-    replay = graphs.active(dev)
+    replay = graphs.active(dev, "fit")
     graph = None
     total = (iterations - fill) * -(-mb // Kc)
     r = 0
@@ -395,7 +395,7 @@ def _record_round(one_round: Callable, state, dev: torch.device):
     def step():
         for t, v in zip(static, one_round(*static)):
             t.copy_(v)
-    graph = graphs.capture(step, dev)
+    graph = graphs.capture(step, dev, "fit")
     return (None, state) if graph is None else (graph, static)
 
 

@@ -588,7 +588,7 @@ def anneal(mesh: MeshBatch, H: torch.Tensor, init: torch.Tensor, fixed: torch.Te
         # the ops' lazy state) and replayed, one launch a sweep (pipeline/graphs.py): a sweep
         # reads its thresholds from the block's rows at a counter on the device and advances
         # it; once per block of thresholds, and once for the zero-temperature sweeps
-        replay = graphs.active(dev) and bool(classes)
+        replay = graphs.active(dev, "anneal") and bool(classes)
         graph = cooling = None
         for k in budget.rounds(sweeps + greedy_sweeps):
             if k < sweeps and k % block == 0:
@@ -602,7 +602,7 @@ def anneal(mesh: MeshBatch, H: torch.Tensor, init: torch.Tensor, fixed: torch.Te
                     step = (functools.partial(_sweep_from_row, classes, half, torch.full(
                         (1,), k % block, dtype=torch.long, device=dev), gcol) if cooling
                         else functools.partial(_sweep_classes, classes, 0.0, gcol))
-                    graph = graphs.capture(step, dev)
+                    graph = graphs.capture(step, dev, "anneal")
                     replay = graph is not None
                 if graph is not None:
                     graph.replay()

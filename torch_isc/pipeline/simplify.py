@@ -111,7 +111,7 @@ def zero_set_distance(mesh: MeshBatch, signs: torch.Tensor, cap: torch.Tensor, r
         d = d.scatter_reduce(0, a, half, "amin").scatter_reduce(0, b, half, "amin")
         w = torch.where(same, ell, torch.full_like(ell, float("inf")))
         d = graphs.iterate(lambda d: d.scatter_reduce(0, a, d[b] + w, "amin").scatter_reduce(0, b, d[a] + w, "amin"),
-                           d, rounds)
+                           d, rounds, "region distance")
         return torch.minimum(d, cap)
 
 
@@ -130,7 +130,7 @@ def ball_cover(mesh: MeshBatch, signs: torch.Tensor, depth: torch.Tensor, radius
         w = torch.where(signs[a] == signs[b], ell, torch.full_like(ell, float("inf")))
         q = torch.where(depth >= radius, depth, torch.full_like(depth, -float("inf")))
         q = graphs.iterate(lambda q: q.scatter_reduce(0, a, q[b] - w, "amax").scatter_reduce(0, b, q[a] - w, "amax"),
-                           q, rounds)
+                           q, rounds, "ball cover")
         return q >= 0
 
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
+import threading
 import warnings
 from typing import Callable
 
@@ -32,7 +33,7 @@ __all__ = ["use", "active", "capture", "iterate", "CaptureError"]
 
 _MODE: contextvars.ContextVar[str] = contextvars.ContextVar("torch_isc_graphs", default="off")
 _FAILED: dict = {}                          # kind -> why its capture failed: that kind eager from then on
-_STREAMS: dict = {}                         # device index -> the side stream captures run on
+_STREAMS: dict = {}                         # (device index, thread) -> the side stream captures run on
 
 
 class CaptureError(RuntimeError):
@@ -96,17 +97,22 @@ def capture(step: Callable[[], None], device: torch.device, kind: str):
     on). Recording runs nothing: the state is untouched until the first replay."""
     if _MODE.get() == "emulate":
         return _Emulated(step)
-    stream = _STREAMS.get(device.index)
+    key = (device.index, threading.get_ident())
+    stream = _STREAMS.get(key)
     if stream is None:
-        stream = _STREAMS[device.index] = torch.cuda.Stream(device=device)
+        stream = _STREAMS[key] = torch.cuda.Stream(device=device)
         # cuBLAS's handle and workspace for the side stream, made outside any graph's pool
         with torch.cuda.stream(stream):
             e = torch.eye(2, dtype=torch.float64, device=device).expand(3, 2, 2)
             torch.linalg.solve_triangular(e, e @ e, upper=True)
         torch.cuda.current_stream(device).wait_stream(stream)
+    # each graph has its own memory pool (the default): a dropped graph's pool is held by the
+    # allocator until an allocation needs it back (then freed). Sharing one pool between a
+    # loop's graphs would bound that, but a pool whose graphs have all been dropped cannot be
+    # recorded into again by its handle, and this path has run on a GPU as it is
     g = torch.cuda.CUDAGraph()
-    # the side stream waits for what is queued, so the pool's first blocks are not in use;
-    # torch.cuda.graph would also empty the allocator's cache at every capture: not wanted here
+    # the side stream waits for what is queued; torch.cuda.graph would also empty the
+    # allocator's cache at every capture: not wanted here
     stream.wait_stream(torch.cuda.current_stream(device))
     try:
         with torch.cuda.stream(stream):

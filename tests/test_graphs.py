@@ -32,6 +32,14 @@ def _shapes():
     return [torch.tensor(p, dtype=torch.float32) for p in (circle, annulus, flower, two)]
 
 
+def _segments(B: int = 12, n: int = 5):
+    """``B`` segments of ``n`` entries: ``seg``, a scale per segment over four decades (so the
+    segments converge at different rounds) and a random centre per entry."""
+    torch.manual_seed(1)
+    seg = torch.arange(B).repeat_interleave(n)
+    return B, n, seg, torch.logspace(-2, 2, B, dtype=torch.float64), torch.randn(B * n, dtype=torch.float64)
+
+
 def _same(a, b):
     assert [len(x.polylines) for x in a] == [len(x.polylines) for x in b]
     for x, y in zip(a, b):
@@ -100,11 +108,7 @@ def test_fits_from_a_zero_history_replay_to_their_eager_bits(recorded, monkeypat
 
 def test_lbfgs_from_a_zero_history_follows_the_lockstep_trajectory(monkeypatch):
     from torch_isc.pipeline import optim
-    torch.manual_seed(1)
-    B, n = 12, 5
-    seg = torch.arange(B).repeat_interleave(n)
-    scale = torch.logspace(-2, 2, B, dtype=torch.float64)
-    c = torch.randn(B * n, dtype=torch.float64)
+    B, n, seg, scale, c = _segments()
 
     def fun(X):                                       # a non-convex term: curvature pairs get skipped
         d = X - c
@@ -145,14 +149,10 @@ def test_the_config_switch_turns_replay_off(recorded):
     assert recorded == []
 
 
-def test_lbfgs_blocks_with_compaction_match_the_eager_loop(recorded):
+def test_lbfgs_rounds_with_compaction_match_the_eager_loop(recorded):
     # per segment a convex quartic with its own scale: the segments stop at different rounds,
-    # so the working set is compacted (and the block re-recorded) several times
-    torch.manual_seed(1)
-    B, n = 12, 5
-    seg = torch.arange(B).repeat_interleave(n)
-    scale = torch.logspace(-2, 2, B, dtype=torch.float64)
-    c = torch.randn(B * n, dtype=torch.float64)
+    # so the working set is compacted (and the round re-recorded) several times
+    B, n, seg, scale, c = _segments()
 
     def make(keep):
         k = int(keep.sum())                           # read once, outside the rounds

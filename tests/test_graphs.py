@@ -32,6 +32,17 @@ def _shapes():
     return [torch.tensor(p, dtype=torch.float32) for p in (circle, annulus, flower, two)]
 
 
+def _close(a, b, frac: float) -> None:
+    """The same curves per item, each pair within ``frac`` of the item's diagonal (symmetric
+    Hausdorff between their vertices)."""
+    assert [x.num_components for x in a] == [x.num_components for x in b]
+    for x, y in zip(a, b):
+        diag = float((x.points.amax(0) - x.points.amin(0)).norm())
+        for p, q in zip(x.polylines, y.polylines):
+            d = torch.cdist(p["points"].double(), q["points"].double())
+            assert max(d.min(0).values.max(), d.min(1).values.max()) < frac * diag
+
+
 def _segments(B: int = 12, n: int = 5):
     """``B`` segments of ``n`` entries: ``seg``, a scale per segment over four decades (so the
     segments converge at different rounds) and a random centre per entry."""
@@ -98,12 +109,7 @@ def test_fits_from_a_zero_history_replay_to_their_eager_bits(recorded, monkeypat
     with graphs.use("emulate"):
         replayed = torch_isc.reconstruct_batch(shapes)
     _same(eager, replayed)
-    assert [x.num_components for x in eager] == [x.num_components for x in lockstep]
-    for x, y in zip(eager, lockstep):
-        diag = float((x.points.amax(0) - x.points.amin(0)).norm())
-        for p, q in zip(x.polylines, y.polylines):
-            d = torch.cdist(p["points"].double(), q["points"].double())
-            assert max(d.min(0).values.max(), d.min(1).values.max()) < 0.05 * diag
+    _close(eager, lockstep, 0.05)
 
 
 def test_lbfgs_from_a_zero_history_follows_the_lockstep_trajectory(monkeypatch):
@@ -248,14 +254,9 @@ def test_cuda_graphs_on_cuda_agree_with_eager():
     on = torch_isc.reconstruct_batch(shapes)
     off = torch_isc.reconstruct_batch(shapes, ReconstructConfig().replace(cuda_graphs=False))
     assert not graphs._FAILED, graphs._FAILED
-    assert [x.num_components for x in on] == [x.num_components for x in off]
-    for x, y in zip(on, off):
-        diag = float((x.points.amax(0) - x.points.amin(0)).norm())
-        for p, q in zip(x.polylines, y.polylines):
-            # the same kernels; CUDA's atomic adds still sum in any order, run to run (two eager
-            # runs of the hard mix differed by up to 2.9% of the diagonal, docs/device_runs.md)
-            d = torch.cdist(p["points"].double(), q["points"].double())
-            assert max(d.min(0).values.max(), d.min(1).values.max()) < 0.1 * diag
+    # the same kernels; CUDA's atomic adds still sum in any order, run to run (two eager runs
+    # of the hard mix differed by up to 2.9% of the diagonal, docs/device_runs.md)
+    _close(on, off, 0.1)
 
 
 def test_a_compiled_objective_is_not_recorded(recorded, monkeypatch):

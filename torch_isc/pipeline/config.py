@@ -319,6 +319,9 @@ def _parse_yaml(text: str, where: str):
         raise ConfigError(f"{where}: YAML nested too deeply") from None
     except yaml.YAMLError as e:
         raise ConfigError(f"{where}: not valid YAML ({_first_line(str(e))})") from None
+    except KeyError as e:
+        # "!!bool 1": the bool constructor looks its text up in a table
+        raise ConfigError(f"{where}: a YAML value cannot be read (not a boolean: {_short_key(e.args[0] if e.args else '')})") from None
     except (ValueError, TypeError, AttributeError, OverflowError) as e:
         # PyYAML's constructors raise these for values of a valid document: "2001-13-45",
         # "!!float abc", "!!timestamp x", an integer of more than 4300 digits

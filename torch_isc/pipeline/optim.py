@@ -171,6 +171,9 @@ def batched_lbfgs(fun: Callable[..., torch.Tensor], x0: torch.Tensor, seg: torch
     Returns:
         ``x``, the per-segment objective at ``x``, and the number of iterations each segment ran.
     """
+    if int(max_backtracks) < 1 or int(check_every) < 1:
+        raise ValueError(f"batched_lbfgs: max_backtracks and check_every must be at least 1, not "
+                         f"{max_backtracks} and {check_every}")
     B = num_segments
     dt = x0.dtype
     dev = x0.device

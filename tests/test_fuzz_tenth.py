@@ -47,3 +47,26 @@ def test_lbfgs_at_the_smallest_counts_still_solves():
                              trials=5, iterations=30, history=1)
     torch.testing.assert_close(x, c, rtol=0, atol=1e-9)
     assert (f < 1e-15).all() and (it >= 1).all()
+
+
+def test_the_snap_is_left_out_past_the_deadline(monkeypatch):
+    # band_snap's neighbour search read no deadline: a small max_seconds was overrun several-fold
+    import math
+    import torch_isc
+    from torch_isc.pipeline import band
+    called = []
+    monkeypatch.setattr(band, "snap_crossings", lambda *a, **k: called.append(1))
+    t = torch.linspace(0, 2 * math.pi, 401, dtype=torch.float64)[:-1]
+    circle = torch.stack([t.cos(), t.sin()], 1)
+    r = torch_isc.reconstruct(circle, torch_isc.ReconstructConfig().replace(band_snap=True, max_seconds=1e-9))
+    assert called == [] and r.limit == "max_seconds"
+
+
+def test_skip_counts_a_cut_only_past_the_deadline():
+    import time
+    from torch_isc.pipeline import budget
+    assert not budget.skip()                          # no deadline
+    with budget.deadline(60.0):
+        assert not budget.skip() and budget.cuts() == 0
+    with budget.deadline(1e-9, start=time.perf_counter() - 1.0):
+        assert budget.skip() and budget.cuts() == 1

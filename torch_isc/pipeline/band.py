@@ -185,7 +185,9 @@ def band_stage(ws: "WorkingSet", cfg: BandConfig, geometry: GeometryConfig, slac
         fitted = False
     if not fitted:
         ws = _with_values(ws, _refit_any(ws, cfg, gcfg, slack))
-    if cfg.band_snap:
+    # the snap's neighbour search is one large step: past the deadline it is left out (the
+    # items then end "max_seconds") rather than overrun it
+    if cfg.band_snap and not budget.skip():
         ws = _with_values(ws, snap_crossings(ws, ws.values, cfg))
     return ws
 

@@ -16,7 +16,7 @@ import contextvars
 import time
 from typing import Iterator, Optional
 
-__all__ = ["deadline", "rounds", "stop", "expired", "cuts"]
+__all__ = ["deadline", "rounds", "stop", "skip", "expired", "cuts"]
 
 
 class _Budget:
@@ -80,6 +80,16 @@ def stop(i: int) -> bool:
     has passed (never the first round); counts the cut like :func:`rounds`."""
     b = _CURRENT.get()
     if b is None or not i or time.perf_counter() <= b.end:
+        return False
+    b.cuts += 1
+    return True
+
+
+def skip() -> bool:
+    """For a piece of work done once, not in rounds (a search whose cost grows with the input):
+    whether to leave it out because the deadline has passed; counts the cut like :func:`rounds`."""
+    b = _CURRENT.get()
+    if b is None or time.perf_counter() <= b.end:
         return False
     b.cuts += 1
     return True

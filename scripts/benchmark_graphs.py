@@ -68,7 +68,6 @@ def _install(counts: _Counts) -> None:
 
 class _NoFitGraphs:
     active = staticmethod(lambda device, kind: False)
-    capture = staticmethod(graphs.capture)
 
 
 def _mode(mode: str, device: str):

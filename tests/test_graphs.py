@@ -223,7 +223,7 @@ def test_a_step_that_reads_the_host_is_refused():
 
 def test_a_failed_kind_stays_eager_alone(monkeypatch):
     cuda = torch.device("cuda")
-    monkeypatch.setattr(graphs, "_FAILED", {"anneal": RuntimeError("refused")})
+    monkeypatch.setattr(graphs, "_FAILED", {"anneal": "RuntimeError: refused"})
     with graphs.use(True):
         assert not graphs.active(cuda, "anneal")
         assert graphs.active(cuda, "fit")             # the fits' graphs keep replaying
@@ -246,6 +246,55 @@ def test_modes_nest():
     with pytest.raises(ValueError, match="on, off or emulate"):
         with graphs.use("sometimes"):
             pass
+
+
+def test_no_collection_holds_the_collector_off_and_restores_it():
+    import gc
+    assert gc.isenabled()
+    with graphs.no_collection():
+        assert not gc.isenabled()
+    assert gc.isenabled()
+    with pytest.raises(KeyError):
+        with graphs.no_collection():
+            raise KeyError("inside")
+    assert gc.isenabled()
+    gc.disable()
+    try:
+        with graphs.no_collection():
+            pass
+        assert not gc.isenabled()                     # off before: left off
+    finally:
+        gc.enable()
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_a_recording_survives_dropped_graphs_in_cycles(monkeypatch):
+    """A graph dropped in a reference cycle is destroyed by the cycle collector; a collection
+    inside a recording (many Python objects made by its step) destroyed such graphs there and
+    invalidated the recording on an H200."""
+    import gc
+    monkeypatch.setattr(graphs, "_FAILED", {})
+    x = torch.zeros(64, device="cuda")
+    with graphs.use(True):
+        for _ in range(4):                            # cyclic garbage that holds graphs
+            cyc = {"graph": graphs.capture(lambda: x.add_(1), x.device, "test")}
+            cyc["self"] = cyc
+        del cyc
+        old = gc.get_threshold()
+        gc.set_threshold(1, 1, 1)                     # collect at almost every allocation
+        try:
+            def step():
+                junk = [[i] for i in range(2000)]     # container objects: collections happen
+                x.mul_(2).add_(len(junk) > 0)
+            g = graphs.capture(step, x.device, "test")
+        finally:
+            gc.set_threshold(*old)
+    assert g is not None and not graphs._FAILED, graphs._FAILED
+    x.zero_()
+    g.replay()
+    g.replay()
+    torch.cuda.synchronize()
+    assert torch.equal(x, torch.full_like(x, 3.0))
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")

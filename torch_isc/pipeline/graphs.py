@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
+import gc
 import threading
 import warnings
 from typing import Callable
@@ -32,7 +33,7 @@ from torch_isc.pipeline import budget
 __all__ = ["use", "active", "capture", "iterate", "CaptureError"]
 
 _MODE: contextvars.ContextVar[str] = contextvars.ContextVar("torch_isc_graphs", default="off")
-_FAILED: dict = {}                          # kind -> why its capture failed: that kind eager from then on
+_FAILED: dict = {}                          # kind -> why its capture failed (text): that kind eager from then on
 _STREAMS: dict = {}                         # (device index, thread) -> the side stream captures run on
 
 
@@ -90,6 +91,22 @@ class _Emulated:
             self.step()
 
 
+@contextlib.contextmanager
+def no_collection():
+    """Python's cycle collector off within the block (as it was after it). A collection during
+    a recording could free a dropped graph, and destroying a graph while the thread records
+    another is an unsafe call that invalidates the recording (seen on an H200: the fit and
+    anneal recordings failed that way, with "operation not permitted when stream is
+    capturing (function reset)")."""
+    was = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if was:
+            gc.enable()
+
+
 def capture(step: Callable[[], None], device: torch.device, kind: str):
     """Record ``step()`` (in-place updates of tensors that outlive the graph) as a graph on
     ``device``; returns an object whose ``replay()`` runs it, or None where recording failed
@@ -114,17 +131,20 @@ def capture(step: Callable[[], None], device: torch.device, kind: str):
     # the side stream waits for what is queued; torch.cuda.graph would also empty the
     # allocator's cache at every capture: not wanted here
     stream.wait_stream(torch.cuda.current_stream(device))
+    why = None
     try:
-        with torch.cuda.stream(stream):
+        with no_collection(), torch.cuda.stream(stream):
             g.capture_begin(capture_error_mode="thread_local")
             try:
                 step()
             finally:
                 g.capture_end()
     except Exception as exc:                 # an op the driver cannot record: eager from now on
-        _FAILED[kind] = exc
-        warnings.warn(f"recording a CUDA graph of the {kind} loop failed ({type(exc).__name__}: {exc}); "
-                      "that loop runs eagerly", RuntimeWarning, stacklevel=3)
+        why = f"{type(exc).__name__}: {exc}"   # text: the traceback would hold the loop's tensors
+    if why is not None:
+        _FAILED[kind] = why
+        warnings.warn(f"recording a CUDA graph of the {kind} loop failed ({why}); that loop runs eagerly",
+                      RuntimeWarning, stacklevel=2)
         return None
     torch.cuda.current_stream(device).wait_stream(stream)
     return g

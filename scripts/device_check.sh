@@ -30,7 +30,7 @@ step() {
     echo "=== $name rc=$? (at $SECONDS s)"
     tail -n "${TAIL:-30}" "$OUT/$name.log"
 }
-TAIL=20 step graphs_ab "${T_GRAPHS_AB:-240}" python3 scripts/benchmark_graphs.py --device cuda --batches 4096,512 --hard 64 --repeats 3
+TAIL=20 step graphs_ab "${T_GRAPHS_AB:-240}" python3 scripts/benchmark_graphs.py --device cuda --batches 4096,512 --hard 64 --repeats 3 --modes "${GRAPHS_MODES:-off,on,anneal,quarter,trials1}"
 TAIL=15 step tests "${T_TESTS:-120}" python3 -m pytest -q -p no:cacheprovider -n 8 -k "cuda or graphs" tests
 step bench_bd "${T_BENCH_BD:-150}" python3 scripts/benchmark.py --device cuda --parts bd --batches 256,1024,4096 --subset 4 --repeats "${REPEATS:-3}"
 step bench_eager "${T_BENCH_EAGER:-120}" python3 scripts/benchmark.py --device cuda --parts b --batches 4096 --subset 1 --repeats "${REPEATS:-3}" --set cuda_graphs=false

@@ -176,6 +176,19 @@ def test_duplicate_stems_are_disambiguated(tmp_path, capsys):
 
 
 # ----------------------------------------------------------------------------- skip / overwrite
+def test_rerun_with_an_execution_setting_changed_skips_and_a_result_setting_redoes(tmp_path, capsys):
+    """``run.cuda_graphs`` changes how a solve runs, not what it computes: outputs made with it
+    on are finished for a rerun with it off; a setting of the result (the seed) redoes them."""
+    f = _write_xy(tmp_path / "circle.xy", _circle())
+    o = tmp_path / "o"
+    args = ["reconstruct", f, "--out", o, "--formats", "json", *FAST]
+    assert _run(capsys, *args)[0] == 0
+    code, out, err = _run(capsys, *args, "--set", "cuda_graphs=false")
+    assert code == 0 and "circle: skipped" in out, out
+    code, out, err = _run(capsys, *args, "--set", "seed=3")
+    assert code == 0 and "skipped" not in out
+
+
 def test_rerun_skips_unless_overwrite(tmp_path, capsys):
     f = _write_xy(tmp_path / "circle.xy", _circle())
     o = tmp_path / "o"

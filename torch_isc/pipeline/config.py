@@ -380,13 +380,22 @@ def load_config(path: Optional[Union[str, Path]] = None, overrides: Optional[Map
     return cfg
 
 
+#: settings of how a solve runs, not of what it computes: left out of :func:`config_hash`, so
+#: turning one does not redo finished outputs (CUDA graphs replay the eager kernels)
+EXECUTION_ONLY = (("run", "cuda_graphs"),)
+
+
 def config_hash(cfg: ReconstructConfig, extra: Optional[Mapping[str, Any]] = None) -> str:
     """sha256 (hex) of the config's settings (and of ``extra``, e.g. image options), in a
-    canonical JSON form: equal settings give equal hashes."""
+    canonical JSON form: equal settings give equal hashes. :data:`EXECUTION_ONLY` settings are
+    left out."""
     import hashlib
     import json
 
-    doc = {"config": cfg.to_dict(), "extra": dict(extra or {})}
+    settings = cfg.to_dict()
+    for section, key in EXECUTION_ONLY:
+        settings.get(section, {}).pop(key, None)
+    doc = {"config": settings, "extra": dict(extra or {})}
     return hashlib.sha256(json.dumps(doc, sort_keys=True, default=repr).encode()).hexdigest()
 
 

@@ -67,9 +67,9 @@ for _p in (str(REPO), str(SCRIPTS)):
         sys.path.insert(0, _p)
 
 import torch_isc  # noqa: E402
+from torch_isc.pipeline.stats import STAGES  # noqa: E402
 from _common import arclength_samples, ellipse, flower, run_main  # noqa: E402
 
-STAGES = ("topology", "geometry", "test", "subdivide", "locate", "relax")
 NOISE = 0.001          # Gaussian noise sigma, fraction of the bounding-box diagonal
 KINDS = ("circle", "ellipse", "flower", "two circles", "annulus")
 KIND_CURVES = {"circle": 1, "ellipse": 1, "flower": 1, "two circles": 2, "annulus": 2}
@@ -297,7 +297,7 @@ def part_a(args) -> Dict[int, Dict[str, Any]]:
             line += f" {d.get('cuda_peak_mib', math.nan):.1f} |"
         print(line)
     print("\nStage columns: median over runs of the sum over levels of `stage_seconds`; other = total minus "
-          "the stages (input checks, normalization, noise estimate, result assembly); total = wall time of "
+          "the stages (input checks, normalization, result assembly); total = wall time of "
           "the `reconstruct` call; extract = the lazy `result.polylines` after it (not in total). "
           "Peak RSS +MiB: growth of `resource.getrusage(RUSAGE_SELF).ru_maxrss` during the runs over the "
           "subprocess's level after imports, data and a 100-point warm-up (psutil is not installed; "

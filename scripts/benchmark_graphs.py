@@ -124,8 +124,8 @@ def main() -> int:
     print(f"# CUDA graphs against eager loops: torch {torch.__version__}, device {a.device}"
           + (f" ({torch.cuda.get_device_name(0)})" if a.device.startswith("cuda") else "")
           + f", median of {a.repeats}, modes alternated\n")
-    print("| set | mode | wall s | shapes/s | topology | geometry | relax | graphs recorded | replays | recording s |")
-    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print("| set | mode | wall s | shapes/s | noise | topology | geometry | relax | graphs recorded | replays | recording s |")
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for name, tensors in sets:
         rows = {m: dict(t=[], st=[], c=[]) for m in modes}
         for _ in range(a.repeats):
@@ -138,9 +138,9 @@ def main() -> int:
         for m in modes:
             r = rows[m]
             t = statistics.median(r["t"])
-            st = {k: statistics.median(s.get(k, 0.0) for s in r["st"]) for k in ("topology", "geometry", "relax")}
+            st = {k: statistics.median(s.get(k, 0.0) for s in r["st"]) for k in ("noise", "topology", "geometry", "relax")}
             cap, rep, cs = r["c"]
-            print(f"| {name} | {m} | {t:.3f} | {len(tensors) / t:.1f} | {st['topology']:.3f} | {st['geometry']:.3f} "
+            print(f"| {name} | {m} | {t:.3f} | {len(tensors) / t:.1f} | {st['noise']:.3f} | {st['topology']:.3f} | {st['geometry']:.3f} "
                   f"| {st['relax']:.3f} | {cap} | {rep} | {cs:.3f} |", flush=True)
     return 0
 

@@ -240,7 +240,7 @@ def _start(batch: PointBatch, cfg: ReconstructConfig, rec: StatsRecorder, source
         blob = start_blobs(batch.points, batch.point_item, cfg.topology.blob_neighbours,
                            cfg.topology.blob_min_points, cfg.topology.blob_max_points, est.level,
                            tang) if source_blobs else None
-    rec.skip()                                   # the noise estimate is not a stage of the loop
+    rec.tick("noise")
     mesh = initial_mesh(cfg.mesh, B, device, dtype)
     face, bary = locate_grid(mesh, points, batch.point_item)
     rec.tick("locate")

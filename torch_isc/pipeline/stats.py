@@ -15,7 +15,8 @@ import torch
 __all__ = ["LevelStats", "StatsRecorder", "STAGES"]
 
 #: the timed stages of a level, in the order of Fig. 3
-STAGES = ("topology", "geometry", "test", "subdivide", "locate", "relax")
+#: ``noise``: the noise estimate, the denoising and the small clusters' search (level 0 only)
+STAGES = ("noise", "topology", "geometry", "test", "subdivide", "locate", "relax")
 
 
 @dataclass
@@ -80,10 +81,6 @@ class StatsRecorder:
         self.acc[stage] += now - self.t
         self.t = now
 
-    def skip(self) -> None:
-        """Charge the time since the last tick to no stage (the batch's preparation)."""
-        self.t = self._now()
-
     def record(self, level: int, items: torch.Tensor, columns: Dict[str, torch.Tensor]) -> None:
         """One record per working item: ``items (B,)`` their caller's indices and ``columns``
         the :class:`LevelStats` fields other than ``level`` and the timings, each ``(B,)``
@@ -96,7 +93,7 @@ class StatsRecorder:
         self._open.append(entry)
 
     def close_level(self) -> None:
-        """Write this level's stage times (the initial location counts to level 0) into its records."""
+        """Write this level's stage times (the noise estimate and the initial location count to level 0) into its records."""
         st = {k: round(v, 6) for k, v in self.acc.items()}
         total = round(sum(self.acc.values()), 6)
         for entry in self._open:

@@ -30,7 +30,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 
 from torch_isc.pipeline import budget
 
-__all__ = ["use", "active", "capture", "iterate", "CaptureError"]
+__all__ = ["use", "active", "capture", "iterate", "no_collection", "CaptureError"]
 
 _MODE: contextvars.ContextVar[str] = contextvars.ContextVar("torch_isc_graphs", default="off")
 _FAILED: dict = {}                          # kind -> why its capture failed (text): that kind eager from then on

@@ -265,6 +265,22 @@ def test_no_collection_holds_the_collector_off_and_restores_it():
         assert not gc.isenabled()                     # off before: left off
     finally:
         gc.enable()
+    # two threads' recordings overlapping: the collector stays off until the last one ends
+    import threading
+    inside, release = threading.Event(), threading.Event()
+
+    def other():
+        with graphs.no_collection():
+            inside.set()
+            release.wait(10)
+    t = threading.Thread(target=other)
+    with graphs.no_collection():
+        t.start()
+        inside.wait(10)
+    assert not gc.isenabled()                         # the other thread still records
+    release.set()
+    t.join(10)
+    assert gc.isenabled()
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")

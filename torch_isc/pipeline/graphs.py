@@ -35,6 +35,8 @@ __all__ = ["use", "active", "capture", "iterate", "no_collection", "CaptureError
 _MODE: contextvars.ContextVar[str] = contextvars.ContextVar("torch_isc_graphs", default="off")
 _FAILED: dict = {}                          # kind -> why its capture failed (text): that kind eager from then on
 _STREAMS: dict = {}                         # (device index, thread) -> the side stream captures run on
+_GC_LOCK = threading.Lock()
+_GC_HOLDERS = [0, True]                     # blocks inside no_collection, whether the collector was on before
 
 
 class CaptureError(RuntimeError):
@@ -98,13 +100,18 @@ def no_collection():
     another is an unsafe call that invalidates the recording (seen on an H200: the fit and
     anneal recordings failed that way, with "operation not permitted when stream is
     capturing (function reset)")."""
-    was = gc.isenabled()
-    gc.disable()
+    with _GC_LOCK:                          # threads recording at once: the last one out restores it
+        if _GC_HOLDERS[0] == 0:
+            _GC_HOLDERS[1] = gc.isenabled()
+            gc.disable()
+        _GC_HOLDERS[0] += 1
     try:
         yield
     finally:
-        if was:
-            gc.enable()
+        with _GC_LOCK:
+            _GC_HOLDERS[0] -= 1
+            if _GC_HOLDERS[0] == 0 and _GC_HOLDERS[1]:
+                gc.enable()
 
 
 def capture(step: Callable[[], None], device: torch.device, kind: str):

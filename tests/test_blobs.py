@@ -114,6 +114,27 @@ def test_find_blobs_against_brute_force(seed):
     assert got.tolist() == ref
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_find_blobs_on_the_denoising_neighbours_against_brute_force(seed):
+    """The loop hands the denoising's neighbour search to the blob search (one search, not two):
+    the blobs are still those of the exact neighbours; a search narrower than the blobs need is
+    not used (the blob search runs its own: the same labels as without one)."""
+    from torch_isc.pipeline.denoise import denoise_knn
+    from torch_isc.pipeline.noise import NoiseConfig
+    rng = np.random.default_rng(seed)
+    x, _ = scene(rng, noise=0.002 * seed)
+    sig = None if seed == 0 else torch.tensor([0.002 * seed], dtype=torch.float64)
+    pts = torch.as_tensor(x)
+    item = torch.zeros(len(x), dtype=torch.long)
+    knn = denoise_knn(pts, item, NoiseConfig())
+    assert knn[0].shape[1] >= 16 + 8
+    got = bl.find_blobs(pts, item, 3, 6, 16, sig, 3.0, knn=knn)
+    assert got.tolist() == blobs_by_brute_force(x, 3, 6, 16, None if sig is None else float(sig), 3.0)
+    narrow = denoise_knn(pts, item, NoiseConfig(denoise_neighbours=12))
+    assert torch.equal(bl.find_blobs(pts, item, 3, 6, 16, sig, 3.0, knn=narrow),
+                       bl.find_blobs(pts, item, 3, 6, 16, sig, 3.0))
+
+
 def test_find_blobs_finds_the_satellites_not_the_outliers():
     rng = np.random.default_rng(5)
     x, grp = scene(rng)

@@ -67,7 +67,7 @@ NEAREST_DESCENT = 4
 
 def find_blobs(points: torch.Tensor, point_item: torch.Tensor, k: int, min_points: int,
                max_points: int, noise: Optional[torch.Tensor] = None, gap_noise_widths: float = 3.0,
-               tangents: Optional[torch.Tensor] = None) -> torch.Tensor:
+               tangents: Optional[torch.Tensor] = None, knn=None) -> torch.Tensor:
     """``(P,)`` long: each point's blob label (the smallest point index of its blob), −1 for a
     point in no blob. A blob is a connected component of ``min_points`` to ``max_points``
     points of the graph joining every point to its ``k`` nearest neighbours (of its item) that
@@ -93,7 +93,11 @@ def find_blobs(points: torch.Tensor, point_item: torch.Tensor, k: int, min_point
     ``|t·u|`` over the blob's points (``t`` the tangent at a point's nearest outside point ``o``,
     ``u`` the unit direction from ``o`` to the point) must be below :data:`CONTINUES` for ``t``
     either of two estimates: ``tangents[o]`` or the major axis of the covariance of ``o``'s
-    neighbours (among the ``max(k, max_points + 8)`` nearest) outside the blob."""
+    neighbours (among the ``max(k, max_points + 8)`` nearest) outside the blob.
+
+    ``knn``: ``(nbr (P, K), d2 (P, K))`` approximate nearest neighbours already found (the
+    denoising's, :func:`~torch_isc.pipeline.denoise.denoise_knn`), used where ``K`` is at least
+    ``max(k, max_points + 8)``; otherwise the search runs here."""
     with torch.no_grad():
         from torch_isc.pipeline.denoise import refine_knn
         from torch_isc.pipeline.noise import approximate_knn
@@ -104,10 +108,13 @@ def find_blobs(points: torch.Tensor, point_item: torch.Tensor, k: int, min_point
             return none
         kk = max(k, max_points + 8)
         x = points.detach()
-        nbr, d2 = approximate_knn(x, point_item, kk, max(WINDOW, (kk + 1) // 2))
-        # Morton candidates stop at quadtree cell walls: a few points of a dense noisy curve
-        # beside such a wall lose their neighbours across it and fall off as a "blob"
-        nbr, d2 = refine_knn(x, nbr, d2, REFINE_HOPS)
+        if knn is not None and knn[0].shape[1] >= kk:
+            nbr, d2 = knn[0][:, :kk], knn[1][:, :kk]
+        else:
+            nbr, d2 = approximate_knn(x, point_item, kk, max(WINDOW, (kk + 1) // 2))
+            # Morton candidates stop at quadtree cell walls: a few points of a dense noisy curve
+            # beside such a wall lose their neighbours across it and fall off as a "blob"
+            nbr, d2 = refine_knn(x, nbr, d2, REFINE_HOPS)
         fin = torch.isfinite(d2)
         src = torch.arange(P, device=dev)[:, None].expand_as(nbr)
         join = fin.clone()
@@ -392,11 +399,11 @@ def blob_stage(ws: "WorkingSet", signs: torch.Tensor) -> torch.Tensor:
 
 def start_blobs(points: torch.Tensor, point_item: torch.Tensor, k: int, min_points: int,
                 max_points: int, noise: Optional[torch.Tensor] = None,
-                tangents: Optional[torch.Tensor] = None) -> Optional[Tuple[torch.Tensor, int]]:
+                tangents: Optional[torch.Tensor] = None, knn=None) -> Optional[Tuple[torch.Tensor, int]]:
     """:func:`find_blobs` as :func:`blob_rows` (each point's blob row and the number of blobs),
     or None when the batch has no blob (then no stage pays for them). The rows are made once per
     solve: the stages read nothing on the host for them (``WorkingSet.blob_count``)."""
     if min_points <= 0:
         return None
-    row, K = blob_rows(find_blobs(points, point_item, k, min_points, max_points, noise, tangents=tangents))
+    row, K = blob_rows(find_blobs(points, point_item, k, min_points, max_points, noise, tangents=tangents, knn=knn))
     return (row, K) if K > 0 else None

@@ -161,25 +161,38 @@ def _fit_rows(x, t, nbr, valid, R, bands, cap, idx, ridge, sel, spread: bool):
     return xn, tn, var
 
 
+def denoise_knn(points: torch.Tensor, point_item: torch.Tensor, cfg: NoiseConfig):
+    """The denoising's neighbours: ``(nbr (P, k), d2 (P, k))`` of :func:`approximate_knn`
+    refined by :func:`refine_knn` (``k = cfg.denoise_neighbours``), or None where the denoising
+    is off. The small clusters' search (:func:`~torch_isc.pipeline.blobs.find_blobs`) takes
+    them too: one search instead of two."""
+    if cfg.denoise_iterations <= 0 or points.shape[0] < 3:
+        return None
+    with torch.no_grad():
+        k = cfg.denoise_neighbours
+        nbr, d2 = approximate_knn(points, point_item, k, max(cfg.noise_window, (k + 1) // 2, cfg.denoise_window))
+        if cfg.denoise_refine_hops > 0:
+            nbr, d2 = refine_knn(points, nbr, d2, cfg.denoise_refine_hops)
+    return nbr, d2
+
+
 def denoise_points(points: torch.Tensor, point_item: torch.Tensor, noise: torch.Tensor, frames: torch.Tensor,
-                   cfg: NoiseConfig, return_tangents: bool = False):
+                   cfg: NoiseConfig, return_tangents: bool = False, knn=None):
     """``(P, 2)`` the points moved onto their local weighted parabolas (see the module).
 
     ``points (P, 2)`` normalized per item, ``point_item (P,)``, ``noise (B,)`` each item's noise
     level (a standard deviation, normalized units), ``frames (P, 3)`` each point's unit tangent
     (first two columns; :func:`noise.noise_and_frames`). ``cfg.denoise_iterations == 0``
     returns ``points`` itself. With ``return_tangents``, ``(points, tangents (P, 2))``: each
-    point's unit tangent of its last fit (the frames' own where nothing was fitted)."""
+    point's unit tangent of its last fit (the frames' own where nothing was fitted). ``knn``:
+    :func:`denoise_knn`'s neighbours, where the caller has them."""
     iters = cfg.denoise_iterations
     P = points.shape[0]
     if iters <= 0 or P < 3:
         return (points, frames[:, :2].to(points.dtype)) if return_tangents else points
     with torch.no_grad():
         dev, dt = points.device, points.dtype
-        k = cfg.denoise_neighbours
-        nbr, d2 = approximate_knn(points, point_item, k, max(cfg.noise_window, (k + 1) // 2, cfg.denoise_window))
-        if cfg.denoise_refine_hops > 0:
-            nbr, d2 = refine_knn(points, nbr, d2, cfg.denoise_refine_hops)
+        nbr, d2 = denoise_knn(points, point_item, cfg) if knn is None else knn
         valid = torch.isfinite(d2)
         kk = nbr.shape[1]
         sigma = noise.to(dt)[point_item]                                  # (P,)

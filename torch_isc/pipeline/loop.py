@@ -31,7 +31,7 @@ from torch_isc.pipeline.config import ConfigError, MeshConfig, ReconstructConfig
 from torch_isc.pipeline import budget, graphs
 from torch_isc.pipeline.band import band_stage
 from torch_isc.pipeline.blobs import snap_blobs, start_blobs
-from torch_isc.pipeline.denoise import denoise_points
+from torch_isc.pipeline.denoise import denoise_knn, denoise_points
 from torch_isc.pipeline.evidence import gather_evidence
 from torch_isc.pipeline.noise import noise_and_frames
 from torch_isc.pipeline.relax import relax_stage
@@ -224,7 +224,9 @@ def _start(batch: PointBatch, cfg: ReconstructConfig, rec: StatsRecorder, source
         est = noise_and_frames(batch.points, batch.point_item, B, cfg.noise, batch.source)
         # the loop sees the points averaged at their noise scale (identity when disabled); with
         # denoise_use evidence (geometry) only the sign evidence (the fit and the test) does
-        den, tang = denoise_points(batch.points, batch.point_item, est.level, est.frames, cfg.noise, return_tangents=True)
+        knn = denoise_knn(batch.points, batch.point_item, cfg.noise)      # the denoising's and the blobs'
+        den, tang = denoise_points(batch.points, batch.point_item, est.level, est.frames, cfg.noise,
+                                   return_tangents=True, knn=knn)
         # frames columns 3-4: the denoising fit's tangents (over its radius of several noise
         # widths; the noise estimate's come from 8 neighbours, a blob under dense noise)
         frames = torch.cat([est.frames, tang.to(est.frames.dtype)], 1)
@@ -239,7 +241,7 @@ def _start(batch: PointBatch, cfg: ReconstructConfig, rec: StatsRecorder, source
         # with blob points kept raw, glyph_B at 1% noise (public cases) lost its counter
         blob = start_blobs(batch.points, batch.point_item, cfg.topology.blob_neighbours,
                            cfg.topology.blob_min_points, cfg.topology.blob_max_points, est.level,
-                           tang) if source_blobs else None
+                           tang, knn=knn if cfg.noise.denoise_refine_hops > 0 else None) if source_blobs else None
     rec.tick("noise")
     mesh = initial_mesh(cfg.mesh, B, device, dtype)
     face, bary = locate_grid(mesh, points, batch.point_item)

@@ -3,6 +3,8 @@ against naive per-item references, the sign sources, the stats recorder, the sim
 against hand values, and the segment helpers against loops."""
 import math
 
+import numpy as np
+
 import pytest
 import torch
 
@@ -14,7 +16,7 @@ from torch_isc.core.segments import (first_index, hash_uniform, segment_max, seg
 from torch_isc.core.simplex import TRIANGLES
 from torch_isc.pipeline.config import ReconstructConfig
 from torch_isc.pipeline.evidence import gather_evidence
-from torch_isc.pipeline.loop import _start, initial_mesh
+from torch_isc.pipeline.loop import _start, initial_mesh, reconstruct_batch
 from torch_isc.pipeline.signs import IsingSigns, OracleSigns
 from torch_isc.pipeline.stats import StatsRecorder
 from torch_isc.core.subdivide import subdivide
@@ -238,3 +240,19 @@ def test_segment_helpers_against_loops():
     torch.testing.assert_close((M @ v[..., None])[..., 0], hi[:, None] * v)
     u = hash_uniform(torch.arange(1000), dtype=torch.float64)
     assert 0 < float(u.min()) and float(u.max()) < 1 and abs(float(u.mean()) - 0.5) < 0.05
+
+
+@pytest.mark.parametrize("mode", ["no_grad", "inference_mode"])
+def test_a_caller_without_autograd_gets_the_same_result(mode):
+    """The relaxation differentiates its energy: under the caller's ``torch.no_grad`` it raised
+    "element 0 of tensors does not require grad", and ``inference_mode`` forbids autograd even
+    under ``enable_grad`` (fuzzing round 11). Two circles, so the loop relaxes past level 0."""
+    t = np.linspace(0, 2 * np.pi, 100, endpoint=False)
+    P = torch.as_tensor(np.r_[np.c_[np.cos(t), np.sin(t)], np.c_[3 + 0.4 * np.cos(t), 0.4 * np.sin(t)]])
+    want = reconstruct_batch([P, P * 2])
+    assert len(want[0].stats) > 1                                   # past level 0: relaxed
+    with getattr(torch, mode)():
+        got = reconstruct_batch([P.clone(), P * 2])
+    for a, b in zip(got, want):
+        assert len(a.polylines) == len(b.polylines) == 2
+        assert all(torch.equal(x["points"], y["points"]) for x, y in zip(a.polylines, b.polylines))

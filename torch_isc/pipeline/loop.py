@@ -144,6 +144,14 @@ def reconstruct_batch(point_sets: Sequence[PointsLike], config: Optional[Reconst
     and signs frozen, with the band stage's smoothness when it ran, by implicit differentiation, see
     :func:`torch_isc.pipeline.refit.attach_point_gradients`). Otherwise nothing changes.
     """
+    if torch.is_inference_mode_enabled():
+        # the relaxation differentiates its energy, which inference mode forbids even under
+        # enable_grad: solve outside it, on copies of the caller's inference tensors
+        with torch.inference_mode(False):
+            def copy(p):
+                return p.clone() if torch.is_tensor(p) else p
+            sets = copy(point_sets) if torch.is_tensor(point_sets) else [copy(p) for p in point_sets]
+            return reconstruct_batch(sets, config, names, sign_oracles, packed)
     cfg = _as_config(config)
     point_sets, names, sign_oracles = _as_lists(point_sets, names, sign_oracles)
     if len(point_sets) == 0:

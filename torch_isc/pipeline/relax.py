@@ -158,9 +158,10 @@ def relax_mesh(mesh: MeshBatch, points: torch.Tensor, point_item: torch.Tensor, 
             U = U.detach()
         else:               # an accepted trial's energy is this step's: its graph gives the gradient
             g = torch.zeros_like(v)
-            for vk, Ut, ok in rounds:
-                gr, = torch.autograd.grad(Ut.sum(), vk)
-                g = torch.where(ok[vi][:, None], gr, g)
+            with torch.enable_grad():                   # the caller may run under no_grad
+                for vk, Ut, ok in rounds:
+                    gr, = torch.autograd.grad(Ut.sum(), vk)
+                    g = torch.where(ok[vi][:, None], gr, g)
             U = U_next
         rounds = []
         with torch.no_grad():

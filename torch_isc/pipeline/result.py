@@ -118,8 +118,9 @@ class ReconstructionResult:
 
     def to_json_dict(self, with_stats: bool = True, arrays: bool = False) -> Dict[str, Any]:
         """The stable JSON schema: ``{"polylines": [{"closed", "points"}], "num_components",
-        "bbox"}``, plus ``"stats"`` (levels, convergence, limit) when asked; with ``arrays`` the
-        points are ``(n, 2)`` float64 numpy arrays instead of lists (for a fast JSON writer)."""
+        "bbox"}``, plus ``"stats"`` (levels, convergence, limit) when asked, its non-finite
+        values as None (strict JSON); with ``arrays`` the points are ``(n, 2)`` float64 numpy
+        arrays instead of lists (for a fast JSON writer)."""
         def pts(p):
             a = p.detach().double().cpu()
             return a.numpy() if arrays else a.tolist()
@@ -130,9 +131,10 @@ class ReconstructionResult:
             "bbox": self.bbox(),
         }
         if with_stats:
-            d["stats"] = {"levels": [lv.to_dict() for lv in self.stats], "converged": self.converged, "limit": self.limit,
-                          "num_closed": self.num_closed, "num_open": self.num_open,
-                          "far_outliers": self.far_outliers}
+            from torch_isc.io.json import jsonable          # non-finite values (max_error inf) as null
+            d["stats"] = jsonable({"levels": [lv.to_dict() for lv in self.stats], "converged": self.converged,
+                                   "limit": self.limit, "num_closed": self.num_closed, "num_open": self.num_open,
+                                   "far_outliers": self.far_outliers})
         return d
 
 

@@ -176,6 +176,11 @@ def test_config_changed_after_construction():
         setattr(getattr(cfg, sec), key, val)
         with pytest.raises(ConfigError, match=f"'{key}'.*after the config was built"):
             reconstruct(p, config=cfg)
+    for val in (None, {"tolerance": 0.1}, "test"):              # a whole section replaced (fuzz round 11)
+        cfg = ReconstructConfig()
+        cfg.test = val
+        with pytest.raises(ConfigError, match=f"section 'test'.*got {type(val).__name__}.*after the config was built"):
+            reconstruct(p, config=cfg)
     cfg = ReconstructConfig()
     cfg.limits.max_level = 3                                    # a valid change is used
     assert len(reconstruct(p, config=cfg).stats) <= 3

@@ -104,9 +104,7 @@ class ReconstructConfig:
     run: RunConfig = field(default_factory=RunConfig)
 
     def __post_init__(self):
-        for f in fields(self):
-            if not isinstance(getattr(self, f.name), _SECTION_TYPES[f.name]):
-                raise ConfigError(f"config section '{f.name}': expected {_SECTION_TYPES[f.name].__name__}")
+        self.check_sections()
         for f in fields(self):
             sec = getattr(self, f.name)
             for k in fields(sec):
@@ -122,6 +120,14 @@ class ReconstructConfig:
                 f"config key 'initial_resolution': the initial {self.mesh.initial_mesh} of resolution "
                 f"{self.mesh.initial_resolution} has {n0} triangles, more than max_triangles={self.limits.max_triangles}")
 
+    def check_sections(self, note: str = "") -> None:
+        """A :class:`ConfigError` where a section is not its section's type (one replaced after
+        the config was built: ``cfg.test = None``); ``note`` is added to the message."""
+        for f in fields(self):
+            sec = getattr(self, f.name)
+            if not isinstance(sec, _SECTION_TYPES[f.name]):
+                raise ConfigError(f"config section '{f.name}': expected {_SECTION_TYPES[f.name].__name__}, "
+                                  f"got {type(sec).__name__}{note}")
     def replace(self, **changes: Any) -> "ReconstructConfig":
         """A copy with ``changes``: flat keys (``tolerance=0.01``) or sections as mappings
         (``test={"tolerance": 0.01}``), checked like a file."""

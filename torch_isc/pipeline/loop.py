@@ -187,7 +187,9 @@ def _as_config(config: Union[None, ReconstructConfig, Mapping[str, Any]]) -> Rec
     if not isinstance(config, ReconstructConfig):
         raise ConfigError(f"config: expected a ReconstructConfig or a mapping of its keys, got {type(config).__name__}")
     # checked again: a section's field set after construction (cfg.limits.max_level = -3) was
-    # used unchecked (reconstruct returned None)
+    # used unchecked (reconstruct returned None); a whole section replaced (cfg.test = None)
+    # failed in dataclasses.asdict
+    config.check_sections(" (a value set after the config was built)")
     try:
         config = from_dict(config.to_dict())
     except ConfigError as e:

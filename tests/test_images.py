@@ -368,3 +368,16 @@ def test_empty_mask_has_no_curve_and_full_mask_gives_the_frame():
     assert abs(x0) < 1 and abs(y0) < 1 and abs(x1 - 30) < 1 and abs(y1 - 20) < 1     # the image frame
     with pytest.raises(ImageError, match="no edges"):
         reconstruct_edges([np.full((20, 20), 0.5, np.float32)])
+
+
+def test_reconstruct_masks_options_are_image_errors_before_any_work():
+    """Fuzzing round 11: ``spacing=nan`` and ``interpolation="cubic"`` raised a bare ValueError,
+    ``retry="yes"`` passed; each is now an ImageError naming the option."""
+    from torch_isc.images import ImageError, reconstruct_masks
+    m = np.zeros((12, 12), np.uint8)
+    m[3:9, 3:9] = 1
+    for kw, word in ((dict(spacing=float("nan")), "spacing"), (dict(interpolation="cubic"), "interpolation"),
+                     (dict(retry="yes"), "retry"), (dict(use_oracle=1), "use_oracle")):
+        with pytest.raises(ImageError, match=word):
+            reconstruct_masks([m], **kw)
+    assert len(reconstruct_masks([m], retry=np.bool_(False))[0].polylines) == 1

@@ -120,7 +120,7 @@ def resample_closed(points: torch.Tensor, counts: torch.Tensor, spacing: float
     ([16], [[0.0, 0.0], [1.0, 0.0], [2.0, 0.0]])
     """
     if not finite_real(spacing):
-        raise ValueError(f"spacing must be a finite number, got {spacing!r:.40}")
+        raise ImageError(f"spacing must be a finite number, got {spacing!r:.40}")
     if spacing <= 0 or points.shape[0] == 0:
         return points, counts
     dev, dt = points.device, points.dtype
@@ -139,7 +139,7 @@ def resample_closed(points: torch.Tensor, counts: torch.Tensor, spacing: float
     cum = cum - (torch.cumsum(length, 0) - length)[cid] + offset[cid]  # start of each segment
     total = int(n_new.sum())                      # one host read: the output's size, bounded
     if total > MAX_RESAMPLED:
-        raise ValueError(f"spacing {spacing:g}: {total} samples, more than {MAX_RESAMPLED} (use a larger spacing)")
+        raise ImageError(f"spacing {spacing:g}: {total} samples, more than {MAX_RESAMPLED} (use a larger spacing)")
     qid = torch.repeat_interleave(torch.arange(C, device=dev), n_new, output_size=total)
     qfirst = torch.cumsum(n_new, 0) - n_new
     j = torch.arange(total, device=dev) - qfirst[qid]
@@ -216,7 +216,7 @@ class MaskOracle:
     def __init__(self, masks: Union[ImageLike, Sequence[ImageLike]], threshold: Optional[float] = None,
                  interpolation: str = "bilinear"):
         if interpolation not in ("nearest", "bilinear"):
-            raise ValueError(f"interpolation must be 'nearest' or 'bilinear', got {interpolation!r}")
+            raise ImageError(f"interpolation must be 'nearest' or 'bilinear', got {interpolation!r:.40}")
         ms = as_masks(masks, threshold)
         self.interpolation = interpolation
         self.device = ms[0].device if ms else torch.device("cpu")
@@ -349,6 +349,14 @@ def reconstruct_masks(masks: Union[ImageLike, Sequence[ImageLike]], config: Opti
     A mask with no foreground pixel has no boundary to sample: its result has no curve (that
     of :func:`grid_results`), as ``cv2.findContours`` gives no contour.
     """
+    # the options first: a bad one is found before any mask is read or solved
+    if not finite_real(spacing):
+        raise ImageError(f"spacing must be a finite number, got {spacing!r:.40}")
+    if interpolation not in ("nearest", "bilinear"):
+        raise ImageError(f"interpolation must be 'nearest' or 'bilinear', got {interpolation!r:.40}")
+    for key, val in (("retry", retry), ("use_oracle", use_oracle)):
+        if not isinstance(val, (bool, np.bool_)):
+            raise ImageError(f"{key} must be True or False, got {val!r:.40}")
     cfg = as_image_config(config, "mask")
     ts = image_list(masks, "mask")
     labels = default_names(names, len(ts), "mask")

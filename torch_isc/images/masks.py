@@ -101,6 +101,16 @@ MAX_RESAMPLED = 1 << 27
 MIN_SPACING = 0.01
 
 
+def _check_spacing(spacing) -> None:
+    if not finite_real(spacing):
+        raise ImageError(f"spacing must be a finite number, got {spacing!r:.40}")
+
+
+def _check_interpolation(interpolation) -> None:
+    if interpolation not in ("nearest", "bilinear"):
+        raise ImageError(f"interpolation must be 'nearest' or 'bilinear', got {interpolation!r:.40}")
+
+
 def resample_closed(points: torch.Tensor, counts: torch.Tensor, spacing: float
                     ) -> Tuple[torch.Tensor, torch.Tensor]:
     """Resample packed closed polylines to a uniform spacing along each one.
@@ -119,8 +129,7 @@ def resample_closed(points: torch.Tensor, counts: torch.Tensor, spacing: float
     >>> c.tolist(), q[:3].tolist()
     ([16], [[0.0, 0.0], [1.0, 0.0], [2.0, 0.0]])
     """
-    if not finite_real(spacing):
-        raise ImageError(f"spacing must be a finite number, got {spacing!r:.40}")
+    _check_spacing(spacing)
     if spacing <= 0 or points.shape[0] == 0:
         return points, counts
     dev, dt = points.device, points.dtype
@@ -215,8 +224,7 @@ class MaskOracle:
 
     def __init__(self, masks: Union[ImageLike, Sequence[ImageLike]], threshold: Optional[float] = None,
                  interpolation: str = "bilinear"):
-        if interpolation not in ("nearest", "bilinear"):
-            raise ImageError(f"interpolation must be 'nearest' or 'bilinear', got {interpolation!r:.40}")
+        _check_interpolation(interpolation)
         ms = as_masks(masks, threshold)
         self.interpolation = interpolation
         self.device = ms[0].device if ms else torch.device("cpu")
@@ -350,10 +358,8 @@ def reconstruct_masks(masks: Union[ImageLike, Sequence[ImageLike]], config: Opti
     of :func:`grid_results`), as ``cv2.findContours`` gives no contour.
     """
     # the options first: a bad one is found before any mask is read or solved
-    if not finite_real(spacing):
-        raise ImageError(f"spacing must be a finite number, got {spacing!r:.40}")
-    if interpolation not in ("nearest", "bilinear"):
-        raise ImageError(f"interpolation must be 'nearest' or 'bilinear', got {interpolation!r:.40}")
+    _check_spacing(spacing)
+    _check_interpolation(interpolation)
     for key, val in (("retry", retry), ("use_oracle", use_oracle)):
         if not isinstance(val, (bool, np.bool_)):
             raise ImageError(f"{key} must be True or False, got {val!r:.40}")

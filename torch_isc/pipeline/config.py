@@ -128,6 +128,7 @@ class ReconstructConfig:
             if not isinstance(sec, _SECTION_TYPES[f.name]):
                 raise ConfigError(f"config section '{f.name}': expected {_SECTION_TYPES[f.name].__name__}, "
                                   f"got {type(sec).__name__}{note}")
+
     def replace(self, **changes: Any) -> "ReconstructConfig":
         """A copy with ``changes``: flat keys (``tolerance=0.01``) or sections as mappings
         (``test={"tolerance": 0.01}``), checked like a file."""

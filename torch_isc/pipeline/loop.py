@@ -249,6 +249,8 @@ def _start(batch: PointBatch, cfg: ReconstructConfig, rec: StatsRecorder, source
         # small isolated clusters (pipeline/blobs.py), found on the raw points (a parabola
         # through a ring of 8 points flattens it); the loop sees them denoised like the rest:
         # with blob points kept raw, glyph_B at 1% noise (public cases) lost its counter
+        # ...on the denoising's neighbours where they had the neighbour descent (not for masks,
+        # whose config drops it): without it Morton cell walls cut a dense curve into "blobs"
         blob = start_blobs(batch.points, batch.point_item, cfg.topology.blob_neighbours,
                            cfg.topology.blob_min_points, cfg.topology.blob_max_points, est.level,
                            tang, knn=knn if cfg.noise.denoise_refine_hops > 0 else None) if source_blobs else None

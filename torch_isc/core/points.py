@@ -34,6 +34,14 @@ def item_label(name: object) -> str:
     return printable(name, limit=200)
 
 
+#: numpy dtypes (native byte order) kept as they are, as the tensors they would be; the other
+#: real ones (longdouble, object numbers, strings of numbers) become float64, and uint16-64 become
+#: int64 (below, as torch's do)
+_NUMPY_AS = {np.dtype(t).str: np.dtype(t) for t in (np.float16, np.float32, np.float64, np.int8, np.int16, np.int32,
+                                                     np.int64, np.uint8, np.uint16, np.uint32, np.uint64)}
+_UNSIGNED = tuple(getattr(torch, n) for n in ("uint16", "uint32", "uint64") if hasattr(torch, n))
+
+
 def check_points(x: PointsLike, label: str, finite: bool = True) -> torch.Tensor:
     """``x`` as a tensor of shape ``(N, 2)``, real, dense, not empty and (with ``finite``) with
     finite coordinates; else :class:`PointSetError` naming ``label``. The finiteness check reads
@@ -53,7 +61,8 @@ def check_points(x: PointsLike, label: str, finite: bool = True) -> torch.Tensor
             a = np.asarray(x)
             if a.dtype.kind in "cbmMV":       # complex, bool, dates, raw bytes: as a tensor of them would be
                 raise PointSetError(f"{label}: expected real coordinates, got dtype {a.dtype}")
-            a = np.asarray(a, dtype=np.float64)
+            # the dtype the equal tensor has, so that the outputs' dtype follows the input's
+            a = np.asarray(a, dtype=_NUMPY_AS.get(a.dtype.newbyteorder("=").str, np.float64))
         except (TypeError, ValueError, OverflowError) as e:
             if isinstance(e, PointSetError):
                 raise
@@ -67,6 +76,10 @@ def check_points(x: PointsLike, label: str, finite: bool = True) -> torch.Tensor
     if x.dtype.is_floating_point and x.element_size() == 1:
         # float8: a storage format torch does not promote or reduce; its values are exact in float32
         x = x.float()
+    if x.dtype in _UNSIGNED:
+        # torch reduces and compares few of these; int64 holds them all but the top half of uint64
+        wide = x.dtype == torch.uint64 and bool((x.view(torch.int64) < 0).any())
+        x = x.to(torch.float64 if wide else torch.int64)
     if not (x.dtype.is_floating_point or x.dtype in (torch.int16, torch.int32, torch.int64, torch.uint8, torch.int8)):
         raise PointSetError(f"{label}: expected real coordinates, got dtype {x.dtype}")
     if x.shape[0] == 0:

@@ -82,6 +82,20 @@ def contour_hierarchy(polys: List[np.ndarray], mode: str = "tree") -> np.ndarray
     return _hierarchy(polys, mode)[0]
 
 
+def _unit_frame(polys: List[np.ndarray]) -> List[np.ndarray]:
+    """``polys`` moved and scaled by a power of two into about [-1, 1]^2 (containment and
+    orientation are unchanged): the crossing test and the shoelace products overflowed to inf
+    and NaN for coordinates near 1e300 (an outer contour came out reversed)."""
+    V = np.concatenate(polys)
+    lo, hi = V.min(0), V.max(0)
+    c = lo / 2 + hi / 2
+    ext = float(np.max(hi / 2 - lo / 2))
+    if not np.isfinite(ext) or ext <= 0:
+        return [p - c for p in polys] if np.isfinite(c).all() else polys
+    k = -int(np.frexp(ext)[1])
+    return [np.ldexp(p - c, k) for p in polys]
+
+
 def _hierarchy(polys: List[np.ndarray], mode: str) -> Tuple[np.ndarray, np.ndarray]:
     """:func:`contour_hierarchy` and the nesting depth ``(N,)`` of each polygon (0: outermost),
     from one containment test."""
@@ -91,7 +105,7 @@ def _hierarchy(polys: List[np.ndarray], mode: str) -> Tuple[np.ndarray, np.ndarr
     h = np.full((N, 4), -1, np.int32)
     if N == 0:
         return h, np.zeros(0, np.int64)
-    inside = _containment(polys)
+    inside = _containment(_unit_frame(polys))
     depth = inside.sum(0)
     # parent: the containing polygon of largest depth
     key = np.where(inside, depth[:, None] * N + np.arange(N)[:, None], -1)
@@ -149,17 +163,41 @@ def to_cv_contours(src, mode: str = "tree", dtype=np.float32) -> Tuple[List[np.n
     h, depth = _hierarchy(polys, mode)
     depth_parity = depth % 2
     out = []
-    for p, par in zip(polys, depth_parity):
-        x, y = p[:, 0], p[:, 1]
+    for p, u, par in zip(polys, _unit_frame(polys), depth_parity):
+        x, y = u[:, 0], u[:, 1]
         area2 = float((x * np.roll(y, -1) - np.roll(x, -1) * y).sum())
         # OpenCV: outer (even depth) negative shoelace area, holes positive
         want_neg = par == 0
         if (area2 > 0) == want_neg:
             p = np.concatenate([p[:1], p[1:][::-1]])
-        q = p - 0.5
-        q = np.rint(q).astype(np.int32) if np.issubdtype(np.dtype(dtype), np.integer) else q.astype(dtype)
+        q = cast_coordinates(p - 0.5, dtype, "to_cv_contours")
         out.append(np.ascontiguousarray(q.reshape(-1, 1, 2)))
     return out, h[None]
+
+
+def cast_coordinates(q: np.ndarray, dtype, what: str) -> np.ndarray:
+    """Contour coordinates ``q (n, 2)`` in ``dtype``: rounded to the pixel for an integer type
+    (through int32, OpenCV's point type), as they are for a float type.
+
+    Raises:
+        ImageError: a coordinate beyond what ``dtype`` holds (float32 turned it into inf, int32
+            wrapped it to INT_MIN, with only numpy's warning), naming ``what``.
+    """
+    dt = np.dtype(dtype)
+    integer = np.issubdtype(dt, np.integer)
+    if integer:
+        q = np.rint(q)
+        info = np.iinfo(np.int32) if dt.itemsize >= 4 else np.iinfo(dt)
+        lo, hi, name = float(info.min), float(info.max), "int32" if dt.itemsize >= 4 else dt.name
+    else:
+        hi = float(np.finfo(dt).max) if np.issubdtype(dt, np.floating) else np.inf
+        lo, name = -hi, dt.name
+    q = np.asarray(q)
+    if q.size and not ((q >= lo) & (q <= hi)).all():
+        worst = float(np.abs(q[np.isfinite(q)]).max()) if np.isfinite(q).any() else float("nan")
+        hint = "" if integer else "; ask for dtype=np.float64"
+        raise ImageError(f"{what}: contour coordinates up to {worst:.3g} are beyond what {name} holds{hint}")
+    return q.astype(np.int32).astype(dt, copy=False) if integer else q.astype(dt)
 
 
 #: OpenCV's contour approximation methods by name and constant (``CHAIN_APPROX_NONE`` = 1,
@@ -433,7 +471,6 @@ def load_contours(path: Union[str, os.PathLike], dtype=np.float32) -> Tuple[List
     if not ok:       # the hierarchy indexes the contours (-1: none); points are finite numbers
         raise ImageError(f"{path}: inconsistent contours file (points {pts.shape}, counts {counts.shape}, "
                          f"hierarchy {h.shape})")
+    pts = cast_coordinates(pts, dtype, f"{path}")
     pieces = np.split(pts, np.cumsum(counts)[:-1]) if counts.size else []
-    if np.issubdtype(np.dtype(dtype), np.integer):
-        pieces = [np.rint(p).astype(np.int32) for p in pieces]
-    return [p.reshape(-1, 1, 2).astype(dtype) for p in pieces], (h[None] if counts.size else None)
+    return [p.reshape(-1, 1, 2) for p in pieces], (h[None] if counts.size else None)

@@ -80,7 +80,8 @@ class _Rows:
         an integral value below 1e16 as ``%.1f`` (``113.0``, as repr writes it)."""
         a = self.a
         n, k = a.shape
-        f32 = a.astype(np.float32).astype(np.float64) == a
+        with np.errstate(over="ignore"):          # beyond float32: inf, so not a float32 value
+            f32 = a.astype(np.float32).astype(np.float64) == a
         integral = (a == np.rint(a)) & (np.abs(a) < 1e16)
         code = np.where(integral, 0, np.where(f32, 1, 2))
         fmts = ("%.1f", "%.9g", "%r")

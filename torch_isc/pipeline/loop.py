@@ -68,7 +68,10 @@ def reconstruct(points: PointsLike, config: Optional[ReconstructConfig] = None, 
     """Reconstruct the curves of one point set.
 
     Args:
-        points: ``(N, 2)`` unorganized points (tensor, array or nested lists).
+        points: ``(N, 2)`` unorganized points (tensor, array or nested lists). An array is
+            taken as the tensor of its dtype would be (unsigned 16-64 bit integers as int64,
+            other real types as float64): the outputs' dtype is the input's floating dtype
+            promoted with ``config.run.dtype``, or that dtype for integer input.
         config: :class:`ReconstructConfig` (defaults when None).
         name: a label carried into the result.
         sign_oracle: optional inside/outside function: maps ``(M, 2)`` points (caller's

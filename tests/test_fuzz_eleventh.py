@@ -1,0 +1,81 @@
+"""Fuzzing round 11, the defects left open in session 21 and fixed in session 22 (each test
+fails on the commit before its fix)."""
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+import torch
+
+from torch_isc import reconstruct
+from torch_isc.core.points import check_points
+from torch_isc.images import ImageError, contour_arrays, contour_hierarchy, load_contours, to_cv_contours
+
+SQ = np.array([[1.0, 1], [5, 1], [5, 5], [1, 5]])
+INNER = SQ[::-1] * 0.5 + 1.5          # inside SQ, the other orientation
+
+
+def _square_and_hole(scale):
+    return [{"closed": True, "points": SQ * scale}, {"closed": True, "points": INNER * scale}]
+
+
+@pytest.mark.parametrize("scale, dtype, held", [(1e10, np.int32, "int32"), (1e39, np.float32, "float32"),
+                                                (1e10, np.int64, "int32"), (1e300, np.float32, "float32")])
+def test_to_cv_contours_refuses_coordinates_its_dtype_cannot_hold(scale, dtype, held):
+    # float32 turned 1e39 into inf and int32 wrapped 1e10 to INT_MIN, with only numpy's warning
+    with pytest.raises(ImageError, match=rf"to_cv_contours: contour coordinates up to 5e\+\d+ are beyond what {held} holds"):
+        to_cv_contours(_square_and_hole(scale), dtype=dtype)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.int32])
+def test_load_contours_refuses_coordinates_its_dtype_cannot_hold(tmp_path, dtype):
+    f = tmp_path / "far.npz"
+    np.savez(f, **contour_arrays(_square_and_hole(1e39)))       # a point set's file: float64 points
+    with pytest.raises(ImageError, match=r"far\.npz: contour coordinates up to 5e\+39 are beyond what"):
+        load_contours(f, dtype=dtype)
+    c, _ = load_contours(f, dtype=np.float64)                   # the hint of the message works
+    assert c[0].dtype == np.float64 and np.isfinite(c[0]).all()
+
+
+@pytest.mark.parametrize("scale", [1.0, 1e150, 1e300, 1e-300])
+def test_orientation_and_nesting_hold_over_the_float64_range(scale):
+    # the shoelace products overflowed to NaN near 1e300 and the outer square came out reversed
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")                          # no overflow on the way either
+        c, h = to_cv_contours(_square_and_hole(scale), dtype=np.float64)
+        h2 = contour_hierarchy([SQ * scale, INNER * scale])
+    assert h.tolist() == [[[-1, -1, 1, -1], [-1, -1, -1, 0]]] and h2.tolist() == h[0].tolist()
+    if scale < 1:
+        return                     # OpenCV's half-pixel shift leaves nothing of these coordinates
+    # OpenCV's orientation (hand): the outer contour from the top-left corner down its left side
+    # (negative shoelace area with y down), the hole the other way
+    assert np.allclose((c[0].reshape(-1, 2) + 0.5) / scale, [[1, 1], [1, 5], [5, 5], [5, 1]])
+    assert np.allclose((c[1].reshape(-1, 2) + 0.5) / scale, [[2, 2], [4, 2], [4, 4], [2, 4]])
+
+
+def _ring(n=80):
+    t = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    return np.stack([np.cos(t), np.sin(t)], 1) * 30 + 5
+
+
+@pytest.mark.parametrize("np_dtype, torch_dtype, out", [(np.float32, torch.float32, torch.float32),
+                                                        (np.float64, torch.float64, torch.float64),
+                                                        (np.int32, torch.int32, torch.float32),
+                                                        (np.uint16, torch.uint16, torch.float32)])
+def test_a_numpy_array_is_solved_as_the_equal_tensor(np_dtype, torch_dtype, out):
+    # numpy float32 and integer arrays were solved in float64 (their outputs float64) while the
+    # equal tensors gave float32; torch's uint16 was refused and numpy's accepted
+    a = np.rint(_ring() + 40).astype(np_dtype)              # positive, for the unsigned type
+    t = torch.from_numpy(a.astype(np.int64)).to(torch_dtype)
+    r_np, r_t = reconstruct(a), reconstruct(t)
+    assert r_np.curve.dtype == r_t.curve.dtype == out
+    assert torch.equal(r_np.curve.mesh.verts, r_t.curve.mesh.verts)
+    assert torch.equal(r_np.curve.values, r_t.curve.values) and r_np.num_closed == r_t.num_closed == 1
+
+
+def test_the_top_half_of_uint64_is_taken_as_float64():
+    a = _ring().astype(np.uint64) + np.uint64(2 ** 63)                 # beyond int64
+    assert check_points(a, "a").dtype == torch.float64
+    assert check_points(torch.from_numpy(a), "t").dtype == torch.float64
+    assert check_points(a[:3] - np.uint64(2 ** 63), "b").dtype == torch.int64

@@ -90,8 +90,7 @@ def _local_line_residual(points: torch.Tensor, point_item: torch.Tensor, idx: to
     neighbourhood (the local tangent) and the distance to its farthest neighbour."""
     P = points.shape[0]
     dev, dt = points.device, points.dtype
-    c = torch.cat([take(order, (pos[idx][:, None] + offs[None, :]).clamp(0, P - 1)) for order, pos in orders], 1)
-    c, _ = torch.sort(c, 1)
+    c = window_candidates(orders, idx, offs, point_item)
     dup = torch.zeros_like(c, dtype=torch.bool)
     dup[:, 1:] = c[:, 1:] == c[:, :-1]
     self_or_other = (c == idx[:, None]) | (take(point_item, c) != point_item[idx][:, None]) | dup
@@ -153,6 +152,22 @@ def morton_orders(points: torch.Tensor, item: torch.Tensor) -> List[Tuple[torch.
         pos[order] = torch.arange(P, device=points.device)
         out.append((order, pos))
     return out
+
+
+def window_candidates(orders, idx: torch.Tensor, offs: torch.Tensor, item: torch.Tensor) -> torch.Tensor:
+    """``(R, 2 len(offs))``: the points ``offs`` ranks away from each of the points ``idx`` along
+    each of the :func:`morton_orders`, sorted along each row. Ranks are clamped to the point's own
+    item (its points are consecutive in every order), so a row holds the same points in the same
+    places, up to the item's index offset, wherever the item sits in the batch: the nearest
+    among exactly equal distances (a lattice) are then the same picks (clamped to the batch, an
+    item's rows held the other items' points, masked, in other places, and ``topk`` broke the
+    ties by place)."""
+    counts = torch.bincount(item, minlength=1)
+    lo = (counts.cumsum(0) - counts)[item[idx]]
+    hi = lo + counts[item[idx]] - 1
+    c = torch.cat([take(o, torch.minimum(torch.maximum(p[idx][:, None] + offs[None, :], lo[:, None]), hi[:, None]))
+                   for o, p in orders], 1)
+    return torch.sort(c, 1)[0]
 
 
 #: pairs per block of an approximate neighbour search on the CPU (bounded memory for millions of
@@ -228,8 +243,7 @@ def approximate_knn(points: torch.Tensor, item: torch.Tensor, k: int, window: in
     block = max(1, knn_budget(dev) // (4 * window))
     for b0 in range(0, P, block):                       # bounded memory for many points
         idx = torch.arange(b0, min(P, b0 + block), device=dev)
-        c = torch.cat([take(o, (p[idx][:, None] + offs[None, :]).clamp(0, P - 1)) for o, p in orders], 1)
-        c, _ = torch.sort(c, 1)
+        c = window_candidates(orders, idx, offs, item)
         bad = (c == idx[:, None]) | (take(item, c) != item[idx][:, None])
         nbr[idx], d2[idx] = nearest_candidates(points, idx, c, bad, kk)
     return nbr, d2

@@ -113,3 +113,10 @@ def test_window_candidates_are_the_same_points_wherever_the_item_sits():
         assert (item[c] == item[own][:, None]).all()          # never another item's point
         rows.append(c - before)
     assert torch.equal(rows[0], rows[1])
+
+
+@pytest.mark.parametrize("x", [np.uint8(1), np.array(1), 5])
+def test_a_scalar_mask_is_named_as_one(x):
+    from torch_isc.images import find_contours
+    with pytest.raises(ImageError, match=r"expected a 2D \(H, W\) array, got shape \(\)"):      # said (1,)
+        find_contours(x, "tree", "none")

@@ -76,7 +76,8 @@ def _as_real_tensor(im, label: str) -> torch.Tensor:
             a = a.astype(np.float64)                 # long double: no torch dtype
         if not a.dtype.isnative:
             a = a.astype(a.dtype.newbyteorder("="))
-        a = np.ascontiguousarray(a)
+        if not a.flags.c_contiguous:             # (ascontiguousarray made a 0-d array 1-d)
+            a = np.ascontiguousarray(a)
         if not a.flags.writeable:
             a = a.copy()                             # torch warns on read-only arrays (it never writes)
         im = torch.from_numpy(a)

@@ -120,3 +120,18 @@ def test_a_scalar_mask_is_named_as_one(x):
     from torch_isc.images import find_contours
     with pytest.raises(ImageError, match=r"expected a 2D \(H, W\) array, got shape \(\)"):      # said (1,)
         find_contours(x, "tree", "none")
+
+
+def test_reconstruct_masks_flags_a_count_that_is_not_the_masks():
+    # a 4-px checkerboard: cv2 finds 3 borders (8-connected diagonal blocks), the sampled
+    # inside/outside function 5 curves; the results said nothing (the CLI's flag, not the API's)
+    import cv2
+    from torch_isc.images import reconstruct_masks
+    checker = np.kron(np.indices((4, 4)).sum(0) % 2, np.ones((4, 4))).astype(np.uint8)
+    box = np.zeros((30, 30), np.uint8)
+    box[5:20, 6:25] = 1
+    want = [len(cv2.findContours(m, cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)[0]) for m in (checker, box)]
+    r_checker, r_box = reconstruct_masks([checker, box])
+    assert (r_checker.boundaries, r_box.boundaries) == tuple(want) == (3, 1)
+    assert r_checker.count_ok == (r_checker.num_closed == 3 and r_checker.num_open == 0)
+    assert r_box.count_ok and r_box.num_closed == 1

@@ -307,9 +307,9 @@ def solve_masks(points: Sequence[torch.Tensor], masks: Sequence[ImageLike], n_bo
 
     oracle = MaskOracle(list(masks), threshold, interpolation) if use_oracle else None
     results = reconstruct_batch(list(points), config, list(names), oracle)
-    if not retry or n_boundaries is None:
+    if n_boundaries is None:
         return results
-    redo = [b for b, r in enumerate(results) if r.num_closed != n_boundaries[b] or r.num_open > 0]
+    redo = [] if not retry else [b for b, r in enumerate(results) if r.num_closed != n_boundaries[b] or r.num_open > 0]
     for b in redo:          # rare: one solve per mask, each with its own starting mesh
         p = points[b]
         diag = float((p.max(0).values - p.min(0).values).double().norm())
@@ -322,6 +322,9 @@ def solve_masks(points: Sequence[torch.Tensor], masks: Sequence[ImageLike], n_bo
         r = reconstruct_batch([p], cfg, [names[b]], sub)[0]
         if r.num_closed == n_boundaries[b] and r.num_open == 0:
             results[b] = r
+    for r, nb in zip(results, n_boundaries):       # the flag grid_results and the CLI give
+        r.boundaries = nb
+        r.count_ok = r.num_closed == nb and r.num_open == 0
     return results
 
 
@@ -352,7 +355,11 @@ def reconstruct_masks(masks: Union[ImageLike, Sequence[ImageLike]], config: Opti
         names: labels for errors and results (default ``"mask b"``).
 
     Returns:
-        one :class:`~torch_isc.pipeline.result.ReconstructionResult` per mask, in pixel coordinates.
+        one :class:`~torch_isc.pipeline.result.ReconstructionResult` per mask, in pixel
+        coordinates; ``result.boundaries`` is the mask's number of borders (its contours) and
+        ``result.count_ok`` whether the curve has as many closed curves and no open chain (a
+        sampled inside/outside function can miss the mask's borders: 4-px checkerboards give 5
+        curves for cv2's 3; :func:`grid_results` and :func:`find_contours` are exact).
 
     A mask with no foreground pixel has no boundary to sample: its result has no curve (that
     of :func:`grid_results`), as ``cv2.findContours`` gives no contour.

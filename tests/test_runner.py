@@ -115,7 +115,7 @@ def test_edges_mode_and_mixed_configs(mixed, tmp_path):
 
 def test_bad_arguments_are_rejected_before_any_work(mixed, tmp_path):
     out = tmp_path / "out"
-    with pytest.raises(RunError, match="batch size must be >= 1"):
+    with pytest.raises(RunError, match=r"batch size must be an integer in \[1, "):
         run_inputs([mixed], CONFIG, out, batch_size=0)
     with pytest.raises(RunError, match="unknown output format 'obj'"):
         run_inputs([mixed], CONFIG, out, formats=["json", "obj"])

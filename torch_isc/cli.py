@@ -60,7 +60,7 @@ from torch_isc.io import chosen_formats
 from torch_isc.pipeline.knobs import non_ascii_digit
 from torch_isc.pipeline.config import ConfigError, flat_keys, load_config, parse_overrides, read_config_mapping
 from torch_isc.images.read import DEFAULT_MAX_PIXELS
-from torch_isc.runner import DEFAULT_MAX_BOUNDARY, ImageOptions, Record, RunError, run_inputs, shown
+from torch_isc.runner import DEFAULT_MAX_BOUNDARY, MAX_BATCH_SIZE, ImageOptions, Record, RunError, run_inputs, shown, unique_stems
 
 DEFAULT_IMAGE_FORMATS = "json,contours.npz"
 
@@ -85,6 +85,8 @@ def _number(kind: type):
         if ch is not None:
             raise argparse.ArgumentTypeError(f"non-ASCII digit {ch!r} (U+{ord(ch):04X}) in {text!r}; "
                                              f"write numbers with the digits 0-9")
+        if "_" in text:                  # Python reads 4_0 as 40; the config and the point files refuse it
+            raise argparse.ArgumentTypeError(f"invalid {kind.__name__} value: {text!r} (no _ in numbers)")
         try:
             return kind(text)
         except ValueError:
@@ -272,8 +274,8 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
                      ("--device", args.device), *(("--manifest", m) for m in args.manifest)):
         if val is not None and not val.strip():      # Path("") is ".": --out "" wrote into the working folder
             raise UsageError(f"{opt}: empty value")
-    if args.batch_size < 1:
-        raise UsageError(f"--batch-size must be >= 1, got {args.batch_size}")
+    if not 1 <= args.batch_size <= MAX_BATCH_SIZE:
+        raise UsageError(f"--batch-size must be in [1, {MAX_BATCH_SIZE}], got {args.batch_size}")
     formats = _parse_formats(args.formats if args.formats is not None else DEFAULT_FORMATS)
     image_formats = _parse_formats(args.formats if args.formats is not None else DEFAULT_IMAGE_FORMATS)
     overrides = parse_overrides(args.overrides)
@@ -338,7 +340,7 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
 
     try:
         sources = resolve_inputs([str(s) for s in args.inputs], args.manifest or None, args.manifest_column,
-                                 errors={})    # unlistable folders: failed inputs
+                                 errors={}, out_dir=args.out)    # unlistable folders: failed inputs
     except RunError as e:
         raise UsageError(str(e)) from None
     if args.example:
@@ -390,9 +392,11 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
 
     try:
         if args.engine == "local" and args.table is None:
+            # the inputs are resolved once, here: the same files with and without --table
             report = run_inputs(sources, config, out_dir, formats, image_formats, overwrite=args.overwrite,
                                 batch_size=args.batch_size, image_options=image_options, image_config=image_config,
-                                device=device, progress=progress, on_batch=on_batch, on_note=_note)
+                                device=device, progress=progress, on_batch=on_batch, on_note=_note,
+                                stems=unique_stems(sources, _note))
         else:
             from torch_isc.dataset import reconstruct_dataset
 
@@ -403,7 +407,7 @@ def _reconstruct_command(args: argparse.Namespace) -> int:
                     image_config=image_config, device=None if args.device == "cpu" and args.gpus_per_actor
                     else args.device, table=args.table, address=args.address, actors=args.actors,
                     cpus_per_actor=args.cpus_per_actor, gpus_per_actor=args.gpus_per_actor,
-                    progress=progress, on_note=_note, keep_records=False)
+                    progress=progress, on_note=_note, keep_records=False, resolved=True)
             except RunError as e:
                 raise UsageError(str(e)) from None
     finally:

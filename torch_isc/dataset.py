@@ -60,6 +60,7 @@ from typing import Any, Callable, Dict, Iterable, Iterator, List, Optional, Sequ
 import torch_isc
 from torch_isc import images
 from torch_isc.runner import (DEFAULT_FORMATS, DEFAULT_IMAGE_FORMATS, ImageOptions, Record, RunError, expand_inputs,
+                              inside_folder,
                               run_arguments, run_inputs, shown, unique_stems, overwritten_inputs, make_out_dir)
 from torch_isc.pipeline.loop import _as_config
 from torch_isc._helpers import decode_text, one_line, read_file_bytes
@@ -213,16 +214,20 @@ def glob_files(pattern: str) -> List[str]:
 
 
 def resolve_inputs(inputs: Iterable[PathLike], manifest: Union[None, PathLike, Sequence[PathLike]] = None,
-                   manifest_column: str = "path", errors: Optional[Dict[str, str]] = None) -> List[str]:
+                   manifest_column: str = "path", errors: Optional[Dict[str, str]] = None,
+                   out_dir: Optional[PathLike] = None) -> List[str]:
     """Every input file of a run, in order: each input as :func:`~torch_isc.runner.expand_inputs`
     expands it (a folder stands for its point and image files), a glob (``*``, ``?``, ``[``, and
     ``**`` across folders) for its matches sorted, a ``.parquet`` input for the paths of its
     ``manifest_column``; then the paths of each ``manifest``. ``errors``: as for
     :func:`~torch_isc.runner.expand_inputs` (a folder that cannot be listed is kept as one input
-    that fails, instead of raising).
+    that fails, instead of raising). ``out_dir``: the run's output folder; a folder input in it
+    is refused and a glob's matches in it are left out (this run's outputs are no inputs of the
+    next). A manifest's lines are files, taken as they are (a folder among them fails alone).
 
     Raises:
-        RunError: an empty folder, a glob without match, a bad manifest.
+        RunError: an empty folder, a glob without match, a bad manifest, a folder input that is
+            the output folder.
     """
     out: List[str] = []
     for src in inputs:
@@ -231,11 +236,14 @@ def resolve_inputs(inputs: Iterable[PathLike], manifest: Union[None, PathLike, S
             hits = glob_files(s)
             if not hits:
                 raise RunError(f"{s}: no file matches")
+            hits = [h for h in hits if not inside_folder(h, out_dir)]
+            if not hits:
+                raise RunError(f"{s}: no file matches outside the output folder {shown(out_dir)}")
             out.extend(hits)
         elif Path(s).suffix.lower() in _MANIFEST_SUFFIXES and os.path.isfile(s):
             out.extend(read_manifest(s, manifest_column))
         else:
-            out.extend(expand_inputs([s], errors))
+            out.extend(expand_inputs([s], errors, out_dir))
     if manifest is not None:
         for m in ([manifest] if isinstance(manifest, (str, os.PathLike)) else manifest):
             out.extend(read_manifest(m, manifest_column))
@@ -584,7 +592,8 @@ def reconstruct_dataset(inputs: Iterable[PathLike], out_dir: PathLike, config=No
                         address: Optional[str] = None, actors: int = 2, cpus_per_actor: float = 1.0,
                         gpus_per_actor: float = 0.0, ray_init: Optional[Dict[str, Any]] = None,
                         progress: Optional[Callable[[Record], None]] = None,
-                        on_note: Optional[Callable[[str], None]] = None, keep_records: bool = True) -> DatasetReport:
+                        on_note: Optional[Callable[[str], None]] = None, keep_records: bool = True,
+                        resolved: bool = False) -> DatasetReport:
     """Reconstruct every input, write its outputs and, if asked, the results table (see the
     module docstring).
 
@@ -609,6 +618,8 @@ def reconstruct_dataset(inputs: Iterable[PathLike], out_dir: PathLike, config=No
         on_note: remarks that are not errors (renamed outputs; local engine: all-white masks).
         keep_records: keep every :class:`~torch_isc.runner.Record` in the report (for a run of
             millions, False keeps only the counts: the table holds the rows).
+        resolved: ``inputs`` are files already (:func:`resolve_inputs` of the caller, as the CLI
+            does), taken as they are: resolving twice expanded a manifest's glob-like names.
 
     Returns:
         a :class:`DatasetReport`.
@@ -639,7 +650,8 @@ def reconstruct_dataset(inputs: Iterable[PathLike], out_dir: PathLike, config=No
     if image_config is None:
         image_config = images.image_config(config, mode=image_options.mode)
     inputs = list(inputs)
-    sources = resolve_inputs(inputs, manifest, manifest_column, errors={})
+    sources = list(inputs) if resolved else resolve_inputs(inputs, manifest, manifest_column, errors={},
+                                                            out_dir=out_dir)
     if not sources:
         raise RunError("no input")
     stems = unique_stems(sources, on_note)

@@ -64,7 +64,7 @@ from torch_isc.pipeline.loop import PointSetError, _as_config
 from torch_isc.core.points import item_label
 
 __all__ = ["RunError", "ImageOptions", "DEFAULT_MAX_BOUNDARY", "boundary_length", "Record", "RunReport", "DEFAULT_FORMATS", "DEFAULT_IMAGE_FORMATS",
-           "expand_inputs", "make_out_dir", "unique_stems", "overwritten_inputs", "run_arguments", "run_inputs", "shown", "file_sha256", "manifest_path", "manifest_matches",
+           "expand_inputs", "resolved_inputs", "inside_folder", "make_out_dir", "unique_stems", "overwritten_inputs", "run_arguments", "run_inputs", "shown", "file_sha256", "manifest_path", "manifest_matches",
            "MANIFEST_FORMAT"]
 
 #: Version of the ``<stem>.manifest.json`` layout.
@@ -234,11 +234,29 @@ def _is_dir(p: Path) -> bool:
         return False
 
 
-def expand_inputs(sources: Iterable[PathLike], errors: Optional[Dict[str, str]] = None) -> List[str]:
+def inside_folder(path: PathLike, folder: Optional[PathLike]) -> bool:
+    """Whether ``path`` is ``folder`` or lies under it (real paths: links resolved)."""
+    if folder is None:
+        return False
+    p, f = os.path.realpath(path), os.path.realpath(folder)
+    return p == f or p.startswith(f.rstrip(os.sep) + os.sep)
+
+
+def output_folder_input(src: PathLike, out_dir: Optional[PathLike]) -> RunError:
+    """The error of a folder input that is the output folder (or lies in it)."""
+    return RunError(f"{shown(src)}: is the output folder {shown(out_dir)} (or inside it): a rerun would read "
+                    f"this run's outputs as inputs; give another output folder")
+
+
+def expand_inputs(sources: Iterable[PathLike], errors: Optional[Dict[str, str]] = None,
+                  out_dir: Optional[PathLike] = None) -> List[str]:
     """A folder stands for its point and image files (by :data:`~torch_isc.io.LOADERS` suffix,
     sorted by name, not recursive; FIFOs, devices and dangling links of those suffixes too, so
     that they are reported when read); anything else is kept as given (a missing file is reported
     when it is read).
+
+    ``out_dir``: the run's output folder. A folder input that is it, or lies in it, is refused:
+    the outputs of one run (drawings, overlays) would be the next run's inputs.
 
     A folder that cannot be listed (no read permission) raises :class:`RunError`, unless
     ``errors`` is given: it is then kept in the list as one input and ``errors[folder]`` holds
@@ -257,6 +275,8 @@ def expand_inputs(sources: Iterable[PathLike], errors: Optional[Dict[str, str]] 
         except OSError:
             is_dir = False
         if is_dir:
+            if inside_folder(p, out_dir):
+                raise output_folder_input(src, out_dir)
             try:
                 # every entry with a known suffix but folders: a FIFO or a dangling link among
                 # them is an input that fails in one line, not one skipped silently
@@ -273,6 +293,24 @@ def expand_inputs(sources: Iterable[PathLike], errors: Optional[Dict[str, str]] 
             out.extend(files)
         else:
             out.append(str(src))
+    return out
+
+
+def resolved_inputs(inputs: Iterable[PathLike], errors: Dict[str, str]) -> List[str]:
+    """Inputs already resolved to files (one per output stem): kept as they are, a folder among
+    them (a manifest's line) one failed input in ``errors``, never expanded here (the stems
+    would no longer match, and the whole batch failed)."""
+    out = [os.fspath(s) for s in inputs]
+    for src in out:
+        if src and _is_dir(Path(src)) and src not in errors:
+            errs: Dict[str, str] = {}
+            try:
+                expand_inputs([src], errs)
+                errors[src] = (f"{shown(src)}: is a folder, not a point or image file (a manifest lists "
+                               f"files; give the folder itself as an input to reconstruct its files)")
+            except RunError as e:
+                errors[src] = str(e)
+            errors.update(errs)
     return out
 
 
@@ -767,6 +805,11 @@ class _Run:
 _FORMAT_ORDER = {f: i for i, f in enumerate(("json", "npz", "svg", "png", "contours.npz", "geojson", "overlay.png"))}
 
 
+#: the largest batch size taken (2^31: beyond any batch that fits a machine; 2^63 overflowed
+#: Arrow's slices with a raw OverflowError)
+MAX_BATCH_SIZE = 2 ** 31
+
+
 def run_arguments(inputs, formats, image_formats, batch_size, image_options=None):
     """The arguments shared by :func:`run_inputs` and :func:`torch_isc.dataset.reconstruct_dataset`,
     checked and normalized: one path (a str or path object) is one input, not a sequence of
@@ -799,8 +842,8 @@ def run_arguments(inputs, formats, image_formats, batch_size, image_options=None
         size = operator.index(batch_size)           # int, numpy integers
     except TypeError:
         size = None
-    if size is None or isinstance(batch_size, bool) or size < 1:
-        raise RunError(f"batch size must be >= 1, got {batch_size!r:.50} (an integer)")
+    if size is None or isinstance(batch_size, bool) or not 1 <= size <= MAX_BATCH_SIZE:
+        raise RunError(f"batch size must be an integer in [1, {MAX_BATCH_SIZE}], got {batch_size!r:.50}")
     if image_options is not None and not isinstance(image_options, ImageOptions):
         raise RunError(f"image_options: expected an ImageOptions, got {type(image_options).__name__}")
     return inputs, lists[0], lists[1]
@@ -870,7 +913,7 @@ def run_inputs(inputs: Iterable[PathLike], config: ReconstructConfig, out_dir: P
     if image_options.mode not in ("mask", "edges"):
         raise RunError(f"image mode must be 'mask' or 'edges', got {image_options.mode!r}")
     listing: Dict[str, str] = {}
-    sources = expand_inputs(inputs, listing)
+    sources = expand_inputs(inputs, listing, out_dir) if stems is None else resolved_inputs(inputs, listing)
     out = make_out_dir(out_dir)
     if image_config is None:
         image_config = images.image_config(config, mode=image_options.mode)

@@ -34,6 +34,8 @@ def _check_header(p: Path, raw: bytes) -> None:
     # by kind: numpy counts timedelta64 as an integer type, but durations are not coordinates
     if dtype.kind not in "iuf":
         raise PointFileError(f"{p}: expected a numeric (integer or float) array, got dtype {dtype}")
+    if not all(type(n) is int for n in shape):      # (True, 2) passed numpy's header check
+        raise PointFileError(f"{p}: unreadable .npy file (its header declares a shape of non-integers {tuple(shape)})")
     if any(int(n) < 0 for n in shape):
         raise PointFileError(f"{p}: unreadable .npy file (its header declares a negative shape {tuple(shape)})")
     if len(shape) != 2 or shape[1] != 2:
@@ -72,4 +74,8 @@ def decode_points(p: Path, raw: bytes) -> Tuple[np.ndarray, Optional[np.ndarray]
         raise PointFileError(f"{p}: expected an array of shape (N, 2), got shape {tuple(arr.shape)}")
     if arr.shape[0] == 0:
         raise PointFileError(f"{p}: no points (empty array)")
-    return arr.astype(np.float64), None
+    with np.errstate(over="ignore"):
+        out = arr.astype(np.float64)
+    if arr.dtype.itemsize > 8 and np.isfinite(arr).all() and not np.isfinite(out).all():
+        raise PointFileError(f"{p}: coordinates beyond the float64 range (its {arr.dtype} values overflow)")
+    return out, None

@@ -56,8 +56,9 @@ def decode_points(p: Path, raw: bytes) -> Tuple[np.ndarray, Optional[np.ndarray]
     if first is None:
         raise PointFileError(f"{p}: no points (the file has no data lines)")
     toks = _FIELD_SPLIT.split(first.group(1).strip())
-    if all(tok and not _is_number(tok) for tok in toks):
-        # a header line of words: blank it, keeping the line count for messages
+    if all(tok and not _is_number(tok) and (tok[0].isalpha() or tok[0] == "_") for tok in toks):
+        # a header line of names (a letter or _ first; 1D2, 0x1p0 or 10% are malformed numbers,
+        # refused with their line, not a header dropped): blank it, keeping the line count
         header = first.group(1).strip()
         text = text[:first.start(1)] + text[first.end(1):]
         if not text.strip():

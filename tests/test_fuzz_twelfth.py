@@ -1,0 +1,137 @@
+"""Fuzzing round 12: what a report-only pass over the point-file loaders, the dataset runner and
+its CLI found (each test fails on the commit before its fix)."""
+from __future__ import annotations
+
+import io
+
+import cv2
+import numpy as np
+import pytest
+
+from torch_isc import load_config
+from torch_isc.cli import main
+from torch_isc.io import PointFileError, read_points
+from torch_isc.runner import RunError, expand_inputs, run_inputs
+
+pa = pytest.importorskip("pyarrow")
+
+CONFIG = load_config(overrides={"max_level": 3})
+
+
+def _ring(path, r=1.0, n=90):
+    t = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    np.savetxt(path, np.stack([r * np.cos(t), r * np.sin(t)], 1))
+
+
+def _disc(path):
+    m = np.zeros((30, 30), np.uint8)
+    cv2.circle(m, (14, 14), 8, 255, -1)
+    cv2.imwrite(str(path), m)
+
+
+def test_a_rerun_does_not_read_its_own_outputs_as_inputs(tmp_path, capsys):
+    # --out inside a globbed tree: every rerun read the previous drawings as masks (7 -> 22 -> 57
+    # files), renamed the real inputs' stems and never resumed
+    d = tmp_path / "in"
+    d.mkdir()
+    _disc(d / "m0.png")
+    _ring(d / "p00.xy")
+    args = ["reconstruct", str(d / "**" / "*.png"), str(d / "p00.xy"), "--out", str(d / "out"),
+            "--formats", "json,png", "--set", "max_level=3"]
+    assert main(args) == 0
+    first = sorted(p.name for p in (d / "out").iterdir())
+    assert main(args) == 0
+    assert sorted(p.name for p in (d / "out").iterdir()) == first
+    assert capsys.readouterr().out.count("skipped, outputs exist") == 2
+    assert "m0.json" in first and "p00.png" in first
+
+
+def test_the_output_folder_given_as_an_input_folder_is_refused(tmp_path, capsys):
+    # --out equal to the input folder: the second run read p00.png (the drawing of p00.xy) as a
+    # mask ("154 closed") and renamed the real input p00_xy
+    _ring(tmp_path / "p00.xy")
+    assert main(["reconstruct", str(tmp_path), "--out", str(tmp_path), "--formats", "json,png"]) == 2
+    assert "is the output folder" in capsys.readouterr().err
+    with pytest.raises(RunError, match="is the output folder"):
+        expand_inputs([tmp_path], out_dir=tmp_path / ".")
+    assert list(tmp_path.iterdir()) == [tmp_path / "p00.xy"]            # nothing written
+
+
+def test_a_folder_in_a_manifest_fails_alone(tmp_path):
+    # every input of the folder's batch failed: "3 stem(s) given for 10 input(s)"
+    from torch_isc.dataset import reconstruct_dataset
+    ds = tmp_path / "ds"
+    ds.mkdir()
+    _ring(ds / "p00.xy")
+    _ring(ds / "p01.xy", r=2)
+    (tmp_path / "empty").mkdir()
+    man = tmp_path / "list.txt"
+    man.write_text("ds/p00.xy\nds\nempty\nds/p01.xy\n")
+    rep = reconstruct_dataset([], tmp_path / "out", CONFIG, manifest=man, formats=["json"])
+    status = [(r.stem, r.status) for r in rep.records]
+    assert status == [("p00", "done"), ("ds", "failed"), ("empty", "failed"), ("p01", "done")]
+    errors = [r.error for r in rep.records if r.status == "failed"]
+    assert "is a folder, not a point or image file" in errors[0]
+    assert "folder has no point or image file" in errors[1]
+
+
+@pytest.mark.parametrize("table", [False, True])
+def test_a_manifest_line_is_read_once_with_or_without_a_table(tmp_path, capsys, table):
+    # "p0[12].xy" in a manifest: "no such file" without --table, a glob of two files with it
+    for k in range(3):
+        _ring(tmp_path / f"p0{k}.xy", r=1 + k)
+    man = tmp_path / "list.txt"
+    man.write_text("p00.xy\np0[12].xy\n")
+    args = ["reconstruct", "--manifest", str(man), "--out", str(tmp_path / "o"), "--formats", "json",
+            "--set", "max_level=3"] + (["--table", str(tmp_path / "t.parquet")] if table else [])
+    assert main(args) == 1
+    err = capsys.readouterr().err
+    assert "p0[12].xy: no such file" in err and "1 of 2 input(s) ok" in err
+    assert sorted(p.name for p in (tmp_path / "o").glob("*.json")) == ["p00.json", "p00.manifest.json"]
+
+
+@pytest.mark.parametrize("row", ["1D2 2D-2", "0x1p0 0x1p1", "10% 20%", "1.0O 2.0O"])
+def test_a_malformed_first_row_is_refused_not_dropped_as_a_header(tmp_path, row):
+    # no token parsed as a float, so the row was blanked as a header: 3 points of 4, no word
+    f = tmp_path / "a.xy"
+    f.write_text(f"{row}\n0 0\n1 0\n0 1\n")
+    with pytest.raises(PointFileError, match=r"a\.xy: line 1: non-numeric value"):
+        read_points(f)
+    f.write_text("x_coord, Y\n0 0\n1 0\n0 1\n")                    # a header of names still is one
+    assert read_points(f).shape == (3, 2)
+
+
+def test_a_batch_size_beyond_the_bound_or_with_an_underscore_is_refused(tmp_path, capsys):
+    # 2**63 with --table: a raw OverflowError from Arrow ("internal error", exit 1); 4_0 read as 40
+    for b in ("9223372036854775808", "4_0"):
+        assert main(["reconstruct", "--example", "--out", str(tmp_path), "--batch-size", b,
+                     "--table", str(tmp_path / "t.parquet")]) == 2
+    err = capsys.readouterr().err
+    assert "--batch-size must be in [1, 2147483648]" in err and "'4_0' (no _ in numbers)" in err
+    with pytest.raises(RunError, match=r"batch size must be an integer in \[1, 2147483648\]"):
+        run_inputs([], CONFIG, tmp_path, batch_size=2 ** 63)
+
+
+def _npy_with_header(path, header: str, data: bytes = b""):
+    h = header.encode("latin1")
+    h += b" " * ((64 - (10 + len(h) + 1) % 64) % 64) + b"\n"
+    path.write_bytes(b"\x93NUMPY\x01\x00" + len(h).to_bytes(2, "little") + h + data)
+
+
+def test_an_npy_shape_of_booleans_is_a_point_file_error(tmp_path):
+    # np.load raised a raw TypeError ("an integer is required") past the header check
+    f = tmp_path / "b.npy"
+    _npy_with_header(f, "{'descr': '<f8', 'fortran_order': False, 'shape': (True, 2), }", bytes(16))
+    with pytest.raises(PointFileError, match=r"b\.npy: unreadable \.npy file \(its header declares a shape of non-integers"):
+        read_points(f)
+
+
+def test_longdouble_values_beyond_float64_are_named(tmp_path):
+    if np.finfo(np.longdouble).max <= np.finfo(np.float64).max:
+        pytest.skip("longdouble is float64 here")
+    f = tmp_path / "ld.npy"
+    buf = io.BytesIO()
+    np.save(buf, np.array([[1, 2], [3, 4], [5, 6]], np.longdouble) * np.longdouble(10) ** 4000)
+    f.write_bytes(buf.getvalue())
+    with pytest.raises(PointFileError, match=r"ld\.npy: coordinates beyond the float64 range"):
+        read_points(f)

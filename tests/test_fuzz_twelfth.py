@@ -135,3 +135,24 @@ def test_longdouble_values_beyond_float64_are_named(tmp_path):
     f.write_bytes(buf.getvalue())
     with pytest.raises(PointFileError, match=r"ld\.npy: coordinates beyond the float64 range"):
         read_points(f)
+
+
+@pytest.mark.parametrize("dtype", ["float64", "float32"])
+def test_values_whose_differences_overflow_are_refused(dtype):
+    # +-0.9 x the largest float: f_i - f_j overflowed, every crossing sat on a vertex and the
+    # area came out 0.577 for 0.6495, the length 0, with finite gradients
+    import torch
+    from torch_isc import ImplicitCurve, InvalidValuesError, hexagon_mesh
+    from torch_isc.core.measures import area, length
+    dt = getattr(torch, dtype)
+    m = hexagon_mesh(torch.zeros(1, 2, dtype=dt), torch.ones(1, dtype=dt), 3)
+    sgn = torch.sign(m.verts.norm(dim=1) - 0.5)
+    unit = ImplicitCurve(m, sgn)
+    top = torch.finfo(dt).max
+    ok = ImplicitCurve(m, sgn * (top / 4))                 # the largest accepted: the same curve
+    assert torch.equal(area(ok), area(unit)) and torch.equal(length(ok), length(unit))
+    # hand: the crossings are the midpoints between the rings 1/3 and 2/3, the regular hexagon of
+    # circumradius 1/2: 3 sqrt(3) / 8
+    assert float(area(unit)) == pytest.approx(3 * 3 ** 0.5 / 8, rel=1e-6)
+    with pytest.raises(InvalidValuesError, match=r"value\(s\) beyond .*a quarter of the largest " + dtype):
+        ImplicitCurve(m, sgn * (0.9 * top))

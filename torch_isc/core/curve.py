@@ -37,13 +37,22 @@ def check_values(values: torch.Tensor, num_verts: int, name: str = "values", syn
     if values.dim() != 1 or values.shape[0] != num_verts:
         raise InvalidValuesError(f"{name} must have shape ({num_verts},), got {tuple(values.shape)}")
     v = values.detach()
+    # a crossing divides by the difference of two values of opposite signs: beyond a quarter of
+    # the dtype's largest it overflows and the crossing lands on the vertex (a wrong area, no error)
+    top = torch.finfo(v.dtype).max / 4 if v.dtype.is_floating_point else float("inf")
     if not sync:
         torch._assert_async(torch.isfinite(v).all(), f"{name}: a value is NaN or Inf")
         torch._assert_async((v != 0).all(), f"{name}: a value is exactly 0; nodal values must be nonzero")
+        torch._assert_async((v.abs() <= top).all(), f"{name}: a value is beyond a quarter of the largest {v.dtype}")
         return
     bad_nf = ~torch.isfinite(v)
     if bad_nf.any():
         raise InvalidValuesError(f"{name}: {int(bad_nf.sum())} value(s) are NaN or Inf (first at vertex {int(bad_nf.nonzero()[0])})")
+    big = v.abs() > top
+    if big.any():
+        raise InvalidValuesError(f"{name}: {int(big.sum())} value(s) beyond {top:.3g}, a quarter of the largest "
+                                 f"{str(v.dtype).replace('torch.', '')} (first at vertex {int(big.nonzero()[0])}): "
+                                 f"their differences overflow; rescale them (the zero set depends on their ratios only)")
     zero = v == 0
     if zero.any():
         raise InvalidValuesError(f"{name}: {int(zero.sum())} value(s) are exactly 0 (first at vertex {int(zero.nonzero()[0])}); "

@@ -156,3 +156,15 @@ def test_values_whose_differences_overflow_are_refused(dtype):
     assert float(area(unit)) == pytest.approx(3 * 3 ** 0.5 / 8, rel=1e-6)
     with pytest.raises(InvalidValuesError, match=r"value\(s\) beyond .*a quarter of the largest " + dtype):
         ImplicitCurve(m, sgn * (0.9 * top))
+
+
+def test_stems_equal_up_to_case_or_normalization_clash():
+    # Ring.xy and ring.xy kept the stems Ring and ring: one set of files on a case-insensitive
+    # volume (macOS, Windows), redone by every rerun
+    import unicodedata
+    from torch_isc.runner import unique_stems
+    a, b, c = unique_stems(["d1/Ring.xy", "d2/ring.xy", "d3/other.xy"])
+    assert a.startswith("Ring_xy_") and b.startswith("ring_xy_") and a.lower() != b.lower() and c == "other"
+    nfc, nfd = (unicodedata.normalize(f, "caf\u00e9") for f in ("NFC", "NFD"))
+    s1, s2 = unique_stems([f"d1/{nfc}.xy", f"d2/{nfd}.xy"])
+    assert unicodedata.normalize("NFC", s1).casefold() != unicodedata.normalize("NFC", s2).casefold()

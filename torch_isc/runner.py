@@ -44,6 +44,7 @@ import operator
 import os
 import time
 import traceback
+import unicodedata
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -331,6 +332,8 @@ def make_out_dir(out_dir: PathLike) -> Path:
 def unique_stems(sources: Sequence[str], note: Optional[Callable[[str], None]] = None) -> List[str]:
     """Output stems, by a rule that does not depend on the order of the inputs:
 
+    Stems clash when they are equal up to case and Unicode normalization (:func:`_fold`).
+
     1. the file stem (``a.xy`` -> ``a``) when no other input has the same one;
     2. else the stem and the suffix (``a.xy`` -> ``a_xy``, ``a.npy`` -> ``a_npy``);
     3. where that still clashes (``d1/a.xy`` and ``d2/a.xy``, or another input's name), or where
@@ -350,27 +353,27 @@ def unique_stems(sources: Sequence[str], note: Optional[Callable[[str], None]] =
     ['x_png', 'x_xy', 'y']
     """
     plain = [Path(s).stem or "input" for s in sources]
-    n_plain = Counter(plain)
+    n_plain = Counter(_fold(p) for p in plain)
     names = []
     for src, stem in zip(sources, plain):
-        if n_plain[stem] == 1:
+        if n_plain[_fold(stem)] == 1:
             names.append(stem)
         else:
             names.append(f"{stem}_{Path(src).suffix.lower().lstrip('.') or 'noext'}")
-    n_names = Counter(names)
+    n_names = Counter(_fold(n) for n in names)
     # a stem that is another one's followed by a dot and more shares file names with it
     # (a.manifest.xy's JSON is a.xy's a.manifest.json, m.contours.xy's npz is m.png's contours)
-    taken = set(names)
-    dotted = [any(n[:k] in taken for k in range(1, len(n)) if n[k] == ".") for n in names]
+    taken = {_fold(n) for n in names}
+    dotted = [any(_fold(n[:k]) in taken for k in range(1, len(n)) if n[k] == ".") for n in names]
     for i, src in enumerate(sources):
-        if n_names[names[i]] > 1 or dotted[i]:
+        if n_names[_fold(names[i])] > 1 or dotted[i]:
             h = hashlib.sha256(os.path.abspath(src).encode("utf-8", "surrogateescape")).hexdigest()[:8]
             names[i] = f"{names[i]}_{h}"
     seen: Counter = Counter()
     for i in range(len(names)):
-        seen[names[i]] += 1
-        if seen[names[i]] > 1:
-            names[i] = f"{names[i]}_{seen[names[i]]}"
+        seen[_fold(names[i])] += 1
+        if seen[_fold(names[i])] > 1:
+            names[i] = f"{names[i]}_{seen[_fold(names[i])]}"
     renamed = [name != stem for stem, name in zip(plain, names)]
     names = [_fit_stem(n) for n in names]
     if note is not None:
@@ -383,6 +386,13 @@ def unique_stems(sources: Sequence[str], note: Optional[Callable[[str], None]] =
             elif name != stem:
                 note(f"note: {shown(src)}: name too long for an output file, written as '{shown(name)}'")
     return names
+
+
+def _fold(name: str) -> str:
+    """The key under which two stems clash: case-folded and NFC-normalized, as the file systems
+    that ignore case or normalization (macOS, Windows) compare names (``Ring`` and ``ring``
+    would write one set of files there)."""
+    return unicodedata.normalize("NFC", name).casefold()
 
 
 #: The longest output stem, in bytes (UTF-8): a file name holds 255 bytes, and the longest name

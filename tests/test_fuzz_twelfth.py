@@ -168,3 +168,21 @@ def test_stems_equal_up_to_case_or_normalization_clash():
     nfc, nfd = (unicodedata.normalize(f, "caf\u00e9") for f in ("NFC", "NFD"))
     s1, s2 = unique_stems([f"d1/{nfc}.xy", f"d2/{nfd}.xy"])
     assert unicodedata.normalize("NFC", s1).casefold() != unicodedata.normalize("NFC", s2).casefold()
+
+
+def test_a_table_that_cannot_be_written_is_one_line(tmp_path, monkeypatch, capsys):
+    # a full disk while writing the --table: "internal error (OSError ...)", exit 1
+    import errno
+    import pyarrow.parquet as pq
+    _ring(tmp_path / "a.xy")
+
+    def full(self, *a, **k):
+        raise OSError(errno.ENOSPC, "No space left on device")
+    monkeypatch.setattr(pq.ParquetWriter, "write_table", full)
+    table = tmp_path / "t.parquet"
+    assert main(["reconstruct", str(tmp_path / "a.xy"), "--out", str(tmp_path / "o"), "--table", str(table),
+                 "--set", "max_level=3"]) == 2
+    err = capsys.readouterr().err
+    assert f"table {table}: cannot be written (No space left on device)" in err and "internal error" not in err
+    assert not table.exists() and not list(tmp_path.glob(".t.parquet*"))        # no table, no temporary
+    assert (tmp_path / "o" / "a.json").exists()                                  # the input's outputs stay

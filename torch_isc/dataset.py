@@ -508,8 +508,15 @@ class _TableSink:
     def flush(self) -> None:
         if self.buf:
             pa = _pa()
-            self.writer.write_table(pa.concat_tables(self.buf), row_group_size=max(self.rows, self.n))
+            try:
+                self.writer.write_table(pa.concat_tables(self.buf), row_group_size=max(self.rows, self.n))
+            except (OSError, pa.ArrowException) as e:      # a full disk: one line, not "internal error"
+                raise self.failed(e) from None
             self.buf, self.n = [], 0
+
+    def failed(self, e: BaseException) -> RunError:
+        return RunError(f"table {shown(self.path)}: cannot be written "
+                        f"({getattr(e, 'strerror', None) or one_line(e, type(e).__name__)})")
 
     def close(self, ok: bool) -> None:
         """Move the table into place (``ok``) or remove the temporary file; it is removed too
@@ -523,10 +530,13 @@ class _TableSink:
                 self.writer = writer
                 self.flush()
                 self.writer = None
-            writer.close()
-            if ok:
-                os.replace(self.tmp, self.path)
-                placed = True
+            try:
+                writer.close()
+                if ok:
+                    os.replace(self.tmp, self.path)
+                    placed = True
+            except (OSError, _pa().ArrowException) as e:
+                raise self.failed(e) from None
         finally:
             if not placed:
                 try:

@@ -186,3 +186,19 @@ def test_a_table_that_cannot_be_written_is_one_line(tmp_path, monkeypatch, capsy
     assert f"table {table}: cannot be written (No space left on device)" in err and "internal error" not in err
     assert not table.exists() and not list(tmp_path.glob(".t.parquet*"))        # no table, no temporary
     assert (tmp_path / "o" / "a.json").exists()                                  # the input's outputs stay
+
+
+@pytest.mark.parametrize("dtype, big", [("float32", 1e25), ("float64", 1e200)])
+def test_a_huge_step_is_clamped_to_the_same_move(dtype, big):
+    # deform(clamp=True) returned t = 0 beyond 1e19 (float32) or 1e154 (float64): a^2 t overflowed
+    import torch
+    from torch_isc import ImplicitCurve, hexagon_mesh
+    dt = getattr(torch, dtype)
+    m = hexagon_mesh(torch.zeros(1, 2, dtype=dt), torch.ones(1, dtype=dt), 3)
+    c = ImplicitCurve(m, m.verts.norm(dim=1) - 0.5)
+    d = torch.randn(m.verts.shape[0], 2, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    moved, t1 = c.deform((m.verts.double() + d).to(dt), clamp=True)
+    far, tb = c.deform((m.verts.double() + d * big).to(dt), clamp=True)
+    assert 0 < float(t1) < 1 and float(tb) * big == pytest.approx(float(t1), rel=1e-3)
+    assert bool((far.mesh.signed_areas() > 0).all())
+    assert torch.allclose(far.mesh.verts, moved.mesh.verts, rtol=1e-3, atol=1e-4)

@@ -16,8 +16,9 @@ import torch
 
 from torch_isc.core.extract import Polylines, extract_zero_set
 from torch_isc.core.locate import barycentric, finite_rows, locate_grid
-from torch_isc.core.mesh import InvalidMeshError, MeshBatch
+from torch_isc.core.mesh import InvalidMeshError, MeshBatch, pow2_unit
 from torch_isc.core.points import PointSetError
+from torch_isc.core.segments import segment_max
 
 __all__ = ["ImplicitCurve", "InvalidValuesError", "check_values", "crossed_triangles", "max_orientation_fraction"]
 
@@ -735,9 +736,15 @@ def max_orientation_fraction(mesh: MeshBatch, disp: torch.Tensor, safety: float 
     comes from the numerically stable quadratic formula (``q = -(b + sign(b)√Δ)/2``, roots
     ``q/a`` and ``c/q``); no real positive root: no limit."""
     with torch.no_grad():
-        v = mesh.verts.detach()
+        # in a frame of powers of two (exact): the positions of each item into [0.5, 1), its
+        # displacement too where it is larger (a displacement of 1e154 made a t² overflow and
+        # the item stood still); the roots scale back by the displacement's factor
+        s = mesh.unit_scale()
+        dmag = segment_max(disp.detach().abs().amax(1), mesh.vert_item, mesh.num_items, fill=0)
+        k = torch.minimum(pow2_unit(dmag * s), torch.ones_like(s))
+        v = mesh.verts.detach() * s[mesh.vert_item][:, None]
         f = mesh.faces
-        p, d = v[f], disp[f]
+        p, d = v[f], (disp.detach() * (s * k)[mesh.vert_item][:, None])[f]
         u, w = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
         du, dw = d[:, 1] - d[:, 0], d[:, 2] - d[:, 0]
 
@@ -758,5 +765,5 @@ def max_orientation_fraction(mesh: MeshBatch, disp: torch.Tensor, safety: float 
         r2 = torch.where((r2 > 0) & (disc >= 0), r2, inf)
         root = torch.minimum(r1, r2)
         tmin = torch.full((mesh.num_items,), float("inf"), dtype=v.dtype, device=v.device)
-        tmin = tmin.scatter_reduce(0, mesh.face_item, root, "amin")
+        tmin = tmin.scatter_reduce(0, mesh.face_item, root, "amin") * k
         return (safety * tmin).clamp(max=1.0)

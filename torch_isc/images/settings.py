@@ -15,9 +15,10 @@ __all__ = ["MASK_CONFIG", "EDGE_CONFIG", "IMAGE_CONFIG", "image_config", "as_ima
 #: The denoising keeps the neighbour search it was measured with on masks (window 12, no
 #: neighbour descent): a mask's boundary points sit on the pixel lattice, and the wider search
 #: made for noisy point sets is not judged there (with both, a 3 px ring crossed by a line lost a
-#: curve, tests/test_images.py).
+#: curve, tests/test_images.py). The unsupported-tip flips of the band stage stay off: a mask's
+#: oracle gives every vertex its true sign.
 MASK_CONFIG: Dict[str, Any] = {"tolerance": 0.5, "tolerance_mode": "absolute", "noise_factor": 0.0,
-                               "denoise_refine_hops": 0, "denoise_window": 12}
+                               "denoise_refine_hops": 0, "denoise_window": 12, "spike_unsupported": False}
 #: Settings for Canny edge points: half a pixel, absolute; the noise estimate stays on (edge
 #: points do jitter).
 EDGE_CONFIG: Dict[str, Any] = {"tolerance": 0.5, "tolerance_mode": "absolute"}

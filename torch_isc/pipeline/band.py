@@ -78,6 +78,10 @@ class BandConfig:
     spike_wrap: float = knob(0.7, gt=0.5, le=1)
     #: ...and it lies within this many noise widths of the data
     spike_reach: float = knob(2.0, ge=0)
+    #: the spike rounds also flip unsupported tips (pipeline/tips.py: simple vertices most of
+    #: whose crossings, or the vertex itself inside a wrapped tip, lie farther than the tested
+    #: tolerance from the data)
+    spike_unsupported: bool = knob(True)
     #: place the final crossings on the data's moving-least-squares curve (:func:`snap_crossings`):
     #: the curve is then a continuous function of the data, not of the mesh the loop happened to
     #: make (issue 18: a perturbation far below the tolerance moves it by about as much); meant
@@ -153,6 +157,23 @@ def _flip_spikes(ws: "WorkingSet", values: torch.Tensor, cfg: BandConfig) -> tor
         c, _ = c.flip_simple(candidates=cand, grow=True, ratio=0.5)
         c, _ = c.flip_simple(candidates=cand, grow=False, ratio=0.5)
         return c.values
+
+
+def _flip_tips(ws: "WorkingSet", values: torch.Tensor, slack: torch.Tensor, cfg: BandConfig) -> torch.Tensor:
+    """``(V,)`` values with the unsupported tips (:func:`~torch_isc.pipeline.tips.unsupported_tips`)
+    flipped, at half their magnitude (as :func:`_flip_spikes`)."""
+    from torch_isc.pipeline.tips import MIN_REGION, crossing_support, region_sizes, surrounded_vertices, unsupported_tips
+    with torch.no_grad():
+        m = ws.mesh
+        supported = crossing_support(m, values, ws.points, ws.face) <= slack.to(values.dtype)[m.edge_item]
+        signs = torch.where(values < 0, -1.0, 1.0).to(values.dtype)
+        # a tip far from the data that the curve wraps around: a spike, whatever its crossings say
+        d = vertex_data_distance_near(m, ws.points, ws.face)
+        far = (d > slack.to(d.dtype)[m.vert_item]) & (wrap_fraction(m, values) > cfg.spike_wrap)
+        pinned = (m.is_boundary_vert | ws.flat[m.vert_item] | surrounded_vertices(m, ws.points, ws.face)
+                  | (region_sizes(m, signs) < MIN_REGION))
+        flip = unsupported_tips(m, signs, supported, pinned, far)
+        return torch.where(flip, -0.5 * values, values)
 
 
 #: about the most entries of the dense Hessians one Newton group holds (the sum of its items' squared sizes)
@@ -258,6 +279,8 @@ def _refit(ws: "WorkingSet", cfg: BandConfig, gcfg: GeometryConfig, slack: torch
     for r in budget.rounds(max(cfg.spike_rounds, 1)):
         if cfg.spike_rounds > 0:
             values = _flip_spikes(ws, values, cfg)
+            if cfg.spike_unsupported:
+                values = _flip_tips(ws, values, slack, cfg)
         signs = torch.where(values < 0, -1.0, 1.0).to(values.dtype)
         start = init if r == 0 else values.abs()
         if solver == "lbfgs":

@@ -70,12 +70,15 @@ def test_a_tongue_vertex_flips_and_nothing_else():
     # pinned, or a flip that would make an unsupported crossing: it stays
     assert not unsupported_tips(m, signs, supported, pinned | (torch.arange(len(signs)) == tip)).any()
     assert not unsupported_tips(m, signs, ~at_tip, pinned).any()
-    # every crossing supported: nothing flips, unless the tip is a far one
-    everywhere = torch.ones_like(supported)
-    assert not unsupported_tips(m, signs, everywhere, pinned).any()
-    far = torch.zeros_like(pinned)
-    far[tip] = True
-    assert unsupported_tips(m, signs, everywhere, pinned, far).nonzero().squeeze(1).tolist() == [tip]
+    # every crossing supported: nothing flips; half of the tip's five crossings unsupported: not
+    # enough (2 of 5), three of five: it flips
+    assert not unsupported_tips(m, signs, torch.ones_like(supported), pinned).any()
+    crossing = at_tip & ~inner
+    k = crossing.nonzero().squeeze(1)
+    for n_bad, flips in ((2, False), (3, True)):
+        sup = torch.ones_like(supported)
+        sup[k[:n_bad]] = False
+        assert bool(unsupported_tips(m, signs, sup, pinned)[tip]) is flips
 
 
 def _neighbours(m):
@@ -99,15 +102,14 @@ def _link_changes(m, signs, v):
 
 @pytest.mark.parametrize("seed", range(4))
 def test_flips_are_an_independent_set_of_the_rule_s_candidates(seed):
-    m = _hex(6)
+    m = _hex(10)
     g = torch.Generator().manual_seed(seed)
     V = m.verts.shape[0]
     r = m.verts.norm(dim=1)
     signs = torch.where(r + 0.25 * torch.rand(V, generator=g, dtype=torch.float64) < 0.55, -1.0, 1.0).to(torch.float64)
     supported = torch.rand(m.edges.shape[0], generator=g) < 0.6
-    far = torch.rand(V, generator=g) < 0.3
     pinned = m.is_boundary_vert
-    flip = unsupported_tips(m, signs, supported, pinned, far)
+    flip = unsupported_tips(m, signs, supported, pinned)
     nb = _neighbours(m)
     eid = {tuple(ab): k for k, ab in enumerate(m.edges.tolist())}
     cand = []
@@ -118,7 +120,7 @@ def test_flips_are_an_independent_set_of_the_rule_s_candidates(seed):
         bad_old = sum(c and not bool(supported[k]) for c, k in zip(cross, es))
         bad_new = sum((not c) and not bool(supported[k]) for c, k in zip(cross, es))
         ok = (not bool(pinned[v]) and _link_changes(m, signs, v) == 2 and len(nb[v]) - n_old < n_old
-              and (2 * bad_old >= n_old and bad_old > 0 or bool(far[v])) and bad_new == 0)
+              and 2 * bad_old >= n_old and bad_old > 0 and bad_new == 0)
         cand.append(ok)
     cand = torch.tensor(cand)
     assert cand.any()

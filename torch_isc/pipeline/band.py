@@ -78,9 +78,8 @@ class BandConfig:
     spike_wrap: float = knob(0.7, gt=0.5, le=1)
     #: ...and it lies within this many noise widths of the data
     spike_reach: float = knob(2.0, ge=0)
-    #: the spike rounds also flip unsupported tips (pipeline/tips.py: simple vertices most of
-    #: whose crossings, or the vertex itself inside a wrapped tip, lie farther than the tested
-    #: tolerance from the data)
+    #: the spike rounds also flip unsupported tips (pipeline/tips.py: simple vertices at least
+    #: half of whose crossings lie farther than the tested tolerance from the data)
     spike_unsupported: bool = knob(True)
     #: place the final crossings on the data's moving-least-squares curve (:func:`snap_crossings`):
     #: the curve is then a continuous function of the data, not of the mesh the loop happened to
@@ -159,7 +158,7 @@ def _flip_spikes(ws: "WorkingSet", values: torch.Tensor, cfg: BandConfig) -> tor
         return c.values
 
 
-def _flip_tips(ws: "WorkingSet", values: torch.Tensor, slack: torch.Tensor, cfg: BandConfig) -> torch.Tensor:
+def _flip_tips(ws: "WorkingSet", values: torch.Tensor, slack: torch.Tensor) -> torch.Tensor:
     """``(V,)`` values with the unsupported tips (:func:`~torch_isc.pipeline.tips.unsupported_tips`)
     flipped, at half their magnitude (as :func:`_flip_spikes`)."""
     from torch_isc.pipeline.tips import MIN_REGION, crossing_support, region_sizes, surrounded_vertices, unsupported_tips
@@ -167,12 +166,9 @@ def _flip_tips(ws: "WorkingSet", values: torch.Tensor, slack: torch.Tensor, cfg:
         m = ws.mesh
         supported = crossing_support(m, values, ws.points, ws.face) <= slack.to(values.dtype)[m.edge_item]
         signs = torch.where(values < 0, -1.0, 1.0).to(values.dtype)
-        # a tip far from the data that the curve wraps around: a spike, whatever its crossings say
-        d = vertex_data_distance_near(m, ws.points, ws.face)
-        far = (d > slack.to(d.dtype)[m.vert_item]) & (wrap_fraction(m, values) > cfg.spike_wrap)
         pinned = (m.is_boundary_vert | ws.flat[m.vert_item] | surrounded_vertices(m, ws.points, ws.face)
                   | (region_sizes(m, signs) < MIN_REGION))
-        flip = unsupported_tips(m, signs, supported, pinned, far)
+        flip = unsupported_tips(m, signs, supported, pinned)
         return torch.where(flip, -0.5 * values, values)
 
 
@@ -280,7 +276,7 @@ def _refit(ws: "WorkingSet", cfg: BandConfig, gcfg: GeometryConfig, slack: torch
         if cfg.spike_rounds > 0:
             values = _flip_spikes(ws, values, cfg)
             if cfg.spike_unsupported:
-                values = _flip_tips(ws, values, slack, cfg)
+                values = _flip_tips(ws, values, slack)
         signs = torch.where(values < 0, -1.0, 1.0).to(values.dtype)
         start = init if r == 0 else values.abs()
         if solver == "lbfgs":

@@ -17,8 +17,7 @@ item's tested tolerance of that place (the distance the test allows). A vertex `
 - it is simple (its link has one run of each sign, :meth:`ImplicitCurve.simple_vertices`): the
   flip keeps the topology;
 - most of its edges cross (more than stay): it is a tip, the flip shortens the curve;
-- at least half of its crossings are unsupported, or it lies farther than the tolerance from
-  the data with the curve wrapped around it (a spike's tip, :func:`~torch_isc.pipeline.band.wrap_fraction`);
+- at least half of its crossings are unsupported;
 - every crossing the flip would make is supported: the curve leaves empty space and stays
   with the data;
 - and it is not pinned: its sign region has at least :data:`MIN_REGION` vertices (a small
@@ -31,8 +30,6 @@ the lower index): a flip changes its neighbours' links. Fixed shapes, no host re
 refits the magnitudes for the new signs.
 """
 from __future__ import annotations
-
-from typing import Optional
 
 import torch
 
@@ -108,11 +105,10 @@ def region_sizes(mesh: MeshBatch, signs: torch.Tensor) -> torch.Tensor:
 
 
 def unsupported_tips(mesh: MeshBatch, signs: torch.Tensor, supported: torch.Tensor,
-                     pinned: torch.Tensor, far_tip: Optional[torch.Tensor] = None) -> torch.Tensor:
+                     pinned: torch.Tensor) -> torch.Tensor:
     """``(V,)`` bool: the vertices that flip in one round of the rule (module docstring), from
     the signs ``(V,)`` (±1), ``supported (E,)`` bool (a crossing on the edge would be near the
-    data), ``pinned (V,)`` bool (never flip) and ``far_tip (V,)`` bool (a tip far from the data:
-    counts as unsupported whatever its crossings)."""
+    data) and ``pinned (V,)`` bool (never flip)."""
     with torch.no_grad():
         V = signs.shape[0]
         e = mesh.edges
@@ -131,8 +127,6 @@ def unsupported_tips(mesh: MeshBatch, signs: torch.Tensor, supported: torch.Tens
         changes.index_add_(0, f.reshape(-1), (neg[f[:, [1, 2, 0]]] != neg[f[:, [2, 0, 1]]]).reshape(-1).long())
         simple = (changes == 2) & ~mesh.is_boundary_vert
         unsup = (2 * bad_old >= n_old) & (bad_old > 0)
-        if far_tip is not None:
-            unsup = unsup | far_tip
         cand = simple & ~pinned & (n_new < n_old) & unsup & (bad_new == 0)
         # an independent set: of two adjacent candidates the one with the larger gain flips
         key = bad_old * (V + 1) + (V - torch.arange(V, device=signs.device))

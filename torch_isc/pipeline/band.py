@@ -164,7 +164,10 @@ def _flip_tips(ws: "WorkingSet", values: torch.Tensor, slack: torch.Tensor) -> t
     from torch_isc.pipeline.tips import MIN_REGION, crossing_support, region_sizes, surrounded_vertices, unsupported_tips
     with torch.no_grad():
         m = ws.mesh
-        supported = crossing_support(m, values, ws.points, ws.face) <= slack.to(values.dtype)[m.edge_item]
+        # a sample spacing where the samples are sparser than the tolerance: the frames' column 2
+        # is the distance to the 8th nearest point, about 4 spacings along a curve
+        reach = torch.maximum(slack.to(values.dtype)[ws.point_item], ws.frames[:, 2].to(values.dtype) / 4)
+        supported = crossing_support(m, values, ws.points, ws.face, reach)
         signs = torch.where(values < 0, -1.0, 1.0).to(values.dtype)
         pinned = (m.is_boundary_vert | ws.flat[m.vert_item] | surrounded_vertices(m, ws.points, ws.face)
                   | (region_sizes(m, signs) < MIN_REGION))

@@ -11,8 +11,11 @@ the largest part of the Hausdorff distance of many noisy results that have the r
 The rule (run in the band stage's spike rounds, :mod:`torch_isc.pipeline.band`, before each
 refit). Every edge ``(i, j)`` has one place where a crossing on it would be, given the fitted
 magnitudes: ``x_ij = v_i + |f_i| / (|f_i| + |f_j|) (v_j − v_i)``, whatever the signs (a flip of a
-vertex keeps its magnitude). A crossing is *supported* when a data point lies within the
-item's tested tolerance of that place (the distance the test allows). A vertex ``v`` flips when:
+vertex keeps its magnitude). A crossing is *supported* when a data point lies within its reach
+of that place: the item's tested tolerance (the distance the test allows), or one sample
+spacing where the samples are sparser (a quarter of the distance to the point's 8th neighbour:
+between the samples of a clean sparse curve, at a sharp corner, the true curve is that far
+from the data). A vertex ``v`` flips when:
 
 - it is simple (its link has one run of each sign, :meth:`ImplicitCurve.simple_vertices`): the
   flip keeps the topology;
@@ -50,10 +53,11 @@ def crossing_places(mesh: MeshBatch, values: torch.Tensor) -> torch.Tensor:
     return v[e[:, 0]] + t[:, None].to(v.dtype) * (v[e[:, 1]] - v[e[:, 0]])
 
 
-def crossing_support(mesh: MeshBatch, values: torch.Tensor, points: torch.Tensor, face: torch.Tensor) -> torch.Tensor:
-    """``(E,)`` the distance from each edge's crossing place (:func:`crossing_places`) to the
-    nearest data point located in a triangle of the edge or next to one (``inf`` where there
-    is none: the place is farther from the data than a triangle)."""
+def crossing_support(mesh: MeshBatch, values: torch.Tensor, points: torch.Tensor, face: torch.Tensor,
+                     reach: torch.Tensor) -> torch.Tensor:
+    """``(E,)`` bool: whether a data point lies within its ``reach (P,)`` of each edge's crossing
+    place (:func:`crossing_places`), among the points located in a triangle of the edge or next
+    to one (a place farther from the data than a triangle is unsupported)."""
     with torch.no_grad():
         x = crossing_places(mesh, values)
         ok = face >= 0
@@ -61,10 +65,10 @@ def crossing_support(mesh: MeshBatch, values: torch.Tensor, points: torch.Tensor
         tri = torch.cat([f[:, None], mesh.face_neighbors[f]], 1)             # (P, 4)
         has = (tri >= 0) & ok[:, None]
         eid = mesh.face_edges[tri.clamp_min(0)].reshape(points.shape[0], 12)  # (P, 12)
-        d = (x[eid] - points.to(x.dtype)[:, None, :]).norm(dim=2)
+        d = (x[eid] - points.to(x.dtype)[:, None, :]).norm(dim=2) - reach.to(x.dtype)[:, None]
         d = torch.where(has.repeat_interleave(3, 1), d, torch.full_like(d, float("inf")))
         out = torch.full((mesh.edges.shape[0],), float("inf"), dtype=x.dtype, device=x.device)
-        return out.scatter_reduce(0, eid.reshape(-1), d.reshape(-1), "amin")
+        return out.scatter_reduce(0, eid.reshape(-1), d.reshape(-1), "amin") <= 0
 
 
 def surrounded_vertices(mesh: MeshBatch, points: torch.Tensor, face: torch.Tensor, sectors: int = 8,

@@ -29,8 +29,9 @@ from the data). A vertex ``v`` flips when:
   (:func:`surrounded_vertices`).
 
 Adjacent candidates do not flip together (the larger count of unsupported crossings wins, ties
-the lower index): a flip changes its neighbours' links. Fixed shapes, no host read; the caller
-refits the magnitudes for the new signs.
+the lower index): a flip changes its neighbours' links. Fixed shapes; the only host reads are
+the region labelling's convergence checks (:func:`~torch_isc.core.segments.edge_components`,
+about a dozen a solve by gpu_floor). The caller refits the magnitudes for the new signs.
 """
 from __future__ import annotations
 

@@ -150,8 +150,9 @@ def test_table_temporary_removed_when_close_fails(tmp_path):
 
     sink.writer.write_table = boom
     sink.buf = [TABLE_SCHEMA().empty_table()]
-    with pytest.raises(OSError):
-        sink.close(True)
+    from torch_isc.runner import RunError
+    with pytest.raises(RunError, match=r"t\.parquet: cannot be written \(No space left on device\)"):
+        sink.close(True)                   # one line naming the table (it was a raw OSError)
     assert sorted(p.name for p in tmp_path.iterdir()) == []          # neither the table nor its temporary
     sink = _TableSink(tmp_path / "t.parquet", rows=10)
     sink.close(False)

@@ -57,22 +57,23 @@ def test_the_output_folder_given_as_an_input_folder_is_refused(tmp_path, capsys)
     assert list(tmp_path.iterdir()) == [tmp_path / "p00.xy"]            # nothing written
 
 
-def test_a_folder_in_a_manifest_fails_alone(tmp_path):
-    # every input of the folder's batch failed: "3 stem(s) given for 10 input(s)"
+def test_a_folder_in_a_manifest_stands_for_its_files_and_an_empty_one_fails_alone(tmp_path):
+    # every input of the folder's batch failed: "3 stem(s) given for 10 input(s)"; an empty
+    # folder failed them all too
     from torch_isc.dataset import reconstruct_dataset
     ds = tmp_path / "ds"
     ds.mkdir()
     _ring(ds / "p00.xy")
     _ring(ds / "p01.xy", r=2)
     (tmp_path / "empty").mkdir()
+    (tmp_path / "q").mkdir()
+    _ring(tmp_path / "q" / "p09.xy", r=3)
     man = tmp_path / "list.txt"
-    man.write_text("ds/p00.xy\nds\nempty\nds/p01.xy\n")
+    man.write_text("ds\nempty\nq/p09.xy\n")
     rep = reconstruct_dataset([], tmp_path / "out", CONFIG, manifest=man, formats=["json"])
     status = [(r.stem, r.status) for r in rep.records]
-    assert status == [("p00", "done"), ("ds", "failed"), ("empty", "failed"), ("p01", "done")]
-    errors = [r.error for r in rep.records if r.status == "failed"]
-    assert "is a folder, not a point or image file" in errors[0]
-    assert "folder has no point or image file" in errors[1]
+    assert status == [("p00", "done"), ("p01", "done"), ("empty", "failed"), ("p09", "done")]
+    assert "folder has no point or image file" in rep.records[2].error
 
 
 @pytest.mark.parametrize("table", [False, True])

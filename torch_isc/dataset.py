@@ -223,7 +223,8 @@ def resolve_inputs(inputs: Iterable[PathLike], manifest: Union[None, PathLike, S
     :func:`~torch_isc.runner.expand_inputs` (a folder that cannot be listed is kept as one input
     that fails, instead of raising). ``out_dir``: the run's output folder; a folder input in it
     is refused and a glob's matches in it are left out (this run's outputs are no inputs of the
-    next). A manifest's lines are files, taken as they are (a folder among them fails alone).
+    next). A manifest's lines are taken literally, but a folder stands for its files (an empty
+    one, with ``errors``, is one failed input).
 
     Raises:
         RunError: an empty folder, a glob without match, a bad manifest, a folder input that is
@@ -241,12 +242,32 @@ def resolve_inputs(inputs: Iterable[PathLike], manifest: Union[None, PathLike, S
                 raise RunError(f"{s}: no file matches outside the output folder {shown(out_dir)}")
             out.extend(hits)
         elif Path(s).suffix.lower() in _MANIFEST_SUFFIXES and os.path.isfile(s):
-            out.extend(read_manifest(s, manifest_column))
+            out.extend(_listed(read_manifest(s, manifest_column), errors, out_dir))
         else:
             out.extend(expand_inputs([s], errors, out_dir))
     if manifest is not None:
         for m in ([manifest] if isinstance(manifest, (str, os.PathLike)) else manifest):
-            out.extend(read_manifest(m, manifest_column))
+            out.extend(_listed(read_manifest(m, manifest_column), errors, out_dir))
+    return out
+
+
+def _listed(paths: List[str], errors: Optional[Dict[str, str]], out_dir: Optional[PathLike]) -> List[str]:
+    """A manifest's paths: a folder stands for its files (as on the command line), a folder
+    without any, or one that cannot be listed, is one input that fails alone (with ``errors``;
+    a bad line never sinks the run); anything else is taken literally (a ``[`` in a listed name
+    is no glob)."""
+    out: List[str] = []
+    for p in paths:
+        if not os.path.isdir(p):                 # False too where it cannot be checked
+            out.append(p)
+            continue
+        try:
+            out.extend(expand_inputs([p], errors, out_dir))
+        except RunError as e:
+            if errors is None:
+                raise
+            errors[p] = str(e)
+            out.append(p)
     return out
 
 

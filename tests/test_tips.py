@@ -160,3 +160,23 @@ def test_surrounded_vertices_by_sectors():
     for pts, want in ((ring, True), (side, False)):
         face, _ = locate_grid(m, pts, torch.zeros(len(pts), dtype=torch.long))
         assert bool(surrounded_vertices(m, pts, face)[centre]) is want
+
+
+def test_the_band_keeps_an_oracle_s_signs(monkeypatch):
+    # a sign oracle gives every vertex its true sign: no tip flips for lack of data there
+    import torch_isc
+    from torch_isc.pipeline import tips
+    calls = []
+    real = tips.unsupported_tips
+
+    def spy(*a, **k):
+        calls.append(1)
+        return real(*a, **k)
+    monkeypatch.setattr(tips, "unsupported_tips", spy)
+    t = torch.linspace(0, 2 * math.pi, 81, dtype=torch.float64)[:-1]
+    pts = torch.stack([t.cos(), t.sin()], 1) + 0.01 * torch.randn(80, 2, generator=torch.Generator().manual_seed(0),
+                                                                  dtype=torch.float64)
+    r = torch_isc.reconstruct(pts, sign_oracle=lambda x: x.norm(dim=1) < 1)
+    assert r.num_closed == 1 and not calls
+    torch_isc.reconstruct(pts)
+    assert calls                                        # the same points without the oracle: it runs

@@ -180,13 +180,16 @@ _DENSE_BUDGET = 2 ** 24
 
 
 def band_stage(ws: "WorkingSet", cfg: BandConfig, geometry: GeometryConfig, slack: torch.Tensor,
-               max_triangles: Optional[int] = None) -> "WorkingSet":
+               max_triangles: Optional[int] = None, exact_signs: bool = False) -> "WorkingSet":
     """The working set with its mesh refined around the curve and its magnitudes refitted
     (signs of every old vertex kept; new vertices take the sign of ``f`` where they sit).
     ``slack (B,)``: the crossing term's dead zone (the tolerance each item was tested at);
-    ``max_triangles``: no item's mesh grows beyond it."""
+    ``max_triangles``: no item's mesh grows beyond it; ``exact_signs``: the signs came from an
+    inside/outside oracle, so no tip is flipped for lack of data (``spike_unsupported``)."""
     if cfg.band_levels <= 0 or ws.num_items == 0:
         return ws
+    if exact_signs and cfg.spike_unsupported:
+        cfg = dataclasses.replace(cfg, spike_unsupported=False)
     gcfg = dataclasses.replace(geometry, smoothness=cfg.band_smoothness, lbfgs_iterations=cfg.band_iterations)
     fitted = False
     for level in range(cfg.band_levels):

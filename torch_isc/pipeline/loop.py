@@ -322,7 +322,8 @@ def _run_loop(batch: PointBatch, cfg: ReconstructConfig, source: SignSource,
             # the band stage refines and refits the finished items of every level in one call
             # (its cost is per call, not per item: once per solve, not once per finishing level)
             sub = band_stage(WorkingSet.cat([f[0] for f in finished]), cfg.band, cfg.geometry,
-                             torch.cat([f[1] for f in finished]), cfg.limits.max_triangles)
+                             torch.cat([f[1] for f in finished]), cfg.limits.max_triangles,
+                             exact_signs=isinstance(source, OracleSigns))
             rec.tick("geometry")
             band_cut = budget.cuts() > cuts              # the deadline cut the band stage short
             local = torch.arange(sub.num_items, device=sub.device)

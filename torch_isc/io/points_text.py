@@ -57,7 +57,7 @@ def decode_points(p: Path, raw: bytes) -> Tuple[np.ndarray, Optional[np.ndarray]
         raise PointFileError(f"{p}: no points (the file has no data lines)")
     toks = _FIELD_SPLIT.split(first.group(1).strip())
     line = first.group(1).strip()
-    if text.strip() == line and not all(tok and _is_number(tok) for tok in toks):
+    if text.strip() == line and all(tok and not _is_number(tok) for tok in toks):
         shown = line if len(line) <= 40 else line[:37] + "..."
         raise PointFileError(f"{p}: no points (its one line {shown!r} is not numbers; expected rows of x y)")
     if all(tok and not _is_number(tok) and (tok[0].isalpha() or tok[0] == "_") for tok in toks):

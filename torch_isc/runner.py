@@ -58,7 +58,7 @@ from torch_isc._helpers import is_regular_file, one_line, printable, read_file_b
 from torch_isc.io import EXPORTERS, ExportContext, PointFileError, chosen_formats, export, formats_needing, loader_for
 from torch_isc.io.registry import LOADERS
 from torch_isc.io.files import atomic_write
-from torch_isc.images.masks import MIN_SPACING
+from torch_isc.images.masks import MIN_SPACING, count_matches
 from torch_isc.images.read import DEFAULT_MAX_PIXELS, decode_image
 from torch_isc.pipeline.config import ReconstructConfig, config_hash
 from torch_isc.pipeline.loop import PointSetError, _as_config
@@ -805,7 +805,7 @@ class _Run:
                 # the mask's own count of borders, and whether the curve has as many
                 nb = getattr(res, "boundaries", job.n_boundaries)
                 job.record.summary["boundaries"] = nb
-                job.record.summary["count_ok"] = nb is None or (res.num_closed == nb and res.num_open == 0)
+                job.record.summary["count_ok"] = count_matches(res, nb)
             self.on_result(job.record, res)
             self.finish(job, "done")
         self.on_batch("end", self.batches, len(batch), self.done, self.total)

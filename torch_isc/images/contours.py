@@ -79,7 +79,7 @@ def contour_hierarchy(polys: List[np.ndarray], mode: str = "tree") -> np.ndarray
             polys[i] = p = p.reshape(-1, 2)
         if p.ndim != 2 or p.shape[1] != 2 or p.shape[0] == 0:
             raise ValueError(f"polys[{i}]: expected (n, 2) or OpenCV's (n, 1, 2) points, got shape {p.shape}")
-    return _hierarchy(polys, mode)[0]
+    return _hierarchy(_unit_frame(polys), mode)[0]
 
 
 def _unit_frame(polys: List[np.ndarray]) -> List[np.ndarray]:
@@ -98,14 +98,14 @@ def _unit_frame(polys: List[np.ndarray]) -> List[np.ndarray]:
 
 def _hierarchy(polys: List[np.ndarray], mode: str) -> Tuple[np.ndarray, np.ndarray]:
     """:func:`contour_hierarchy` and the nesting depth ``(N,)`` of each polygon (0: outermost),
-    from one containment test."""
+    from one containment test; ``polys`` in :func:`_unit_frame` (no overflow near 1e300)."""
     if mode not in ("tree", "ccomp"):
         raise ValueError(f"mode must be 'tree' or 'ccomp', got {mode!r}")
     N = len(polys)
     h = np.full((N, 4), -1, np.int32)
     if N == 0:
         return h, np.zeros(0, np.int64)
-    inside = _containment(_unit_frame(polys))
+    inside = _containment(polys)
     depth = inside.sum(0)
     # parent: the containing polygon of largest depth
     key = np.where(inside, depth[:, None] * N + np.arange(N)[:, None], -1)
@@ -160,10 +160,11 @@ def to_cv_contours(src, mode: str = "tree", dtype=np.float32) -> Tuple[List[np.n
     tops = np.array([[p[s, 1], p[s, 0]] for p, s in zip(polys, starts)])
     order = np.lexsort((tops[:, 1], tops[:, 0]))
     polys = [np.roll(polys[i], -starts[i], 0) for i in order]
-    h, depth = _hierarchy(polys, mode)
+    units = _unit_frame(polys)
+    h, depth = _hierarchy(units, mode)
     depth_parity = depth % 2
     out = []
-    for p, u, par in zip(polys, _unit_frame(polys), depth_parity):
+    for p, u, par in zip(polys, units, depth_parity):
         x, y = u[:, 0], u[:, 1]
         area2 = float((x * np.roll(y, -1) - np.roll(x, -1) * y).sum())
         # OpenCV: outer (even depth) negative shoelace area, holes positive
@@ -471,6 +472,6 @@ def load_contours(path: Union[str, os.PathLike], dtype=np.float32) -> Tuple[List
     if not ok:       # the hierarchy indexes the contours (-1: none); points are finite numbers
         raise ImageError(f"{path}: inconsistent contours file (points {pts.shape}, counts {counts.shape}, "
                          f"hierarchy {h.shape})")
-    pts = cast_coordinates(pts, dtype, f"{path}")
+    pts = cast_coordinates(pts, dtype, str(path))
     pieces = np.split(pts, np.cumsum(counts)[:-1]) if counts.size else []
     return [p.reshape(-1, 1, 2) for p in pieces], (h[None] if counts.size else None)

@@ -324,8 +324,14 @@ def solve_masks(points: Sequence[torch.Tensor], masks: Sequence[ImageLike], n_bo
             results[b] = r
     for r, nb in zip(results, n_boundaries):       # the flag grid_results and the CLI give
         r.boundaries = nb
-        r.count_ok = r.num_closed == nb and r.num_open == 0
+        r.count_ok = count_matches(r, nb)
     return results
+
+
+def count_matches(result, boundaries: Optional[int]) -> bool:
+    """Whether ``result`` has ``boundaries`` closed curves and no open chain (True when the
+    count is unknown): the mask's borders, as ``cv2.findContours`` counts them."""
+    return boundaries is None or (result.num_closed == boundaries and result.num_open == 0)
 
 
 #: Edge length in pixels of the starting mesh of a retry (:func:`solve_masks`).

@@ -93,8 +93,8 @@ def _local_line_residual(points: torch.Tensor, point_item: torch.Tensor, idx: to
     c = window_candidates(orders, idx, offs, point_item)
     dup = torch.zeros_like(c, dtype=torch.bool)
     dup[:, 1:] = c[:, 1:] == c[:, :-1]
-    self_or_other = (c == idx[:, None]) | (take(point_item, c) != point_item[idx][:, None]) | dup
-    d2 = squared_distances(points, idx, c).masked_fill_(self_or_other, float("inf"))
+    own = (c == idx[:, None]) | dup                   # (the windows hold no other item's point)
+    d2 = squared_distances(points, idx, c).masked_fill_(own, float("inf"))
     nd, ni = torch.topk(d2, min(k, c.shape[1]), dim=1, largest=False)
     nbr = c.gather(1, ni)
     valid = torch.isfinite(nd)
@@ -244,7 +244,7 @@ def approximate_knn(points: torch.Tensor, item: torch.Tensor, k: int, window: in
     for b0 in range(0, P, block):                       # bounded memory for many points
         idx = torch.arange(b0, min(P, b0 + block), device=dev)
         c = window_candidates(orders, idx, offs, item)
-        bad = (c == idx[:, None]) | (take(item, c) != item[idx][:, None])
+        bad = c == idx[:, None]                        # the windows hold no other item's point
         nbr[idx], d2[idx] = nearest_candidates(points, idx, c, bad, kk)
     return nbr, d2
 

@@ -48,7 +48,7 @@ if TYPE_CHECKING:
     from torch_isc.pipeline.signs import TopologyConfig
     from torch_isc.pipeline.workset import WorkingSet
 
-__all__ = ["cluster_flip_change", "descend_clusters", "zero_set_distance", "ball_cover", "open_signs", "open_stage", "surrounded_regions",
+__all__ = ["cluster_flip_change", "descend_clusters", "zero_set_distance", "ball_cover", "open_signs", "open_stage", "surrounded_regions", "occupied_sectors",
            "enclosed_vertices", "enclose_stage"]
 
 
@@ -179,12 +179,19 @@ def surrounded_regions(mesh: MeshBatch, region: torch.Tensor, points: torch.Tens
         tri = mesh.faces[face.clamp_min(0)]                              # (P,3)
         pl = lab[tri]                                                    # (P,3) region of each corner
         use = region[tri] & ok[:, None]
-        d = points.detach().to(v.dtype)[:, None, :] - cen[pl]
-        ang = torch.atan2(d[..., 1], d[..., 0])
-        sec = ((ang + torch.pi) * (sectors / (2 * torch.pi))).long().clamp(0, sectors - 1)
-        occ = torch.zeros(V * sectors, dtype=torch.long, device=v.device).scatter_reduce(
-            0, (pl * sectors + sec).reshape(-1), use.long().reshape(-1), "amax")
-        return region & (occ.view(V, sectors).sum(1) >= need)[lab]
+        occ = occupied_sectors(points.detach().to(v.dtype)[:, None, :] - cen[pl], pl, use, V, sectors)
+        return region & (occ >= need)[lab]
+
+
+def occupied_sectors(rel: torch.Tensor, owner: torch.Tensor, use: torch.Tensor, n: int, sectors: int) -> torch.Tensor:
+    """``(n,)`` how many of ``sectors`` equal angular sectors each owner's points occupy: ``rel
+    (P, k, 2)`` the points' offsets from their owners' centres, ``owner (P, k)`` the owners (in
+    ``[0, n)``), ``use (P, k)`` which pairs count."""
+    ang = torch.atan2(rel[..., 1], rel[..., 0])
+    sec = ((ang + torch.pi) * (sectors / (2 * torch.pi))).long().clamp(0, sectors - 1)
+    occ = torch.zeros(n * sectors, dtype=torch.long, device=rel.device).scatter_reduce(
+        0, (owner * sectors + sec).reshape(-1), use.long().reshape(-1), "amax")
+    return occ.view(n, sectors).sum(1)
 
 
 def open_signs(mesh: MeshBatch, signs: torch.Tensor, pinned: torch.Tensor, radius: torch.Tensor,

@@ -37,7 +37,9 @@ from __future__ import annotations
 
 import torch
 
+from torch_isc.core.curve import ImplicitCurve
 from torch_isc.core.mesh import MeshBatch
+from torch_isc.pipeline.simplify import occupied_sectors
 
 __all__ = ["crossing_places", "crossing_support", "surrounded_vertices", "region_sizes", "unsupported_tips",
            "MIN_REGION"]
@@ -82,15 +84,9 @@ def surrounded_vertices(mesh: MeshBatch, points: torch.Tensor, face: torch.Tenso
     with torch.no_grad():
         v = mesh.verts.detach()
         V = v.shape[0]
-        ok = face >= 0
-        has = ok[:, None].expand(-1, 3)
         vid = mesh.faces[face.clamp_min(0)]                                # (P, 3)
-        d = points.detach().to(v.dtype)[:, None, :] - v[vid]
-        ang = torch.atan2(d[..., 1], d[..., 0])
-        sec = ((ang + torch.pi) * (sectors / (2 * torch.pi))).long().clamp(0, sectors - 1)
-        occ = torch.zeros(V * sectors, dtype=torch.long, device=v.device).scatter_reduce(
-            0, (vid * sectors + sec).reshape(-1), has.long().reshape(-1), "amax")
-        return occ.view(V, sectors).sum(1) >= need
+        use = (face >= 0)[:, None].expand(-1, 3)
+        return occupied_sectors(points.detach().to(v.dtype)[:, None, :] - v[vid], vid, use, V, sectors) >= need
 
 
 #: a vertex whose sign region has fewer vertices than this never flips: a small closed curve of a
@@ -126,11 +122,7 @@ def unsupported_tips(mesh: MeshBatch, signs: torch.Tensor, supported: torch.Tens
 
         n_old, n_new = count(cross), count(~cross)
         bad_old, bad_new = count(cross & ~supported), count(~cross & ~supported)
-        f = mesh.faces
-        neg = signs < 0
-        changes = torch.zeros(V, dtype=torch.long, device=signs.device)
-        changes.index_add_(0, f.reshape(-1), (neg[f[:, [1, 2, 0]]] != neg[f[:, [2, 0, 1]]]).reshape(-1).long())
-        simple = (changes == 2) & ~mesh.is_boundary_vert
+        simple = ImplicitCurve(mesh, signs, validate=False).simple_vertices()
         unsup = (2 * bad_old >= n_old) & (bad_old > 0)
         cand = simple & ~pinned & (n_new < n_old) & unsup & (bad_new == 0)
         # an independent set: of two adjacent candidates the one with the larger gain flips

@@ -3,11 +3,10 @@ optional header line of words (e.g. ``x,y``); fields may be quoted (``"1.5","2"`
 such a row has four fields and is refused with its line number."""
 from __future__ import annotations
 
-import io as _io
 import re
 import warnings
 from pathlib import Path
-from typing import List, Optional, Tuple
+from typing import Iterator, List, Optional, Tuple
 
 import numpy as np
 
@@ -24,7 +23,9 @@ _COMMENT = re.compile(r"#[^\n]*")
 _FIRST_LINE = re.compile(r"^[ \t\f\v]*(\S[^\n]*)$", re.M)
 _QUOTED = re.compile(r'"([^"\n]*)"')
 _NON_ASCII_DIGIT = re.compile(r"(?![0-9])\d")
-_EMPTY_FIELD = re.compile(r"^[ \t]*[,;]|[,;][ \t]*[,;]|[,;][ \t]*$", re.M)
+# an empty field: a separator first on a line, or followed by another or by the line's end (two
+# patterns that each start on a literal scan 2-3x faster than one with alternatives)
+_EMPTY_FIELD = (re.compile(r"^[ \t]*[,;]", re.M), re.compile(r"[,;][ \t]*(?:[,;]|\n|\Z)"))
 
 
 def _is_number(tok: str) -> bool:
@@ -49,7 +50,11 @@ def decode_points(p: Path, raw: bytes) -> Tuple[np.ndarray, Optional[np.ndarray]
     [[1.0, 2.0], [3.0, 4.0]]
     """
     text = decode_text(raw, str(p), "text point file", PointFileError)
-    text = _COMMENT.sub("", text.replace("\r\n", "\n").replace("\r", "\n"))
+    # each pass copies the whole text: only those the text needs
+    if "\r" in text:
+        text = text.replace("\r\n", "\n").replace("\r", "\n")
+    if "#" in text:
+        text = _COMMENT.sub("", text)
     if '"' in text:
         text = _QUOTED.sub(r"\1", text)          # "1.5","2" (spreadsheets quote every field)
     first = _FIRST_LINE.search(text)
@@ -76,11 +81,12 @@ def decode_points(p: Path, raw: bytes) -> Tuple[np.ndarray, Optional[np.ndarray]
             raise PointFileError(f"{p}: line {text.count(chr(10), 0, m.start()) + 1}: non-ASCII digit {ch!r} "
                                  f"(U+{ord(ch):04X}); write numbers with the digits 0-9")
     pts: Optional[np.ndarray] = None
-    if _EMPTY_FIELD.search(text) is None:
+    # an empty field needs a separator: whitespace-only files skip the (slow, whole-text) search
+    if not ("," in text or ";" in text) or not any(pat.search(text) for pat in _EMPTY_FIELD):
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")          # "input contained no data"
-                pts = np.loadtxt(_io.StringIO(text.replace(",", " ").replace(";", " ")), dtype=np.float64, ndmin=2, comments=None)
+                pts = np.loadtxt(_rows(text), dtype=np.float64, ndmin=2, comments=None)
         except ValueError:
             pts = None
     if pts is not None and pts.size == 0:
@@ -88,6 +94,18 @@ def decode_points(p: Path, raw: bytes) -> Tuple[np.ndarray, Optional[np.ndarray]
     if pts is None or pts.shape[1] != 2 or not np.isfinite(pts).all():
         return _parse_lines(p, text)
     return pts, None
+
+
+def _rows(text: str, chunk: int = 1 << 18) -> Iterator[str]:
+    """The lines of ``text`` with ``,`` and ``;`` as spaces, a chunk of about ``chunk`` characters
+    at a time: numpy parses them as they come, and no whole copy of the text is made (a
+    ``StringIO`` of it held four bytes a character, the file's size several times over)."""
+    i, n = 0, len(text)
+    while i < n:
+        j = text.find("\n", min(i + chunk, n))
+        j = n if j < 0 else j + 1
+        yield from text[i:j].replace(",", " ").replace(";", " ").splitlines()
+        i = j
 
 
 def _parse_lines(p: Path, text: str) -> Tuple[np.ndarray, np.ndarray]:

@@ -180,3 +180,25 @@ def test_the_band_keeps_an_oracle_s_signs(monkeypatch):
     assert r.num_closed == 1 and not calls
     torch_isc.reconstruct(pts)
     assert calls                                        # the same points without the oracle: it runs
+
+
+def test_the_spacing_reach_follows_noise_neighbours(monkeypatch):
+    # the frames' column 2 is the reach of noise_neighbours points (about k/2 spacings along a
+    # clean curve); the rule's reach is one spacing whatever k: the same for 8 and 16 neighbours
+    import torch_isc
+    from torch_isc.pipeline import tips
+    seen = []
+    real = tips.crossing_support
+
+    def spy(mesh, values, points, face, reach):
+        seen.append(reach.median().item())
+        return real(mesh, values, points, face, reach)
+    monkeypatch.setattr(tips, "crossing_support", spy)
+    t = torch.linspace(0, 2 * math.pi, 81, dtype=torch.float64)[:-1]
+    pts = torch.stack([t.cos(), t.sin()], 1)               # spacing 0.079, far above the tolerance
+    medians = []
+    for k in (8, 16):
+        seen.clear()
+        torch_isc.reconstruct(pts, torch_isc.ReconstructConfig().replace(noise_neighbours=k))
+        medians.append(seen[0])
+    assert medians[1] / medians[0] == pytest.approx(1.0, abs=0.05), medians

@@ -158,15 +158,17 @@ def _flip_spikes(ws: "WorkingSet", values: torch.Tensor, cfg: BandConfig) -> tor
         return c.values
 
 
-def _flip_tips(ws: "WorkingSet", values: torch.Tensor, slack: torch.Tensor) -> torch.Tensor:
+def _flip_tips(ws: "WorkingSet", values: torch.Tensor, slack: torch.Tensor, neighbours: int = 8) -> torch.Tensor:
     """``(V,)`` values with the unsupported tips (:func:`~torch_isc.pipeline.tips.unsupported_tips`)
-    flipped, at half their magnitude (as :func:`_flip_spikes`)."""
+    flipped, at half their magnitude (as :func:`_flip_spikes`). ``neighbours``: the count whose
+    farthest made the frames' column 2 (``noise_neighbours``)."""
     from torch_isc.pipeline.tips import MIN_REGION, crossing_support, region_sizes, surrounded_vertices, unsupported_tips
     with torch.no_grad():
         m = ws.mesh
         # a sample spacing where the samples are sparser than the tolerance: the frames' column 2
-        # is the distance to the 8th nearest point, about 4 spacings along a curve
-        reach = torch.maximum(slack.to(values.dtype)[ws.point_item], ws.frames[:, 2].to(values.dtype) / 4)
+        # is the distance to the farthest of the k nearest points, about k/2 spacings along a curve
+        spacing = ws.frames[:, 2].to(values.dtype) / max(neighbours / 2, 1.0)
+        reach = torch.maximum(slack.to(values.dtype)[ws.point_item], spacing)
         supported = crossing_support(m, values, ws.points, ws.face, reach)
         signs = torch.where(values < 0, -1.0, 1.0).to(values.dtype)
         pinned = (m.is_boundary_vert | ws.flat[m.vert_item] | surrounded_vertices(m, ws.points, ws.face)
@@ -180,12 +182,14 @@ _DENSE_BUDGET = 2 ** 24
 
 
 def band_stage(ws: "WorkingSet", cfg: BandConfig, geometry: GeometryConfig, slack: torch.Tensor,
-               max_triangles: Optional[int] = None, exact_signs: bool = False) -> "WorkingSet":
+               max_triangles: Optional[int] = None, exact_signs: bool = False, neighbours: int = 8) -> "WorkingSet":
     """The working set with its mesh refined around the curve and its magnitudes refitted
     (signs of every old vertex kept; new vertices take the sign of ``f`` where they sit).
     ``slack (B,)``: the crossing term's dead zone (the tolerance each item was tested at);
     ``max_triangles``: no item's mesh grows beyond it; ``exact_signs``: the signs came from an
-    inside/outside oracle, so no tip is flipped for lack of data (``spike_unsupported``)."""
+    inside/outside oracle, so no tip is flipped for lack of data (``spike_unsupported``);
+    ``neighbours``: the noise estimate's ``noise_neighbours`` (the tip rule's sample spacing is
+    the reach of that many neighbours over half their count)."""
     if cfg.band_levels <= 0 or ws.num_items == 0:
         return ws
     if exact_signs and cfg.spike_unsupported:
@@ -197,7 +201,7 @@ def band_stage(ws: "WorkingSet", cfg: BandConfig, geometry: GeometryConfig, slac
             # refit before the next split: split again on the loop's interpolated f, a
             # new vertex next to the data inherits a tiny |f| and the final fit draws a
             # spike toward it (public circle_n2: Hausdorff 1.2% -> 5.7% without this)
-            ws = _with_values(ws, _refit_any(ws, cfg, gcfg, slack))
+            ws = _with_values(ws, _refit_any(ws, cfg, gcfg, slack, neighbours))
             fitted = True
         marked = band_marks(ws, cfg, max_triangles)
         if level > 0:
@@ -207,7 +211,7 @@ def band_stage(ws: "WorkingSet", cfg: BandConfig, geometry: GeometryConfig, slac
         ws = ws.follow(subdivide(ws.mesh, marked))
         fitted = False
     if not fitted:
-        ws = _with_values(ws, _refit_any(ws, cfg, gcfg, slack))
+        ws = _with_values(ws, _refit_any(ws, cfg, gcfg, slack, neighbours))
     # the snap's neighbour search is one large step: past the deadline it is left out (the
     # items then end "max_seconds") rather than overrun it
     if cfg.band_snap and not budget.skip():
@@ -215,11 +219,12 @@ def band_stage(ws: "WorkingSet", cfg: BandConfig, geometry: GeometryConfig, slac
     return ws
 
 
-def _refit_any(ws: "WorkingSet", cfg: BandConfig, gcfg: GeometryConfig, slack: torch.Tensor) -> torch.Tensor:
+def _refit_any(ws: "WorkingSet", cfg: BandConfig, gcfg: GeometryConfig, slack: torch.Tensor,
+               neighbours: int = 8) -> torch.Tensor:
     """``(V,)`` the refitted values by ``band_solver``."""
     if cfg.band_solver == "lbfgs":
-        return _refit(ws, cfg, gcfg, slack, "lbfgs")
-    return _refit_grouped(ws, cfg, gcfg, slack)
+        return _refit(ws, cfg, gcfg, slack, "lbfgs", neighbours)
+    return _refit_grouped(ws, cfg, gcfg, slack, neighbours)
 
 
 def _with_values(ws: "WorkingSet", values: torch.Tensor) -> "WorkingSet":
@@ -228,7 +233,8 @@ def _with_values(ws: "WorkingSet", values: torch.Tensor) -> "WorkingSet":
     return ws.replace(values=values, signs=torch.where(values < 0, -1.0, 1.0).to(values.dtype))
 
 
-def _refit_grouped(ws: "WorkingSet", cfg: BandConfig, gcfg: GeometryConfig, slack: torch.Tensor) -> torch.Tensor:
+def _refit_grouped(ws: "WorkingSet", cfg: BandConfig, gcfg: GeometryConfig, slack: torch.Tensor,
+                   neighbours: int = 8) -> torch.Tensor:
     """:func:`_refit` by Newton with the dense Hessians bounded: consecutive items in groups of
     about ``_DENSE_BUDGET`` entries (by an upper bound of each item's active vertices: those of
     the triangles within 3 rings of the crossed ones; the blocks are ragged, so a group holds
@@ -247,16 +253,17 @@ def _refit_grouped(ws: "WorkingSet", cfg: BandConfig, gcfg: GeometryConfig, slac
         group = torch.where(big, torch.full_like(bound, -1), (torch.cumsum(cost, 0) - cost) // _DENSE_BUDGET)
         labels = torch.unique(group).tolist()
     if len(labels) == 1:
-        return _refit(ws, cfg, gcfg, slack, "lbfgs" if labels[0] < 0 else "newton")
+        return _refit(ws, cfg, gcfg, slack, "lbfgs" if labels[0] < 0 else "newton", neighbours)
     values = ws.values.clone()
     for g in labels:
         keep = (group == g).nonzero().squeeze(1)
         sel = (group == g)[m.vert_item]
-        values[sel] = _refit(ws.select(keep), cfg, gcfg, slack[keep], "lbfgs" if g < 0 else "newton")
+        values[sel] = _refit(ws.select(keep), cfg, gcfg, slack[keep], "lbfgs" if g < 0 else "newton", neighbours)
     return values
 
 
-def _refit(ws: "WorkingSet", cfg: BandConfig, gcfg: GeometryConfig, slack: torch.Tensor, solver: str) -> torch.Tensor:
+def _refit(ws: "WorkingSet", cfg: BandConfig, gcfg: GeometryConfig, slack: torch.Tensor, solver: str,
+           neighbours: int = 8) -> torch.Tensor:
     """``(V,)`` the refitted values: ``spike_rounds`` rounds of spike flips, each followed by
     a fit of the magnitudes with the signs fixed."""
     with torch.no_grad():
@@ -282,7 +289,7 @@ def _refit(ws: "WorkingSet", cfg: BandConfig, gcfg: GeometryConfig, slack: torch
         if cfg.spike_rounds > 0:
             values = _flip_spikes(ws, values, cfg)
             if cfg.spike_unsupported:
-                values = _flip_tips(ws, values, slack)
+                values = _flip_tips(ws, values, slack, neighbours)
         signs = torch.where(values < 0, -1.0, 1.0).to(values.dtype)
         start = init if r == 0 else values.abs()
         if solver == "lbfgs":

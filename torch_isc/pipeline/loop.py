@@ -323,7 +323,7 @@ def _run_loop(batch: PointBatch, cfg: ReconstructConfig, source: SignSource,
             # (its cost is per call, not per item: once per solve, not once per finishing level)
             sub = band_stage(WorkingSet.cat([f[0] for f in finished]), cfg.band, cfg.geometry,
                              torch.cat([f[1] for f in finished]), cfg.limits.max_triangles,
-                             exact_signs=isinstance(source, OracleSigns))
+                             exact_signs=isinstance(source, OracleSigns), neighbours=cfg.noise.noise_neighbours)
             rec.tick("geometry")
             band_cut = budget.cuts() > cuts              # the deadline cut the band stage short
             local = torch.arange(sub.num_items, device=sub.device)

@@ -135,6 +135,24 @@ def test_edges_mode_recovers_a_drawn_circle():
     assert np.abs(d).max() < 1.0 and abs(d.mean()) < 0.3
 
 
+@pytest.mark.parametrize("centre", [(120.0, 120.0), (119.7, 120.2)])
+def test_edges_mode_keeps_a_thin_ring_whole(centre):
+    # a ring 5 px wide: its two edges, each a pixel-spaced sampling, lie 5 px apart; walls across
+    # it are split below the data's reach (EDGE_CONFIG's transverse_noisy 0): two loops (with the
+    # point-set default, noisy items only, 14 and 4 pieces). Rings 3-4 px wide still fail at some
+    # offsets (scripts/evaluate_edges.py)
+    R, w = 100.0, 5.0
+    yy, xx = np.mgrid[:240, :240] + 0.5
+    d = np.hypot(xx - centre[0], yy - centre[1])
+    img = cv2.GaussianBlur((((d < R) & (d > R - w)) * 200 + 30).astype(np.uint8), (0, 0), 0.7)
+    res = reconstruct_edges([img])[0]
+    assert (res.num_closed, res.num_open) == (2, 0) and res.converged
+    radii = sorted(float(np.median(_radial(p, centre))) for p in res.polylines)
+    assert abs(radii[0] - (R - w)) < 1.0 and abs(radii[1] - R) < 1.0, radii
+    cfg = images.image_config(images.EDGE_CONFIG | {"transverse_noisy": 0.5}, mode="edges")
+    assert cfg.test.transverse_noisy == 0.5                          # a user's value is kept
+
+
 def test_edge_points_subpixel_on_a_step_and_batch_of_sizes():
     im = np.zeros((40, 50), np.float32)
     im[:, 20:] = 1.0                                          # a vertical step at x = 20

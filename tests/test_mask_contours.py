@@ -522,3 +522,35 @@ def test_near_axis_sides_fitted_across_their_steps(deg, monkeypatch):
     gc0 = images.trace_masks([torch.from_numpy(m)])
     near0 = np.linalg.norm(np.asarray(truth[0])[:, None] - gc0.tips.numpy()[None], axis=2).min(1)
     assert near0.max() > 0.4
+
+
+def test_batches_pad_within_a_budget(monkeypatch):
+    # a batch pads every mask to its largest height and width: a 1 x N mask beside an N x 1 one
+    # would cost N x N pixels each; the solves are split so that their padded grids stay bounded
+    from torch_isc.images import grid, masks as masks_mod
+    from torch_isc.images.grid import padded_groups
+    assert padded_groups([(1, 1000), (1000, 1), (1000, 1)], budget=10_000) == [(0, 1), (1, 3)]
+    assert padded_groups([(5, 5)] * 4, budget=49 * 4) == [(0, 4)]
+    assert padded_groups([(5, 5)] * 4, budget=49 * 4 - 1) == [(0, 3), (3, 4)]
+    assert padded_groups([(100, 100)], budget=10) == [(0, 1)]           # a mask alone may exceed it
+    seen = []
+    real = grid.trace_masks
+
+    def spy(ts, *a, **k):
+        seen.append(len(ts) * max(t.shape[0] + 2 for t in ts) * max(t.shape[1] + 2 for t in ts))
+        return real(ts, *a, **k)
+    monkeypatch.setattr(grid, "trace_masks", spy)
+    n = 3000
+    h = np.tile(np.array([[1, 1, 0]], np.uint8), (1, n // 3))
+    v = h.T.copy()
+    small = np.zeros((9, 9), np.uint8)
+    small[2:6, 3:7] = 1
+    batch = [small, h, v, small]
+    got = images.find_contours_batch(batch, "tree", "none", batch_pixels=1 << 16)
+    assert max(seen) <= max(1 << 16, (n + 2) * 3)                        # never (n + 2) ** 2
+    want = [cv2.findContours(np.pad(m, 1), cv2.RETR_TREE, cv2.CHAIN_APPROX_NONE)[0] for m in batch]
+    assert [len(c) for c, _ in got] == [len(w) for w in want] == [1, n // 3, n // 3, 1]
+    seen.clear()
+    res = masks_mod.grid_results(batch)
+    assert max(seen) <= max(grid.TRACE_PIXELS, (n + 2) * 3)
+    assert [r.boundaries for r in res] == [1, n // 3, n // 3, 1]

@@ -315,9 +315,10 @@ def find_contours_batch(masks, mode=3, method=1, offset=None, *, connectivity: i
                         min_area: float = 0.0, epsilon: float = 0.1, smooth: int = 12,
                         threshold: Optional[float] = None, batch_pixels: int = 1 << 22):
     """:func:`find_contours` of many masks, solved together: one ``(contours, hierarchy)`` per mask.
-    ``batch_pixels`` bounds the pixels of one solve (masks are split into such batches)."""
+    ``batch_pixels`` bounds the padded pixels of one solve (each mask padded to the batch's
+    largest height and width; masks are split into such batches, a mask alone may exceed it)."""
     from torch_isc.images.arrays import binarize, image_list
-    from torch_isc.images.grid import retr_mode, trace_masks
+    from torch_isc.images.grid import padded_groups, retr_mode, trace_masks
 
     try:                                   # the library's own error type (a ValueError too)
         mode = retr_mode(mode)
@@ -332,15 +333,9 @@ def find_contours_batch(masks, mode=3, method=1, offset=None, *, connectivity: i
     integer = np.issubdtype(np.dtype(dtype), np.integer)
     ts = [binarize(t, threshold) for t in image_list(masks, "mask")]
     out = []
-    b0 = 0
-    while b0 < len(ts):
-        b1, px = b0, 0
-        while b1 < len(ts) and (b1 == b0 or px + ts[b1].numel() <= batch_pixels):
-            px += ts[b1].numel()
-            b1 += 1
+    for b0, b1 in padded_groups([tuple(t.shape) for t in ts], batch_pixels):
         gc = trace_masks(ts[b0:b1], connectivity, smooth)
         out.extend(grid_contours(gc, mode, method, epsilon, integer, min_area, offset))
-        b0 = b1
     return out
 
 

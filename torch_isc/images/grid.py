@@ -51,7 +51,7 @@ import torch.nn.functional as F
 from torch_isc.core.extract import Polylines, extract_zero_set
 from torch_isc.core.mesh import MeshBatch
 
-__all__ = ["GridCurves", "grid_mesh", "trace_masks", "RETR_MODES", "retr_mode"]
+__all__ = ["GridCurves", "grid_mesh", "trace_masks", "padded_groups", "TRACE_PIXELS", "RETR_MODES", "retr_mode"]
 
 #: Retrieval modes by OpenCV's names and constants (``cv2.RETR_EXTERNAL`` = 0, ``RETR_LIST`` = 1,
 #: ``RETR_CCOMP`` = 2, ``RETR_TREE`` = 3).
@@ -82,6 +82,35 @@ def cv_option(value: Union[str, int], table: Dict[str, int], prefix: str, what: 
     if name not in table:
         raise ValueError(f"unknown {what} {value!r} ({known})")
     return name
+
+
+#: the padded pixels one :func:`trace_masks` call holds at most (a mask alone may exceed it): a
+#: batch pads every mask to the largest height and width, so a 1 x N mask beside an N x 1 one
+#: would cost N x N each
+TRACE_PIXELS = 1 << 22
+
+
+def padded_groups(shapes: Sequence[Tuple[int, int]], budget: int = TRACE_PIXELS) -> List[Tuple[int, int]]:
+    """Consecutive runs ``[b0, b1)`` of masks of ``shapes [(H, W)]`` whose padded grid
+    (count x (Hmax + 2) x (Wmax + 2) pixels, :func:`_stack`) stays within ``budget`` pixels; a
+    mask alone may exceed it. Memory is then bounded by the masks themselves, not by how
+    their shapes combine.
+
+    >>> padded_groups([(1, 1000), (1000, 1), (1000, 1)], budget=10_000)
+    [(0, 1), (1, 3)]
+    """
+    out: List[Tuple[int, int]] = []
+    b0 = 0
+    while b0 < len(shapes):
+        b1, h, w = b0 + 1, shapes[b0][0] + 2, shapes[b0][1] + 2
+        while b1 < len(shapes):
+            h2, w2 = max(h, shapes[b1][0] + 2), max(w, shapes[b1][1] + 2)
+            if (b1 - b0 + 1) * h2 * w2 > budget:
+                break
+            b1, h, w = b1 + 1, h2, w2
+        out.append((b0, b1))
+        b0 = b1
+    return out
 
 
 def _stack(masks: Sequence[torch.Tensor]) -> Tuple[torch.Tensor, torch.Tensor]:

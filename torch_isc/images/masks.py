@@ -413,14 +413,26 @@ def grid_results(masks: Union[ImageLike, Sequence[ImageLike]], names: Optional[S
     A mask with no foreground pixel gives a result with no curve (``boundaries`` 0, hierarchy
     None), as ``cv2.findContours`` gives no contour.
     """
+    from torch_isc.images.grid import padded_groups
+
+    ts = [binarize(t, threshold) for t in image_list(masks, "mask")]
+    labels = default_names(names, len(ts), "mask")
+    cfg = as_image_config(config, "mask")
+    out: list = []
+    # one solve per run of masks whose padded grid stays bounded (a 1 x N mask beside an N x 1
+    # one would pad to N x N each)
+    for b0, b1 in padded_groups([tuple(t.shape) for t in ts]):
+        out.extend(_grid_group(ts[b0:b1], labels[b0:b1], connectivity, smooth, cfg))
+    return out
+
+
+def _grid_group(ts, labels, connectivity, smooth, cfg) -> list:
+    """:func:`grid_results` of masks ``ts`` solved together."""
     from torch_isc.core.curve import ImplicitCurve
     from torch_isc.images.contours import grid_contours
     from torch_isc.images.grid import trace_masks
     from torch_isc.pipeline.result import ReconstructionResult
 
-    ts = [binarize(t, threshold) for t in image_list(masks, "mask")]
-    labels = default_names(names, len(ts), "mask")
-    cfg = as_image_config(config, "mask")
     gc = trace_masks(ts, connectivity, smooth)
     cvs = grid_contours(gc, "tree")
     mesh = gc.mesh

@@ -7,6 +7,7 @@ inside, ``f > 0`` outside, and the outer boundary of each mesh is outside.
 """
 from __future__ import annotations
 
+import math
 import numbers
 import operator
 from functools import cached_property
@@ -642,8 +643,10 @@ class ImplicitCurve:
             (True, [1])
         """
         from torch_isc.core.subdivide import subdivide
+        if isinstance(rings, bool) or not isinstance(rings, numbers.Integral) or rings < 0:
+            raise InvalidMeshError(f"refine_band: rings must be an integer >= 0, got {rings!r:.40}")
         m = self.mesh
-        sd = subdivide(m, crossed_triangles(m, self.values, rings))
+        sd = subdivide(m, crossed_triangles(m, self.values, int(rings)))
         vals = sd.interpolate(self.values, m.edges)
         with torch.no_grad():
             ends = m.edges[sd.new_vert_edge.clamp_min(0)]
@@ -694,6 +697,21 @@ class ImplicitCurve:
             (True, True, [1])
         """
         m = self.mesh
+        r = (float(ratio.detach()) if torch.is_tensor(ratio) and ratio.numel() == 1 and not ratio.dtype.is_complex
+             and ratio.dtype != torch.bool else ratio)    # a one-element tensor (a learned ratio) too
+        if isinstance(r, bool) or not isinstance(r, numbers.Real) or not math.isfinite(r) or r <= 0:
+            raise InvalidValuesError(f"flip_simple: ratio must be a finite number > 0 (the flipped value is "
+                                     f"-ratio * f), got {ratio!r:.40}")
+        if self.values.numel() and r * float(self.values.detach().abs().max()) >= torch.finfo(self.values.dtype).max / 4:
+            raise InvalidValuesError(f"flip_simple: ratio {r:g} makes values beyond a quarter of "
+                                     f"{self.values.dtype}'s largest")
+        if candidates is not None and not (torch.is_tensor(candidates) and candidates.dtype == torch.bool
+                                           and tuple(candidates.shape) == (m.verts.shape[0],)):
+            got = (f"a {tuple(candidates.shape)} {candidates.dtype} tensor" if torch.is_tensor(candidates)
+                   else type(candidates).__name__)
+            raise InvalidValuesError(f"flip_simple: candidates must be a ({m.verts.shape[0]},) bool tensor, got {got}")
+        if candidates is not None and candidates.device != m.device:
+            raise InvalidValuesError(f"flip_simple: candidates are on {candidates.device}, the curve on {m.device}")
         with torch.no_grad():
             v = self.values.detach()
             if candidates is None:
@@ -723,8 +741,13 @@ def crossed_triangles(mesh: MeshBatch, values: torch.Tensor, rings: int = 0) -> 
         marked = fneg.any(1) & ~fneg.all(1)
         if rings > 0:
             nb = mesh.face_neighbors
-            for _ in range(int(rings)):
-                marked = marked | (marked[nb.clamp_min(0)] & (nb >= 0)).any(1)
+            # past the mesh's diameter a ring adds nothing: stop when one does not (one host
+            # read a ring after the first 8; a huge ``rings`` is bounded by the mesh, not by itself)
+            for r in range(int(rings)):
+                grown = marked | (marked[nb.clamp_min(0)] & (nb >= 0)).any(1)
+                if r >= 8 and torch.equal(grown, marked):
+                    break
+                marked = grown
         return marked
 
 

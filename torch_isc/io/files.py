@@ -7,6 +7,7 @@ leaves a half-written output, a file either has its old content or its complete 
 """
 from __future__ import annotations
 
+import errno
 import os
 import tempfile
 from pathlib import Path
@@ -51,6 +52,9 @@ def atomic_write(path: PathLike, data: Content, fsync: bool = True) -> Path:
     'hi'
     """
     dest = Path(path)
+    if dest.is_dir() and not dest.is_symlink():
+        # found before writing, and named as the caller's path (the move would name the temporary file)
+        raise IsADirectoryError(errno.EISDIR, "Is a directory", str(dest))
     folder = dest.parent if str(dest.parent) else Path(".")
     fd, tmp = tempfile.mkstemp(prefix=f".{dest.name}.", suffix=".tmp", dir=folder)
     try:
@@ -65,7 +69,11 @@ def atomic_write(path: PathLike, data: Content, fsync: bool = True) -> Path:
             if fsync:
                 os.fsync(fh.fileno())
         os.chmod(tmp, _file_mode())        # mkstemp creates 0600; give the usual permissions
-        os.replace(tmp, dest)
+        try:
+            os.replace(tmp, dest)
+        except OSError as e:
+            # the error names the destination, not the temporary file (removed below)
+            raise type(e)(e.errno, e.strerror, str(dest)) from None
     except BaseException:
         try:
             os.unlink(tmp)

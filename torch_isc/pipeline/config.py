@@ -24,7 +24,8 @@ from typing import Any, Dict, Iterable, List, Mapping, Optional, Union
 from torch_isc._helpers import decode_text, is_regular_file, one_line
 from torch_isc.pipeline.band import BandConfig
 from torch_isc.pipeline.evidence import EvidenceConfig
-from torch_isc.pipeline.knobs import Base60Text, ConfigError, OctalText, check_bounds, check_section, knob
+from torch_isc.pipeline.knobs import (Base60Text, Bool11Text, ConfigError, OctalText, UnderscoreText, check_bounds,
+                                    check_section, knob)
 from torch_isc.pipeline.noise import NoiseConfig
 from torch_isc.pipeline.relax import RelaxConfig
 from torch_isc.pipeline.signs import TopologyConfig
@@ -217,14 +218,14 @@ def from_dict(d: Mapping[str, Any], source: str = "config", base: Optional[Recon
                 raise ConfigError(f"{source}: config section '{k}' must be a mapping of keys to values")
             for kk, vv in v.items():
                 if FLAT.get(kk) != k:
-                    raise ConfigError(f"{source}: unknown config key '{k}.{kk}'")
+                    raise ConfigError(f"{source}: unknown config key '{_key_text(k)}.{_key_text(kk)}'")
                 _once(kk, f"as '{k}.{kk}'")
                 cur[k][kk] = vv
         elif k in FLAT:
             _once(k, "as a flat key")
             cur[FLAT[k]][k] = v
         else:
-            raise ConfigError(f"{source}: unknown config key '{k}'")
+            raise ConfigError(f"{source}: unknown config key '{_key_text(k)}'")
     try:
         return ReconstructConfig(**{sec: _SECTION_TYPES[sec](**vals) for sec, vals in cur.items()})
     except ConfigError as e:
@@ -252,6 +253,12 @@ _BASE60_TAG = "tag:torch-isc,2026:base60"
 #: YAML 1.1 octal integers (``010`` is 8 there, 10 in YAML 1.2)
 _OCTAL = re.compile(r"^[-+]?0[0-7_]+$")
 _OCTAL_TAG = "tag:torch-isc,2026:octal"
+#: numbers written with "_" (``1_000``, ``0.00_8``), which PyYAML reads as numbers
+_UNDERSCORE = re.compile(r"^(?=[^_]*_)[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)(?:[eE][-+]?[0-9_]+)?$")
+_UNDERSCORE_TAG = "tag:torch-isc,2026:underscore"
+#: YAML 1.1 boolean words, strings in YAML 1.2 (``true``/``false`` are PyYAML's and 1.2's both)
+_BOOL11 = re.compile(r"^(?:yes|Yes|YES|no|No|NO|on|On|ON|off|Off|OFF)$")
+_BOOL11_TAG = "tag:torch-isc,2026:bool11"
 _LOADER = None
 
 
@@ -291,12 +298,19 @@ def _loader_class():
                         raise _DuplicateKeyError(key, key_node.start_mark.line + 1)
             return super().construct_mapping(node, deep=deep)
 
-    # the base-60 and octal resolvers go first so that they win over PyYAML's int and float ones
-    _Loader.yaml_implicit_resolvers = {
-        ch: [(_BASE60_TAG, _BASE60), (_OCTAL_TAG, _OCTAL)] + list(v) if ch in "+-0123456789" else list(v)
-        for ch, v in yaml.SafeLoader.yaml_implicit_resolvers.items()}
+    # the base-60, octal, underscore and 1.1-boolean resolvers go first so that they win over
+    # PyYAML's int, float and bool ones
+    table = {ch: list(v) for ch, v in yaml.SafeLoader.yaml_implicit_resolvers.items()}
+    for ch in "+-0123456789.":
+        first = [(_BASE60_TAG, _BASE60), (_OCTAL_TAG, _OCTAL)] if ch != "." else []
+        table[ch] = first + [(_UNDERSCORE_TAG, _UNDERSCORE)] + table.get(ch, [])
+    for ch in "yYnNoO":
+        table[ch] = [(_BOOL11_TAG, _BOOL11)] + table.get(ch, [])
+    _Loader.yaml_implicit_resolvers = table
     _Loader.add_constructor(_BASE60_TAG, lambda loader, node: Base60Text(loader.construct_scalar(node)))
     _Loader.add_constructor(_OCTAL_TAG, lambda loader, node: OctalText(loader.construct_scalar(node)))
+    _Loader.add_constructor(_UNDERSCORE_TAG, lambda loader, node: UnderscoreText(loader.construct_scalar(node)))
+    _Loader.add_constructor(_BOOL11_TAG, lambda loader, node: Bool11Text(loader.construct_scalar(node)))
     _LOADER = _Loader
     return _Loader
 
@@ -333,6 +347,13 @@ def _parse_yaml(text: str, where: str):
         # PyYAML's constructors raise these for values of a valid document: "2001-13-45",
         # "!!float abc", "!!timestamp x", an integer of more than 4300 digits
         raise ConfigError(f"{where}: a YAML value cannot be read ({_first_line(one_line(e, type(e).__name__), 120)})") from None
+
+
+def _key_text(k: Any, limit: int = 60) -> str:
+    """A key as a message shows it: control characters escaped (a newline would cut the message,
+    an escape sequence would reach the terminal), at most ``limit`` characters."""
+    t = "".join(c if c.isprintable() else repr(c)[1:-1] for c in str(k))
+    return t if len(t) <= limit else t[:limit - 3] + "..."
 
 
 def _short_key(k: Any) -> str:

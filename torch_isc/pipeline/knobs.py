@@ -23,6 +23,17 @@ class Base60Text(str):
     would read it as 90, which nobody writing a tolerance means. Refused with the key named."""
 
 
+class UnderscoreText(str):
+    """A number written with ``_`` (``1_000``), kept as its text: PyYAML reads it as 1000, YAML
+    1.2 as a string, and the rest of the project (text point files, the CLI's numbers) refuses
+    it. Refused with the key named."""
+
+
+class Bool11Text(str):
+    """A YAML 1.1 boolean word (``yes``, ``no``, ``on``, ``off``), kept as its text: YAML 1.2
+    reads it as a string. Refused with the key named (write ``true`` or ``false``)."""
+
+
 class OctalText(str):
     """A YAML 1.1 octal scalar (``010``), kept as its text: PyYAML reads it as 8, YAML 1.2 and
     most tools as 10. Refused with the key named."""
@@ -95,6 +106,13 @@ def check_section(obj: Any) -> None:
         if isinstance(v, OctalText):
             raise ConfigError(f"config key '{f.name}': {_short(str(v))} has a leading zero (YAML 1.1 reads it as an "
                               f"octal number, YAML 1.2 as decimal); write it without the leading zero")
+        if isinstance(v, Bool11Text):
+            raise ConfigError(f"config key '{f.name}': {_short(str(v))} is a YAML 1.1 boolean word (YAML 1.2 reads "
+                              f"it as text); write true or false")
+        if isinstance(v, str) and want in (int, float) and "_" in v:
+            # float("1_0") is 10.0: Python's reading, not a number anyone writes in a config
+            raise ConfigError(f"config key '{f.name}': {_short(str(v))} has a '_' in a number "
+                              f"(no _ in numbers; write {_short(str(v).replace('_', ''))})")
         if v is None:
             raise ConfigError(f"config key '{f.name}': no value given (expected {want.__name__})")
         if isinstance(v, str) and want in (int, float) and non_ascii_digit(v):

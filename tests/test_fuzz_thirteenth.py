@@ -1,0 +1,107 @@
+"""Fuzz round 13: the defects found, each checked against the behaviour the standards ask for
+(one-line errors naming the input, bounded work, nothing silent)."""
+import math
+import os
+import subprocess
+import sys
+
+import pytest
+import torch
+
+import torch_isc
+from torch_isc import ImplicitCurve, hexagon_mesh
+from torch_isc.core.curve import InvalidValuesError, crossed_triangles
+from torch_isc.core.mesh import InvalidMeshError
+from torch_isc.pipeline.knobs import ConfigError
+
+
+def _curve(res=3):
+    m = hexagon_mesh(torch.zeros(1, 2, dtype=torch.float64), torch.ones(1, dtype=torch.float64), res)
+    return ImplicitCurve(m, m.verts.norm(dim=1) - 0.5)
+
+
+@pytest.mark.parametrize("ratio", [float("nan"), float("inf"), 0.0, -1.0, True, "2", 1e308])
+def test_flip_simple_refuses_a_bad_ratio(ratio):
+    # NaN / inf / 0 made NaN, inf or zero nodal values; -1 reported flips that did not happen
+    with pytest.raises(InvalidValuesError, match="flip_simple: ratio"):
+        _curve().flip_simple(ratio=ratio)
+
+
+@pytest.mark.parametrize("cand", [torch.ones(37), torch.tensor([True, False]), [True] * 37])
+def test_flip_simple_refuses_bad_candidates(cand):
+    with pytest.raises(InvalidValuesError, match=r"flip_simple: candidates must be a \(37,\) bool tensor"):
+        _curve().flip_simple(candidates=cand)
+
+
+def test_flip_simple_still_takes_a_learned_ratio():
+    c = _curve()
+    r = torch.tensor(0.5, dtype=torch.float64, requires_grad=True)
+    g, flipped = c.flip_simple(ratio=r)
+    g.values.sum().backward()
+    # d/dr of sum(-r f_v) over the flipped vertices: minus their values' sum
+    assert r.grad.item() == pytest.approx(-c.values[flipped].sum().item())
+    assert int(flipped.sum()) > 0
+
+
+@pytest.mark.parametrize("rings", [-1, float("nan"), 1.5, "3", True])
+def test_refine_band_refuses_bad_rings(rings):
+    with pytest.raises(InvalidMeshError, match="refine_band: rings must be an integer >= 0"):
+        _curve().refine_band(rings)
+
+
+def test_refine_band_rings_are_bounded_by_the_mesh():
+    # one pass per ring took hours for 10**9; past the mesh's diameter nothing changes
+    c = _curve()
+    a, b = crossed_triangles(c.mesh, c.values, 100), crossed_triangles(c.mesh, c.values, 10 ** 9)
+    assert torch.equal(a, b) and bool(a.all())
+    ref = crossed_triangles(c.mesh, c.values, 0)
+    nb = c.mesh.face_neighbors
+    for _ in range(2):                     # by hand: two rings of edge neighbours
+        ref = ref | (ref[nb.clamp_min(0)] & (nb >= 0)).any(1)
+    assert torch.equal(crossed_triangles(c.mesh, c.values, 2), ref)
+
+
+@pytest.mark.parametrize("text, key", [("tolerance: 1_000\n", "tolerance"), ("seed: 1_0\n", "seed"),
+                                       ("tolerance: .00_4\n", "tolerance"), ("coverage_test: on\n", "coverage_test"),
+                                       ("coverage_test: Yes\n", "coverage_test")])
+def test_config_files_refuse_underscores_and_yaml11_booleans(tmp_path, text, key):
+    p = tmp_path / "c.yaml"
+    p.write_text(text)
+    with pytest.raises(ConfigError, match=f"config key '{key}'") as ei:
+        torch_isc.load_config(p)
+    assert "\n" not in str(ei.value)
+
+
+def test_config_values_refuse_underscores_on_every_path():
+    with pytest.raises(ConfigError, match="no _ in numbers"):
+        torch_isc.ReconstructConfig().replace(tolerance="1_0")
+    from torch_isc.pipeline.config import parse_overrides
+    with pytest.raises(ConfigError, match="no _ in numbers"):
+        torch_isc.load_config(None, parse_overrides(["seed=1_0"]))
+    ok = torch_isc.load_config(None, parse_overrides(["seed=10", "coverage_test=false", "tolerance=0.008"]))
+    assert (ok.run.seed, ok.test.coverage_test, ok.test.tolerance) == (10, False, 0.008)
+
+
+@pytest.mark.parametrize("key, shown", [("tol\nerance", r"tol\nerance"), ("x\x1b[2J", r"x\x1b[2J"),
+                                        ("tolerance\x00", r"tolerance\x00")])
+def test_unknown_keys_are_shown_with_control_characters_escaped(key, shown):
+    from torch_isc.pipeline.config import from_dict
+    with pytest.raises(ConfigError) as ei:
+        from_dict({key: 1})
+    msg = str(ei.value)
+    assert shown in msg and msg.isprintable(), msg
+    with pytest.raises(ConfigError) as ei:
+        from_dict({"test": {key: 1}})
+    assert shown in str(ei.value) and str(ei.value).isprintable()
+
+
+def test_atomic_write_to_a_folder_names_the_folder(tmp_path):
+    from torch_isc.io import atomic_write, save_npz
+    d = tmp_path / "adir"
+    d.mkdir()
+    with pytest.raises(IsADirectoryError) as ei:
+        save_npz(d, _curve())
+    assert ei.value.filename == str(d) and ".tmp" not in str(ei.value)
+    with pytest.raises(IsADirectoryError):
+        atomic_write(d, b"x")
+    assert os.listdir(d) == []                                   # no temporary left

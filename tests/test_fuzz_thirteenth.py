@@ -1,5 +1,6 @@
 """Fuzz round 13: the defects found, each checked against the behaviour the standards ask for
 (one-line errors naming the input, bounded work, nothing silent)."""
+import json
 import math
 import os
 import subprocess
@@ -105,3 +106,37 @@ def test_atomic_write_to_a_folder_names_the_folder(tmp_path):
     with pytest.raises(IsADirectoryError):
         atomic_write(d, b"x")
     assert os.listdir(d) == []                                   # no temporary left
+
+
+def _ring_file(path, r, n=40):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("\n".join(f"{r * math.cos(2 * math.pi * k / n):.6f} {math.sin(2 * math.pi * k / n):.6f}"
+                              for k in range(n)) + "\n")
+
+
+def test_a_later_run_does_not_replace_another_input_s_set(tmp_path, capsys):
+    # d1/a.xy then d2/a.xy (another file, the same stem) into one folder: the second run replaced
+    # the first's complete set without a word; now it fails alone, named, until --overwrite
+    from torch_isc import cli
+    a1, a2, out = tmp_path / "d1" / "a.xy", tmp_path / "d2" / "a.xy", tmp_path / "o"
+    _ring_file(a1, 1.0)
+    _ring_file(a2, 0.5)
+    args = ["--out", str(out), "--formats", "json", "--set", "max_level=3"]
+    assert cli.main(["reconstruct", str(a1), *args]) == 0
+    first = (out / "a.json").read_bytes()
+    code = cli.main(["reconstruct", str(a2), *args])
+    err = capsys.readouterr().err
+    assert code != 0 and "was made from another input" in err and str(a1) in err
+    assert (out / "a.json").read_bytes() == first
+    assert json.loads((out / "a.manifest.json").read_text())["input"]["path"] == str(a1)
+    # the same input with new content is redone, as before
+    _ring_file(a1, 2.0)
+    assert cli.main(["reconstruct", str(a1), *args]) == 0
+    assert (out / "a.json").read_bytes() != first
+    # with --overwrite the other input takes the stem
+    assert cli.main(["reconstruct", str(a2), *args, "--overwrite"]) == 0
+    assert json.loads((out / "a.manifest.json").read_text())["input"]["path"] == str(a2)
+    # the owner gone (moved or deleted): its set is no longer anyone's, a new input may take it
+    a2.unlink()
+    _ring_file(tmp_path / "d3" / "a.xy", 0.7)
+    assert cli.main(["reconstruct", str(tmp_path / "d3" / "a.xy"), *args]) == 0

@@ -273,10 +273,13 @@ def test_manifest_ties_outputs_to_input_and_config(tmp_path, capsys):
     assert m["input"]["sha256"] == hashlib.sha256((d / "a.npy").read_bytes()).hexdigest()
     assert m["formats"] == ["json", "svg"] and [f["name"] for f in m["files"]] == ["a_npy.json", "a_npy.svg"]
     assert all(f["sha256"] == hashlib.sha256((o / f["name"]).read_bytes()).hexdigest() for f in m["files"])
-    # a.xy alone writes 'a'; a.npy alone afterwards is a different input: redone, not skipped
+    # a.xy alone writes 'a'; a.npy alone afterwards is a different input: never skipped, and its
+    # set is not replaced without --overwrite (fuzz 13: that lost a.xy's finished work silently)
     code, out, err = _run(capsys, "reconstruct", d / "a.xy", "--out", o, "--formats", "json", *FAST)
     assert code == 0 and "skipped" not in out
     code, out, err = _run(capsys, "reconstruct", d / "a.npy", "--out", o, "--formats", "json", *FAST)
+    assert code != 0 and "skipped" not in out and "made from another input" in err
+    code, out, err = _run(capsys, "reconstruct", d / "a.npy", "--out", o, "--formats", "json", "--overwrite", *FAST)
     assert code == 0 and "skipped" not in out
     w = json.loads((o / "a.json").read_text())["bbox"]
     assert w[2] - w[0] > 3                                    # a.npy's curve (radius 2)

@@ -763,6 +763,23 @@ class _Run:
             return False
         return manifest_matches(self.out_dir, job.stem, sha, self.config_sha[job.is_image], self.formats_of(job))
 
+    def owner(self, job: _Job) -> Optional[str]:
+        """The input another run made ``job``'s output set from, when that is another file that
+        still exists (two inputs of one stem from different folders, run one after the other):
+        replacing its set silently would lose finished work. None otherwise (no set, ours, or
+        an input since moved or deleted: redone as before)."""
+        try:
+            mp = manifest_path(self.out_dir, job.stem)
+            if not is_regular_file(mp) or mp.stat().st_size > MANIFEST_MAX_BYTES:
+                return None
+            path = json.loads(mp.read_text(encoding="utf-8"))["input"]["path"]
+            if (not isinstance(path, str) or path == os.fspath(job.source) or not is_regular_file(path)
+                    or os.path.realpath(path) == os.path.realpath(job.source)):
+                return None
+            return path
+        except (OSError, ValueError, KeyError, TypeError, AttributeError, RecursionError, MemoryError):
+            return None
+
     def process(self, batch: List[_Job]) -> None:
         self.batches += 1
         self.on_batch("start", self.batches, len(batch), self.done, self.total)
@@ -955,6 +972,10 @@ def run_inputs(inputs: Iterable[PathLike], config: ReconstructConfig, out_dir: P
             run.finish(job, "failed", clobber[i])
         elif not overwrite and run.complete(job):
             run.finish(job, "skipped")
+        elif not overwrite and (owner := run.owner(job)) is not None:
+            run.finish(job, "failed", f"{shown(job.source)}: its output set '{job.stem}' in {shown(out)} was made from "
+                                      f"another input, {shown(owner)}; give --overwrite (overwrite=True) to replace it, "
+                                      f"or another output folder")
         else:
             todo.append(job)
 

@@ -140,3 +140,24 @@ def test_a_later_run_does_not_replace_another_input_s_set(tmp_path, capsys):
     a2.unlink()
     _ring_file(tmp_path / "d3" / "a.xy", 0.7)
     assert cli.main(["reconstruct", str(tmp_path / "d3" / "a.xy"), *args]) == 0
+
+
+def test_a_large_offset_in_float32_contours_warns():
+    # offset 1e8: float32 holds every 8th pixel there, the contour collapsed onto 3 columns silently
+    import warnings
+    cv2 = pytest.importorskip("cv2")
+    import numpy as np
+    from torch_isc.images import find_contours
+    m = np.zeros((20, 30), np.uint8)
+    cv2.circle(m, (15, 10), 6, 255, -1)
+    with pytest.warns(UserWarning, match=r"steps of 8 px"):
+        find_contours(m, 3, 1, (1e8, 0))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        c, _ = find_contours(m, 3, 1, (1e5, 0))                    # steps of 1/128 px: no warning
+        c0, _ = find_contours(m, 3, 1)
+        assert np.abs(c[0].astype(np.float64) - (c0[0].astype(np.float64) + [1e5, 0])).max() < 1 / 64
+        find_contours(m, 3, 1, (10 ** 8, 0), dtype=np.int32)        # whole pixels: exact
+    from torch_isc.images.contours import cast_coordinates
+    with pytest.warns(UserWarning, match="sub-pixel detail lost"):
+        cast_coordinates(np.array([[3e7 + 0.25, 1.0]]), np.float32, "to_cv_contours")

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import os
+import warnings
 from typing import Dict, List, Optional, Tuple, Union
 
 import numpy as np
@@ -176,6 +177,11 @@ def to_cv_contours(src, mode: str = "tree", dtype=np.float32) -> Tuple[List[np.n
     return out, h[None]
 
 
+#: the coarsest step (pixels) a float output type may have at the contours' coordinates before
+#: :func:`cast_coordinates` warns (float32 beyond about 10^6 px from the origin)
+SUBPIXEL_STEP = 1.0 / 16
+
+
 def cast_coordinates(q: np.ndarray, dtype, what: str) -> np.ndarray:
     """Contour coordinates ``q (n, 2)`` in ``dtype``: rounded to the pixel for an integer type
     (through int32, OpenCV's point type), as they are for a float type.
@@ -198,6 +204,14 @@ def cast_coordinates(q: np.ndarray, dtype, what: str) -> np.ndarray:
         worst = float(np.abs(q[np.isfinite(q)]).max()) if np.isfinite(q).any() else float("nan")
         hint = "" if integer else "; ask for dtype=np.float64"
         raise ImageError(f"{what}: contour coordinates up to {worst:.3g} are beyond what {name} holds{hint}")
+    if not integer and q.size and np.issubdtype(dt, np.floating):
+        big = float(np.abs(q).max())
+        step = float(np.spacing(dt.type(big)))
+        if step > SUBPIXEL_STEP:
+            # float32 at 1e8 holds every 8th pixel: the sub-pixel curve would collapse onto a few
+            # columns with no sign of it
+            warnings.warn(f"{what}: contour coordinates up to {big:.3g} hold only steps of {step:.3g} px in {name} "
+                          f"(sub-pixel detail lost); add so large an offset in float64 after the call", stacklevel=3)
     return q.astype(np.int32).astype(dt, copy=False) if integer else q.astype(dt)
 
 
@@ -332,6 +346,15 @@ def find_contours_batch(masks, mode=3, method=1, offset=None, *, connectivity: i
     _check_contour_options(offset, min_area, epsilon, smooth, dtype)
     integer = np.issubdtype(np.dtype(dtype), np.integer)
     ts = [binarize(t, threshold) for t in image_list(masks, "mask")]
+    if offset is not None and not integer and ts:
+        big = max(abs(float(v)) for v in offset) + max(max(t.shape) for t in ts)
+        step = float(np.spacing(np.float32(big)))
+        if step > SUBPIXEL_STEP:
+            # float32 at 1e8 holds every 8th pixel: the sub-pixel contours would collapse onto a
+            # few columns with no sign of it
+            warnings.warn(f"offset {tuple(float(v) for v in offset)}: float32 contours there hold only steps of "
+                          f"{step:.3g} px (sub-pixel detail lost); add so large an offset in float64 after the call",
+                          stacklevel=2)
     out = []
     for b0, b1 in padded_groups([tuple(t.shape) for t in ts], batch_pixels):
         gc = trace_masks(ts[b0:b1], connectivity, smooth)

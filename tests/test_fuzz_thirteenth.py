@@ -161,3 +161,33 @@ def test_a_large_offset_in_float32_contours_warns():
     from torch_isc.images.contours import cast_coordinates
     with pytest.warns(UserWarning, match="sub-pixel detail lost"):
         cast_coordinates(np.array([[3e7 + 0.25, 1.0]]), np.float32, "to_cv_contours")
+
+
+@pytest.mark.parametrize("text, expect", [
+    ("path,path\na.xy,b.xy\n", "2 columns named 'path'"),          # DictReader kept the last: a.xy dropped
+    ("path,x\na.xy,1\n,2\n", "line 3: manifest column 'path' is empty"),
+    ("x,path\n1\n", "line 2: manifest column 'path' is missing"),
+])
+def test_csv_manifests_drop_nothing_silently(tmp_path, text, expect):
+    from torch_isc.dataset import read_manifest
+    from torch_isc.runner import RunError
+    p = tmp_path / "m.csv"
+    p.write_text(text)
+    with pytest.raises(RunError, match=expect):
+        read_manifest(p)
+    p.write_text("path,x\na.xy,1\n\n  b.xy ,\n")                 # a blank line skipped; fields stripped
+    assert read_manifest(p) == [str(tmp_path / "a.xy"), str(tmp_path / "b.xy")]
+
+
+def test_parquet_manifests_drop_nothing_silently(tmp_path):
+    pa = pytest.importorskip("pyarrow")
+    import pyarrow.parquet as pq
+    from torch_isc.dataset import read_manifest
+    from torch_isc.runner import RunError
+    p = tmp_path / "m.parquet"
+    for values, expect in ((["a.xy", None, "b.xy"], "row 2 .* is null"), (["a.xy", "  "], "row 2 .* is empty")):
+        pq.write_table(pa.table({"path": values}), p)
+        with pytest.raises(RunError, match=expect):
+            read_manifest(p)
+    pq.write_table(pa.table({"path": ["a.xy", " b.xy "]}), p)          # stripped, as the CSV reader does
+    assert read_manifest(p) == [str(tmp_path / "a.xy"), str(tmp_path / "b.xy")]

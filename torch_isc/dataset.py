@@ -134,6 +134,9 @@ def read_manifest(path: PathLike, column: str = "path") -> List[str]:
                 raise RunError(f"{p}: not a readable Parquet manifest ({one_line(e, type(e).__name__)})") from None
             if column not in names:
                 raise RunError(f"{p}: manifest has no column '{shown(column)}' (columns: {_names(names)})")
+            if names.count(column) > 1:
+                raise RunError(f"{p}: manifest has {names.count(column)} columns named '{shown(column)}' "
+                               f"(which one lists the inputs is ambiguous)")
             # the type from the schema, before any read: a wrong column is refused without starting
             # Arrow's reader threads (exiting with them alive aborted the process now and then: 134)
             ct = schema.field(column).type
@@ -144,12 +147,27 @@ def read_manifest(path: PathLike, column: str = "path") -> List[str]:
                 col = pf.read(columns=[column], use_threads=False).column(column)
             except (pa.ArrowException, OSError, ValueError) as e:
                 raise RunError(f"{p}: not a readable Parquet manifest ({one_line(e, type(e).__name__)})") from None
-            items = [v for v in col.to_pylist() if v]
+            items = [v.strip() if isinstance(v, str) else v for v in col.to_pylist()]
+            for k, v in enumerate(items):
+                if not v:
+                    raise RunError(f"{p}: row {k + 1} of manifest column '{shown(column)}' is "
+                                   f"{'null' if v is None else 'empty'} (every row must name an input)")
         elif suffix == ".csv":
             reader = csv.DictReader(io.StringIO(decode_text(raw, str(p), "CSV manifest", RunError), newline=""))
-            if column not in (reader.fieldnames or []):
-                raise RunError(f"{p}: manifest has no column '{shown(column)}' (columns: {_names(reader.fieldnames or [])})")
-            items = [row[column].strip() for row in reader if isinstance(row.get(column), str) and row[column].strip()]
+            fields = list(reader.fieldnames or [])
+            if column not in fields:
+                raise RunError(f"{p}: manifest has no column '{shown(column)}' (columns: {_names(fields)})")
+            if fields.count(column) > 1:
+                # csv.DictReader keeps the last of equal names: the others' paths were dropped
+                raise RunError(f"{p}: manifest has {fields.count(column)} columns named '{shown(column)}' "
+                               f"(which one lists the inputs is ambiguous)")
+            items = []
+            for row in reader:                   # a wholly blank line is skipped by the reader
+                v = row.get(column)
+                if not isinstance(v, str) or not v.strip():
+                    raise RunError(f"{p}: line {reader.line_num}: manifest column '{shown(column)}' is "
+                                   f"{'missing (a short row)' if v is None else 'empty'} (every row must name an input)")
+                items.append(v.strip())
         else:
             items = [ln.strip() for ln in decode_text(raw, str(p), "text manifest", RunError).splitlines()]
             items = [ln for ln in items if ln and not ln.startswith("#")]

@@ -204,7 +204,8 @@ def cast_coordinates(q: np.ndarray, dtype, what: str) -> np.ndarray:
         worst = float(np.abs(q[np.isfinite(q)]).max()) if np.isfinite(q).any() else float("nan")
         hint = "" if integer else "; ask for dtype=np.float64"
         raise ImageError(f"{what}: contour coordinates up to {worst:.3g} are beyond what {name} holds{hint}")
-    if not integer and q.size and np.issubdtype(dt, np.floating):
+    if (not integer and q.size and np.issubdtype(dt, np.floating) and np.issubdtype(q.dtype, np.floating)
+            and np.finfo(q.dtype).eps < np.finfo(dt).eps):          # the cast narrows: it may lose detail
         big = float(np.abs(q).max())
         step = float(np.spacing(dt.type(big)))
         if step > SUBPIXEL_STEP:

@@ -191,3 +191,13 @@ def test_parquet_manifests_drop_nothing_silently(tmp_path):
             read_manifest(p)
     pq.write_table(pa.table({"path": ["a.xy", " b.xy "]}), p)          # stripped, as the CSV reader does
     assert read_manifest(p) == [str(tmp_path / "a.xy"), str(tmp_path / "b.xy")]
+
+
+@pytest.mark.parametrize("row", ["1 2\x0c3 4", "1 2\u20283 4", "1 2\x0b3 4"])
+def test_a_row_with_a_form_feed_stays_one_row(tmp_path, row):
+    # the chunked parser splits at "\n" only (splitlines broke such a row into two points)
+    from torch_isc.io import PointFileError, read_points
+    p = tmp_path / "f.xy"
+    p.write_text(row + "\n5 6\n", encoding="utf-8")
+    with pytest.raises(PointFileError, match="line 1: expected 2 columns"):
+        read_points(p)

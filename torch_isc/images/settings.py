@@ -24,7 +24,7 @@ MASK_CONFIG: Dict[str, Any] = {"tolerance": 0.5, "tolerance_mode": "absolute", "
 #: close discs joined) is split below the data's reach on every item, not only on noisy ones
 #: (``transverse_noisy: 0``): edge points lie a pixel apart, far below the tolerance's
 #: neighbourhood reach, and their estimated noise is a fraction of the tolerance, so the
-#: point-set default never applied (scripts/evaluate_edges.py, seeds 0-2: 94 -> 104 of 120).
+#: point-set default never applied (scripts/evaluate_edges.py, seeds 0-5: 193 -> 212 of 240).
 EDGE_CONFIG: Dict[str, Any] = {"tolerance": 0.5, "tolerance_mode": "absolute", "transverse_noisy": 0.0}
 IMAGE_CONFIG = {"mask": MASK_CONFIG, "edges": EDGE_CONFIG}
 

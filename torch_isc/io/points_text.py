@@ -104,7 +104,9 @@ def _rows(text: str, chunk: int = 1 << 18) -> Iterator[str]:
     while i < n:
         j = text.find("\n", min(i + chunk, n))
         j = n if j < 0 else j + 1
-        yield from text[i:j].replace(",", " ").replace(";", " ").splitlines()
+        # split at "\n" only: splitlines would also break at \f, \v or U+2028, making two rows of
+        # one that the line-by-line path refuses
+        yield from text[i:j].replace(",", " ").replace(";", " ").split("\n")
         i = j
 
 

@@ -190,9 +190,12 @@ def test_bad_manifests_are_one_line(tmp_path, capsys):
     # a .parquet given as an input is a manifest too
     code, out, err = _run(capsys, tmp_path / "fake.parquet", "--out", tmp_path / "o", *FAST)
     assert code == 2 and len(_errors(err)) == 1 and "Traceback" not in err
-    # good ones still work: a dictionary-encoded column, a null entry skipped
-    pq.write_table(pa.table({"path": pa.array(["ring.xy", None]).dictionary_encode()}), tmp_path / "ok.parquet")
-    assert read_manifest(tmp_path / "ok.parquet") == [str(tmp_path / "ring.xy")]
+    # good ones still work: a dictionary-encoded column; a null entry is named, not skipped (fuzz 13)
+    pq.write_table(pa.table({"path": pa.array(["ring.xy", "b.xy"]).dictionary_encode()}), tmp_path / "ok.parquet")
+    assert read_manifest(tmp_path / "ok.parquet") == [str(tmp_path / "ring.xy"), str(tmp_path / "b.xy")]
+    pq.write_table(pa.table({"path": pa.array(["ring.xy", None]).dictionary_encode()}), tmp_path / "null.parquet")
+    with pytest.raises(RunError, match="row 2 of manifest column 'path' is null"):
+        read_manifest(tmp_path / "null.parquet")
 
 
 def read_err(p):

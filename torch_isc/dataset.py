@@ -132,11 +132,7 @@ def read_manifest(path: PathLike, column: str = "path") -> List[str]:
                 names = schema.names
             except (pa.ArrowException, OSError, ValueError) as e:
                 raise RunError(f"{p}: not a readable Parquet manifest ({one_line(e, type(e).__name__)})") from None
-            if column not in names:
-                raise RunError(f"{p}: manifest has no column '{shown(column)}' (columns: {_names(names)})")
-            if names.count(column) > 1:
-                raise RunError(f"{p}: manifest has {names.count(column)} columns named '{shown(column)}' "
-                               f"(which one lists the inputs is ambiguous)")
+            _check_column(p, names, column)
             # the type from the schema, before any read: a wrong column is refused without starting
             # Arrow's reader threads (exiting with them alive aborted the process now and then: 134)
             ct = schema.field(column).type
@@ -154,13 +150,7 @@ def read_manifest(path: PathLike, column: str = "path") -> List[str]:
                                    f"{'null' if v is None else 'empty'} (every row must name an input)")
         elif suffix == ".csv":
             reader = csv.DictReader(io.StringIO(decode_text(raw, str(p), "CSV manifest", RunError), newline=""))
-            fields = list(reader.fieldnames or [])
-            if column not in fields:
-                raise RunError(f"{p}: manifest has no column '{shown(column)}' (columns: {_names(fields)})")
-            if fields.count(column) > 1:
-                # csv.DictReader keeps the last of equal names: the others' paths were dropped
-                raise RunError(f"{p}: manifest has {fields.count(column)} columns named '{shown(column)}' "
-                               f"(which one lists the inputs is ambiguous)")
+            _check_column(p, list(reader.fieldnames or []), column)
             items = []
             for row in reader:                   # a wholly blank line is skipped by the reader
                 v = row.get(column)
@@ -174,6 +164,16 @@ def read_manifest(path: PathLike, column: str = "path") -> List[str]:
     except csv.Error as e:
         raise RunError(f"{p}: not a readable CSV manifest ({one_line(e, type(e).__name__)})") from None
     return [str(v) if os.path.isabs(str(v)) else str(base / str(v)) for v in items]
+
+
+def _check_column(p: Path, names: List[str], column: str) -> None:
+    """A :class:`RunError` unless the manifest ``p`` has exactly one column ``column`` among its
+    ``names`` (of equal names, csv.DictReader keeps the last: the others' paths were dropped)."""
+    if column not in names:
+        raise RunError(f"{p}: manifest has no column '{shown(column)}' (columns: {_names(names)})")
+    if names.count(column) > 1:
+        raise RunError(f"{p}: manifest has {names.count(column)} columns named '{shown(column)}' "
+                       f"(which one lists the inputs is ambiguous)")
 
 
 def _names(names: Sequence[str], limit: int = 10) -> str:

@@ -457,17 +457,30 @@ def manifest_path(out_dir: PathLike, stem: str) -> Path:
 #: not read, so a huge file under that name cannot exhaust memory
 MANIFEST_MAX_BYTES = 1 << 20
 
+_MANIFEST_ERRORS = (OSError, ValueError, KeyError, TypeError, AttributeError, RecursionError, MemoryError)
+
+
+def _read_manifest(mp: Path) -> Optional[dict]:
+    """The JSON object of the manifest ``mp``, or None: no regular file there (a FIFO under that
+    name would block the run), larger than :data:`MANIFEST_MAX_BYTES` (ours are a few hundred
+    bytes: a foreign file), or not a JSON object (deeply nested JSON raises RecursionError)."""
+    try:
+        if not is_regular_file(mp) or mp.stat().st_size > MANIFEST_MAX_BYTES:
+            return None
+        m = json.loads(mp.read_text(encoding="utf-8"))
+    except _MANIFEST_ERRORS:
+        return None
+    return m if isinstance(m, dict) else None
+
+
 def manifest_matches(out_dir: PathLike, stem: str, input_sha256: str, config_sha256: str,
                      formats: Sequence[str]) -> bool:
     """Whether ``<stem>.manifest.json`` says the outputs of ``stem`` are complete and were made
     from this input and config in these formats, and every file it lists still has its hash."""
+    m = _read_manifest(manifest_path(out_dir, stem))
+    if m is None:
+        return False
     try:
-        mp = manifest_path(out_dir, stem)
-        if not is_regular_file(mp):             # a FIFO under that name would block the run
-            return False
-        if mp.stat().st_size > MANIFEST_MAX_BYTES:  # ours are a few hundred bytes: a foreign file
-            return False
-        m = json.loads(mp.read_text(encoding="utf-8"))
         if (m.get("manifest_format") != MANIFEST_FORMAT or m["input"]["sha256"] != input_sha256
                 or m["config_sha256"] != config_sha256 or list(m["formats"]) != list(formats)):
             return False
@@ -476,19 +489,17 @@ def manifest_matches(out_dir: PathLike, stem: str, input_sha256: str, config_sha
             return False
         return all(is_regular_file(Path(out_dir) / f["name"]) and file_sha256(Path(out_dir) / f["name"]) == f["sha256"]
                    for f in files)
-    except (OSError, ValueError, KeyError, TypeError, AttributeError, RecursionError, MemoryError):
-        return False                            # deeply nested JSON: json raises RecursionError
+    except _MANIFEST_ERRORS:
+        return False
 
 
 def _listed_outputs(man: Path, stem: str) -> set:
     """The output files an existing manifest lists, restricted to ``<stem>.<format>`` names of
     known formats that are regular files (a manifest is never trusted to name other files)."""
+    m = _read_manifest(man)
     try:
-        if not is_regular_file(man) or man.stat().st_size > MANIFEST_MAX_BYTES:
-            return set()
-        files = json.loads(man.read_text(encoding="utf-8"))["files"]
-        names = {f["name"] for f in files if isinstance(f, dict) and isinstance(f.get("name"), str)}
-    except (OSError, ValueError, KeyError, TypeError, AttributeError, RecursionError, MemoryError):
+        names = {f["name"] for f in m["files"] if isinstance(f, dict) and isinstance(f.get("name"), str)}
+    except _MANIFEST_ERRORS:                    # None (no manifest) included: TypeError
         return set()
     known = {f"{stem}.{f}" for f in EXPORTERS}
     return {n for n in names & known if is_regular_file(man.parent / n)}
@@ -768,16 +779,14 @@ class _Run:
         still exists (two inputs of one stem from different folders, run one after the other):
         replacing its set silently would lose finished work. None otherwise (no set, ours, or
         an input since moved or deleted: redone as before)."""
+        m = _read_manifest(manifest_path(self.out_dir, job.stem))
         try:
-            mp = manifest_path(self.out_dir, job.stem)
-            if not is_regular_file(mp) or mp.stat().st_size > MANIFEST_MAX_BYTES:
-                return None
-            path = json.loads(mp.read_text(encoding="utf-8"))["input"]["path"]
+            path = m["input"]["path"]
             if (not isinstance(path, str) or path == os.fspath(job.source) or not is_regular_file(path)
                     or os.path.realpath(path) == os.path.realpath(job.source)):
                 return None
             return path
-        except (OSError, ValueError, KeyError, TypeError, AttributeError, RecursionError, MemoryError):
+        except _MANIFEST_ERRORS:                # None (no manifest) included: TypeError
             return None
 
     def process(self, batch: List[_Job]) -> None:

@@ -182,6 +182,17 @@ def to_cv_contours(src, mode: str = "tree", dtype=np.float32) -> Tuple[List[np.n
 SUBPIXEL_STEP = 1.0 / 16
 
 
+def warn_coarse(big: float, dtype, what: str) -> None:
+    """Warn when ``dtype`` holds coordinates of magnitude ``big`` only in steps coarser than
+    :data:`SUBPIXEL_STEP`: float32 at 1e8 holds every 8th pixel, and a sub-pixel curve would
+    collapse onto a few columns with no sign of it. ``what`` starts the message."""
+    dt = np.dtype(dtype)
+    step = float(np.spacing(dt.type(big)))
+    if step > SUBPIXEL_STEP:
+        warnings.warn(f"{what} up to {big:.3g} hold only steps of {step:.3g} px in {dt.name} (sub-pixel detail "
+                      f"lost); add so large an offset in float64 after the call", stacklevel=3)
+
+
 def cast_coordinates(q: np.ndarray, dtype, what: str) -> np.ndarray:
     """Contour coordinates ``q (n, 2)`` in ``dtype``: rounded to the pixel for an integer type
     (through int32, OpenCV's point type), as they are for a float type.
@@ -206,13 +217,7 @@ def cast_coordinates(q: np.ndarray, dtype, what: str) -> np.ndarray:
         raise ImageError(f"{what}: contour coordinates up to {worst:.3g} are beyond what {name} holds{hint}")
     if (not integer and q.size and np.issubdtype(dt, np.floating) and np.issubdtype(q.dtype, np.floating)
             and np.finfo(q.dtype).eps < np.finfo(dt).eps):          # the cast narrows: it may lose detail
-        big = float(np.abs(q).max())
-        step = float(np.spacing(dt.type(big)))
-        if step > SUBPIXEL_STEP:
-            # float32 at 1e8 holds every 8th pixel: the sub-pixel curve would collapse onto a few
-            # columns with no sign of it
-            warnings.warn(f"{what}: contour coordinates up to {big:.3g} hold only steps of {step:.3g} px in {name} "
-                          f"(sub-pixel detail lost); add so large an offset in float64 after the call", stacklevel=3)
+        warn_coarse(float(np.abs(q).max()), dt, f"{what}: contour coordinates")
     return q.astype(np.int32).astype(dt, copy=False) if integer else q.astype(dt)
 
 
@@ -348,14 +353,8 @@ def find_contours_batch(masks, mode=3, method=1, offset=None, *, connectivity: i
     integer = np.issubdtype(np.dtype(dtype), np.integer)
     ts = [binarize(t, threshold) for t in image_list(masks, "mask")]
     if offset is not None and not integer and ts:
-        big = max(abs(float(v)) for v in offset) + max(max(t.shape) for t in ts)
-        step = float(np.spacing(np.float32(big)))
-        if step > SUBPIXEL_STEP:
-            # float32 at 1e8 holds every 8th pixel: the sub-pixel contours would collapse onto a
-            # few columns with no sign of it
-            warnings.warn(f"offset {tuple(float(v) for v in offset)}: float32 contours there hold only steps of "
-                          f"{step:.3g} px (sub-pixel detail lost); add so large an offset in float64 after the call",
-                          stacklevel=2)
+        warn_coarse(max(abs(float(v)) for v in offset) + max(max(t.shape) for t in ts), dtype,
+                    f"offset {tuple(float(v) for v in offset)}: contour coordinates")
     out = []
     for b0, b1 in padded_groups([tuple(t.shape) for t in ts], batch_pixels):
         gc = trace_masks(ts[b0:b1], connectivity, smooth)

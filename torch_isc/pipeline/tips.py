@@ -13,7 +13,8 @@ refit). Every edge ``(i, j)`` has one place where a crossing on it would be, giv
 magnitudes: ``x_ij = v_i + |f_i| / (|f_i| + |f_j|) (v_j − v_i)``, whatever the signs (a flip of a
 vertex keeps its magnitude). A crossing is *supported* when a data point lies within its reach
 of that place: the item's tested tolerance (the distance the test allows), or one sample
-spacing where the samples are sparser (a quarter of the distance to the point's 8th neighbour:
+spacing where the samples are sparser (the distance to the farthest of the point's
+``noise_neighbours`` nearest over half their count: a quarter of the 8th's with the default;
 between the samples of a clean sparse curve, at a sharp corner, the true curve is that far
 from the data). A vertex ``v`` flips when:
 

@@ -9,6 +9,7 @@ Run from the repository root:
     .venv/bin/python scripts/evaluate_synthetic.py --rotations 8 --count 0   # public cases, 8 angles
     .venv/bin/python scripts/evaluate_synthetic.py --peers                   # + NN-crust, concave hull
     .venv/bin/python scripts/evaluate_synthetic.py --suite broad --peers     # issue 13's families, 192 shapes
+    .venv/bin/python scripts/evaluate_synthetic.py --suite sparse            # curves of few points, 72 scenes
 
 Generated shapes (``--kinds``, taken in turn; noise levels 0, 0.25, 0.5, 1% of the truth's
 diagonal in turn over each round of kinds; every shape with a random rotation, 80-600 points
@@ -37,6 +38,14 @@ Further kinds (``--suite broad`` runs them at noise 0, 0.5, 1, 2% with ``--noise
 - squares3: three concentric squares (half-sizes 1, 0.7, 0.4);
 - crescent: a unit disc minus a disc of radius 0.8-0.9 shifted by 0.3-0.45 (two sharp tips);
 - dumbbell: two unit discs 1.2 apart joined by a neck of half-width 0.12-0.2.
+
+Sparse kinds (``--suite sparse`` runs them at noise 0, 0.25, 0.5%): every curve of few points, so
+that curvature, not noise, fills each point's neighbourhood:
+
+- ringgrid: 2x2 to 6x6 unit circles of 10-24 points each, 2.5-5 sample spacings apart;
+- scatter: 4-12 circles of radius 0.3-1 at random, 10-24 points on a circle of radius 0.65 (the
+  same spacing on all), 3-8 spacings apart;
+- sparsefont: a font glyph (as ``font``) of 90-200 points in all.
 
 Cells of the tables: right topology / cases, median Hausdorff and median Chamfer (% of the
 truth's diagonal).
@@ -75,7 +84,8 @@ from torch_isc import metrics  # noqa: E402
 
 KINDS = ("circle", "ellipse", "flower", "two", "annulus", "squircle", "nested3", "gapcircle", "gapflower",
          "outliers", "glyph")           # the default (record_outputs' synthetic suite draws these)
-ALL_KINDS = KINDS + ("font", "rings3", "close2", "satellites", "squares3", "crescent", "dumbbell")
+ALL_KINDS = KINDS + ("font", "rings3", "close2", "satellites", "squares3", "crescent", "dumbbell", "ringgrid",
+                     "scatter", "sparsefont")
 GLYPHS = "ABDOPQRabdegopq04689CGSUVXZ235"
 NOISES = (0.0, 0.25, 0.5, 1.0)          # % of the truth's diagonal
 # issue 13's families: font glyphs weighted 4 of 12 (several fonts, letters, digits, symbols),
@@ -83,7 +93,11 @@ NOISES = (0.0, 0.25, 0.5, 1.0)          # % of the truth's diagonal
 # outliers; 192 shapes = per noise level 16 glyphs and 4 of each other family
 BROAD_KINDS = ("font", "rings3", "close2", "satellites", "font", "squares3", "crescent", "dumbbell",
                "font", "gapcircle", "outliers", "font")
-SUITES = {"broad": dict(kinds=",".join(BROAD_KINDS), noises="0,0.5,1,2", count=192)}
+# sparsely sampled scenes: every curve of few points (10-24 to a small circle), so that the item's
+# own curvature, not the noise, dominates each neighbourhood
+SPARSE_KINDS = ("ringgrid", "scatter", "sparsefont")
+SUITES = {"broad": dict(kinds=",".join(BROAD_KINDS), noises="0,0.5,1,2", count=192),
+          "sparse": dict(kinds=",".join(SPARSE_KINDS), noises="0,0.25,0.5", count=72)}
 
 
 def squircle(p: float) -> Curve:
@@ -304,6 +318,31 @@ def make_case(i: int, kinds: Sequence[str], rng: np.random.Generator, glyphs: st
         poly = Point(-1.6, 0).buffer(1.0, quad_segs=256).union(Point(1.6, 0).buffer(1.0, quad_segs=256)).union(
             box(-1.6, -w, 1.6, w))
         fns = [polyline_curve(np.asarray(poly.exterior.coords)[:-1])]
+    elif kind == "ringgrid":
+        g, m = int(rng.integers(2, 7)), int(rng.integers(10, 25))          # g x g unit circles, m points each
+        pitch = 2 + rng.uniform(2.5, 5.0) * 2 * math.pi / m                # gaps of 2.5-5 spacings
+        fns = [ellipse(1, 1, i * pitch, j * pitch) for i in range(g) for j in range(g)]
+        counts = [m] * len(fns)
+    elif kind == "scatter":
+        # 4-12 circles of radius 0.3-1, 10-24 points each at one spacing, 3-8 spacings apart
+        h = 2 * math.pi * 0.65 / int(rng.integers(10, 25))
+        cs: List[Tuple[float, float, float]] = []
+        want = int(rng.integers(4, 13))
+        for _ in range(400):
+            if len(cs) == want:
+                break
+            r = rng.uniform(0.3, 1.0)
+            x, y = rng.uniform(-4, 4, 2)
+            if all(math.hypot(x - a, y - b) > r + c + rng.uniform(3, 8) * h for a, b, c in cs):
+                cs.append((x, y, r))
+        fns = [ellipse(r, r, x, y) for x, y, r in cs]
+        counts = [max(6, int(round(2 * math.pi * r / h))) for _, _, r in cs]
+    elif kind == "sparsefont":
+        kind_font = make_case(i, ("font",), rng, glyphs, (0.0,), font_glyphs)
+        extra = {k: kind_font[k] for k in ("glyph", "font") if k in kind_font}
+        fns = [polyline_curve(np.asarray(c)) for c in kind_font["truth"]["curves"]]
+        counts = None
+        points = int(rng.integers(90, 200))
     else:
         raise ValueError(f"unknown kind {kind!r} (known: {', '.join(ALL_KINDS)})")
     lengths = [arclength_samples(f, 8, 0.0)[1] for f in fns]

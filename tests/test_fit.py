@@ -1663,6 +1663,22 @@ def test_estimate_noise_sparse_circle_is_not_its_curvature(n, sigma, device):
     assert est > sigma * 0.7
 
 
+@pytest.mark.parametrize("n", [12, 16, 24])
+@pytest.mark.parametrize("sigma", [0.0, 0.01, 0.03])
+def test_estimate_noise_circle_of_few_points(n, sigma, device):
+    """A unit circle of 12-24 points: eight neighbours span 120-270 degrees of it, which even a
+    parabola reads as noise (0.44 / 0.12 / 0.02 of the radius, clean); four neighbours read a
+    tenth or less of that (their noise ratio is 0.02-0.2, where noise gives 0.55 or more), and
+    the estimate is theirs: within 2.5% of the radius, or twice sigma, and above half sigma."""
+    g = torch.Generator().manual_seed(n)
+    t = torch.arange(n, dtype=torch.float64) * (2 * math.pi / n) + 0.3
+    p = torch.stack([t.cos(), t.sin()], 1) + sigma * torch.randn(n, 2, generator=g, dtype=torch.float64)
+    d = float((p.max(0).values - p.min(0).values).norm())
+    est = float(estimate_noise((p / d).to(device), torch.zeros(n, dtype=torch.long, device=device), 1)[0]) * d
+    assert est < max(2 * sigma, 0.025)
+    assert est > 0.5 * sigma
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_estimate_noise_circle_noise_wider_than_spacing(seed, device):
     """600 points on a circle with noise 2.7x their spacing: eight neighbours are a round blob,
@@ -1682,8 +1698,8 @@ def test_estimate_noise_of_clean_strands_a_few_spacings_apart(k, gap, device):
     """Clean concentric circles ``gap`` spacings apart: eight neighbours reach the next circle
     and read a noisy band (1.5-4% of the radius); four see one circle each, a thousand times
     less, so the estimate is theirs. A noisy pair of circles (noise 1% of the radius, 10 noise
-    widths apart) is left to the eight (the four read 0.2-1 of them): the same estimate as
-    with the strand test off, within 25% of the noise."""
+    widths apart) is left to the eight (the four read 0.55-1 of them): the same estimate as
+    with the ratio test off, within 25% of the noise."""
     import torch_isc.pipeline.noise as noise_mod
     n = 300
     h = 2 * math.pi / n
@@ -1696,12 +1712,12 @@ def test_estimate_noise_of_clean_strands_a_few_spacings_apart(k, gap, device):
     p = torch.cat(rings) / (2 * math.sqrt(2))
     item = torch.zeros(p.shape[0], dtype=torch.long, device=device)
     est = float(estimate_noise(p.to(device), item, 1)[0]) * 2 * math.sqrt(2)
-    old = noise_mod.STRAND_RATIOS
+    old = noise_mod.MISFIT_RATIOS
     try:
-        noise_mod.STRAND_RATIOS = (1e-300, 2e-300)          # the strand test off: eight neighbours
+        noise_mod.MISFIT_RATIOS = (1e-300, 2e-300)          # the ratio test off: eight neighbours
         band = float(estimate_noise(p.to(device), item, 1)[0]) * 2 * math.sqrt(2)
     finally:
-        noise_mod.STRAND_RATIOS = old
+        noise_mod.MISFIT_RATIOS = old
     assert est < 1e-4 and band > 0.01
     g = torch.Generator().manual_seed(k)
     sigma = 0.01
@@ -1712,12 +1728,12 @@ def test_estimate_noise_of_clean_strands_a_few_spacings_apart(k, gap, device):
     item = torch.zeros(2 * n, dtype=torch.long, device=device)
     got = float(estimate_noise(q.to(device), item, 1)[0])
     assert abs(got * 2 * math.sqrt(2) - sigma) < 0.25 * sigma
-    old = noise_mod.STRAND_RATIOS
+    old = noise_mod.MISFIT_RATIOS
     try:
-        noise_mod.STRAND_RATIOS = (1e-300, 2e-300)
+        noise_mod.MISFIT_RATIOS = (1e-300, 2e-300)
         assert float(estimate_noise(q.to(device), item, 1)[0]) == got
     finally:
-        noise_mod.STRAND_RATIOS = old
+        noise_mod.MISFIT_RATIOS = old
 
 
 def test_segment_median_against_loop(device):

@@ -201,3 +201,21 @@ def test_a_row_with_a_form_feed_stays_one_row(tmp_path, row):
     p.write_text(row + "\n5 6\n", encoding="utf-8")
     with pytest.raises(PointFileError, match="line 1: expected 2 columns"):
         read_points(p)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_grid_of_small_rings_keeps_every_ring(seed):
+    # D2: 36 clean rings of 16 points, 3.4 spacings apart. Eight neighbours span half a ring,
+    # whose curvature read as noise of 12% of the radius; the tolerance (3 noise widths) then
+    # let one loop wrap whole rows of rings, 18 or 20 loops, "converged"
+    def ring(cx, cy, r=0.3, n=16):
+        t = torch.arange(n, dtype=torch.float64) * 2 * math.pi / n
+        return torch.stack([r * t.cos() + cx, r * t.sin() + cy], 1)
+    pts = torch.cat([ring(i, j) for i in range(6) for j in range(6)])
+    r = torch_isc.reconstruct(pts, config={"seed": seed})
+    assert r.converged and r.num_closed == 36
+    # every loop is one ring: its vertices within 0.1 of one centre's circle
+    for pl in r.polylines:
+        v = pl["points"].detach()
+        c = v.mean(0).round()
+        assert float(((v - c).norm(dim=1) - 0.3).abs().max()) < 0.1

@@ -282,10 +282,16 @@ def test_offset_1e7_and_scale_1e6():
         res = reconstruct(fwd(pts))
         assert ncomp(res) == ncomp(base)
         assert [s.triangles for s in res.stats] == [s.triangles for s in base.stats]
-        # At 1e7 the float64 input itself is rounded to ~2e-9 of its spread; the fit (a fixed
-        # number of L-BFGS steps) carries such perturbations up by ~1e5 (measured 3e-5..6e-4 of
-        # the diagonal, float32 or float64 alike), still far inside the tolerance
-        assert hausdorff(mapped(res, back), base.polylines) < 0.25 * base.stats[-1].tolerance
+        # At 1e7 the float64 input itself is rounded to ~2e-9 of its spread; the fit is not
+        # unique within its dead zone (one tolerance each side of the data), and the loop's
+        # values (a fixed number of L-BFGS steps) carry such perturbations up by ~1e5, so the
+        # band stage's refit may settle on the other side of the data: 0.97 tolerances here,
+        # 0.36-1.63 on 3 of 10 such stars (band_solver newton alike; 1 of 10, 2.8, with the
+        # noise estimate of session 23). Both curves stay within the tolerance of the data, so
+        # within about two of each other
+        tol = base.stats[-1].tolerance
+        assert hausdorff(mapped(res, back), base.polylines) < 2.0 * tol
+        assert hausdorff(mapped(res, back), [(truth, True)]) < 0.01 * diag
 
 
 def test_cli_offset_1e7(tmp_path, capsys):

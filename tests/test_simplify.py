@@ -296,6 +296,9 @@ def test_a_speck_its_own_data_surround_is_kept():
     assert not surrounded_regions(mesh, speck, pts, torch.where(torch.arange(5) == 4, -1, face))[speck].any()
 
 
+from torch_isc.pipeline.simplify import ENCLOSE_UNEVEN  # noqa: E402
+
+
 def _enclosed_by_loops(mesh, s, pts, face, clear, chord, rings, min_points):
     """enclosed_vertices by plain loops: breadth-first edge distances from every vertex, the
     points of the triangles with a corner within ``rings`` edges, sorted by angle."""
@@ -331,7 +334,11 @@ def _enclosed_by_loops(mesh, s, pts, face, clear, chord, rings, min_points):
         closed = got + [(got[0][0] + 2 * math.pi, got[0][1])]
         big = max(math.hypot(q[1][0] - p[1][0], q[1][1] - p[1][1]) for p, q in zip(closed, closed[1:]))
         gap = max(q[0] - p[0] for p, q in zip(closed, closed[1:]))
-        out.append(r >= clear and big <= chord * r and gap <= 2 * math.asin(min(chord / 2, 1)))
+        # the chords between neighbours by angle (not the closing one), their lower median
+        inner = sorted(math.hypot(q[1][0] - p[1][0], q[1][1] - p[1][1]) for p, q in zip(got, got[1:]))
+        med = inner[(len(inner) - 1) // 2]
+        out.append(r >= clear and big <= chord * r and gap <= 2 * math.asin(min(chord / 2, 1))
+                   and big <= ENCLOSE_UNEVEN * med)
     return out
 
 
@@ -384,6 +391,21 @@ def test_enclose_flips_the_vertex_a_missed_ring_surrounds():
     for dep, fires in ((0.5 * h, False), (0.7 * h, True)):
         got = enclosed_vertices(mesh, plus, ring, face, clear, 1.5, 2, 6, torch.full((V,), dep, dtype=torch.float64))
         assert bool(got[c]) == fires
+    # four small rings round c (a grid of small curves): all round it, chords within 2.5 times
+    # the distance, but the chords between the rings are many times those within them
+    import torch_isc.pipeline.simplify as simplify_mod
+    u = torch.arange(6, dtype=torch.float64) * (2 * math.pi / 6)
+    small = torch.stack([torch.cos(u), torch.sin(u)], 1) * 0.1 * h
+    four = torch.cat([v[c] + h * torch.tensor([math.cos(a), math.sin(a)], dtype=torch.float64) + small
+                      for a in (0.8, 0.8 + math.pi / 2, 0.8 + math.pi, 0.8 + 3 * math.pi / 2)])
+    f4 = _faces_by_brute_force(mesh, four)
+    assert not enclosed_vertices(mesh, plus, four, f4, clear, 2.5, 2)[c]
+    keep = simplify_mod.ENCLOSE_UNEVEN
+    try:
+        simplify_mod.ENCLOSE_UNEVEN = float("inf")            # the rule off: c would fire
+        assert enclosed_vertices(mesh, plus, four, f4, clear, 2.5, 2)[c]
+    finally:
+        simplify_mod.ENCLOSE_UNEVEN = keep
     # fewer points than min_points: no ring
     assert not enclosed_vertices(mesh, plus, ring, face, clear, 1.5, 2, 9).any()
     # a curve already there (c negative): nothing to do

@@ -304,8 +304,11 @@ def noise_and_frames(points: torch.Tensor, point_item: torch.Tensor, num_items: 
     shifted Morton orders, so the cost is a sort, not a search); the noise variance is the
     median over the item of the residual variance, corrected for the three parameters of the
     fit. A straight line would read the sagitta of a sparsely sampled arc as noise (60 points
-    on a circle: 1.8% of the radius). Points are expected normalized per item (bounding box
-    centred, diagonal 1).
+    on a circle: 1.8% of the radius). The same fit over ``k // 2`` neighbours is made too; where
+    it reads far less (:data:`MISFIT_RATIOS`), the full neighbourhood holds more than one
+    parabola explains (a bend of a curve of few points, two close strands) and the smaller
+    fit's variance is the estimate (a clean circle of 16 points: 0.7% of its radius, against
+    12%). Points are expected normalized per item (bounding box centred, diagonal 1).
 
     When the points are much denser than the noise is wide, ``k`` neighbours form a round
     blob and their residual measures the spacing, not the noise. An item whose median
@@ -344,25 +347,36 @@ def noise_and_frames(points: torch.Tensor, point_item: torch.Tensor, num_items: 
         # read as a noisy band at k neighbours; the nearest few see one strand each
         k_s = max(3, k // 2)
         var_s, _, _, frames_s = _noise_at_scale(points, point_item, num_items, k_s, window)
-        w_s = _strand_ramp(var_s, var0)
+        w_s = _ratio_ramp(var_s, var0, STRAND_RATIOS)
         frames = torch.where((w_s >= 0.5)[point_item][:, None], frames_s, frames)
         level = _blob_refit(points, point_item, num_items, var0, asp, source, k, window, min_points,
                             blob_aspect, line_aspect)
-        return NoiseEstimate((w_s * var_s + (1 - w_s) * level).sqrt(), frames)
+        # the fewer neighbours' variance where the full one is mostly misfit (two strands in one
+        # neighbourhood, or a sparse curve's bend); it is never above what the strand test takes
+        w = _ratio_ramp(var_s, var0, MISFIT_RATIOS)
+        return NoiseEstimate((w * var_s + (1 - w) * level).sqrt(), frames)
 
 
 #: The strand test's ramp over the ratio of the noise read at half the neighbours to the noise
-#: read at all of them: 1 (believe the half) below the first, 0 above the second. A noisy curve
-#: gives 0.2-1 (the fewer neighbours fit the noise a little more closely), a clean one 0.02-0.06
-#: (both are rounding and the parabola's misfit), two clean strands a few spacings apart 1e-3
-#: or less (the larger neighbourhood spans both).
+#: read at all of them: 1 (take the half's frames) below the first, 0 above the second. Two clean
+#: strands a few spacings apart give 1e-3 or less (the larger neighbourhood spans both).
 STRAND_RATIOS = (0.003, 0.01)
 
+#: The same ratio's ramp for the noise level: below the first, the fewer neighbours' variance is
+#: the estimate; above the second, the full one's. Noise dominates both fits on a well-sampled
+#: noisy curve, which gives 0.55-0.95 (the fewer neighbours fit the noise a little more closely;
+#: a dense noisy band, whose neighbourhoods are round, 0.55-0.7); where the full neighbourhood's
+#: misfit dominates, the ratio falls toward the clean curve's 0.02-0.2: two strands in one
+#: neighbourhood, or a sparsely sampled bend (eight neighbours span half of a 16-point circle,
+#: and even a parabola reads 12% of its radius as noise).
+MISFIT_RATIOS = (0.35, 0.5)
 
-def _strand_ramp(var_s: torch.Tensor, var0: torch.Tensor) -> torch.Tensor:
+
+def _ratio_ramp(var_s: torch.Tensor, var0: torch.Tensor, ratios: Tuple[float, float]) -> torch.Tensor:
     """``(B,)`` in [0, 1]: the weight of the fewer neighbours' variance ``var_s`` against the
-    full one ``var0``, a ramp in the log of their noise ratio over :data:`STRAND_RATIOS`."""
-    lo, hi = STRAND_RATIOS
+    full one ``var0``, a ramp in the log of their noise ratio over ``ratios`` (1 below the
+    first, 0 above the second)."""
+    lo, hi = ratios
     r = (var_s.double().clamp_min(0) / var0.double().clamp_min(1e-300)).sqrt().clamp_min(1e-300)
     w = (math.log(hi) - torch.log(r)) / (math.log(hi) - math.log(lo))
     return torch.where(var0 > 0, w.clamp(0.0, 1.0), torch.zeros_like(w)).to(var0.dtype)

@@ -41,7 +41,7 @@ from typing import TYPE_CHECKING
 import torch
 
 from torch_isc.core.mesh import MeshBatch
-from torch_isc.core.segments import edge_components
+from torch_isc.core.segments import segment_median, edge_components
 from torch_isc.pipeline import budget, graphs
 
 if TYPE_CHECKING:
@@ -249,6 +249,10 @@ def open_stage(ws: "WorkingSet", signs: torch.Tensor, pinned: torch.Tensor, cfg:
                       cfg.open_whole_regions, cfg.open_merge, data)
 
 
+#: the enclosure's ring may hold no chord longer than this many times its median chord
+ENCLOSE_UNEVEN = 5.0
+
+
 def enclosed_vertices(mesh: MeshBatch, signs: torch.Tensor, points: torch.Tensor, face: torch.Tensor,
                       clearance: torch.Tensor, chord: float = 1.5, rings: int = 2, min_points: int = 6,
                       depth: "torch.Tensor | None" = None) -> torch.Tensor:
@@ -262,8 +266,9 @@ def enclosed_vertices(mesh: MeshBatch, signs: torch.Tensor, points: torch.Tensor
     every neighbour has its sign, (2) it sees at least ``min_points`` such points and ``r >=
     clearance (V,)`` (it lies off the data, not in a noise band), and (3) going round ``v`` by
     angle, every two consecutive points (the last and the first too) are at most ``chord · r``
-    apart and at most ``2 asin(chord / 2)`` apart in angle (97° at 1.5; the chord alone bounds
-    the angle only up to 180°, and a tight cluster on one side has short chords). So (3) asks
+    apart, at most :data:`ENCLOSE_UNEVEN` times their median chord apart, and at most
+    ``2 asin(chord / 2)`` apart in angle (97° at 1.5; the chord alone bounds the angle only up
+    to 180°, and a tight cluster on one side has short chords). So (3) asks
     for a closed ring of samples around ``v``: two walls of a stroke (a gap between their ends
     of twice ``r``) or scattered outliers (chords as long as their distance) are no such ring.
     Data all around a vertex with no curve near is a small closed curve the signs have missed
@@ -336,6 +341,13 @@ def enclosed_vertices(mesh: MeshBatch, signs: torch.Tensor, points: torch.Tensor
         max_gap = 2 * math.asin(min(chord / 2, 1.0))
         hit = (~mesh.is_boundary_vert & ~crossed & (count >= max(int(min_points), 3)) & (near >= clearance.to(v.dtype))
                & (big <= chord * near) & (gap <= max_gap))
+        if n:
+            # a ring of samples is spaced about evenly; separate clusters round v (small rings
+            # of a grid, blobs of a scatter) leave a few chords many times their typical one
+            # (6-12 times, against 1-3 for a sampled ring, noisy or not)
+            # (the chords between two vertices' rows go to a dummy segment V: no host read)
+            med = segment_median((x[1:] - x[:-1]).norm(dim=1), torch.where(same, recv[1:], V), V + 1)[:V]
+            hit = hit & (big <= ENCLOSE_UNEVEN * med)
         if depth is not None:
             # the ring lies inside the vertex's own region, nearer than the zero set: noisy
             # points round a coarse curve (outside its crossed triangles) ring its centre too

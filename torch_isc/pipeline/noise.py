@@ -352,7 +352,8 @@ def noise_and_frames(points: torch.Tensor, point_item: torch.Tensor, num_items: 
         level = _blob_refit(points, point_item, num_items, var0, asp, source, k, window, min_points,
                             blob_aspect, line_aspect)
         # the fewer neighbours' variance where the full one is mostly misfit (two strands in one
-        # neighbourhood, or a sparse curve's bend); it is never above what the strand test takes
+        # neighbourhood, or a sparse curve's bend); this ramp lies above the strand test's, so
+        # the level needs only this one
         w = _ratio_ramp(var_s, var0, MISFIT_RATIOS)
         return NoiseEstimate((w * var_s + (1 - w) * level).sqrt(), frames)
 

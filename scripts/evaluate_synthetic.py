@@ -338,11 +338,10 @@ def make_case(i: int, kinds: Sequence[str], rng: np.random.Generator, glyphs: st
         fns = [ellipse(r, r, x, y) for x, y, r in cs]
         counts = [max(6, int(round(2 * math.pi * r / h))) for _, _, r in cs]
     elif kind == "sparsefont":
-        kind_font = make_case(i, ("font",), rng, glyphs, (0.0,), font_glyphs)
-        extra = {k: kind_font[k] for k in ("glyph", "font") if k in kind_font}
-        fns = [polyline_curve(np.asarray(c)) for c in kind_font["truth"]["curves"]]
-        counts = None
-        points = int(rng.integers(90, 200))
+        glyph = make_case(i, ("font",), rng, glyphs, (0.0,), font_glyphs)
+        extra = {k: glyph[k] for k in ("glyph", "font") if k in glyph}
+        fns = [polyline_curve(np.asarray(c)) for c in glyph["truth"]["curves"]]
+        points = int(rng.integers(90, 200))          # its own count, as the kinds with counts
     else:
         raise ValueError(f"unknown kind {kind!r} (known: {', '.join(ALL_KINDS)})")
     lengths = [arclength_samples(f, 8, 0.0)[1] for f in fns]

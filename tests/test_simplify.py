@@ -8,7 +8,7 @@ import torch
 from conftest import components_by_bfs
 from torch_isc.core.mesh import hexagon_mesh
 from torch_isc.core.segments import edge_components
-from torch_isc.pipeline.simplify import cluster_flip_change, descend_clusters
+from torch_isc.pipeline.simplify import ENCLOSE_UNEVEN, cluster_flip_change, descend_clusters
 from torch_isc.pipeline.support import edge_data_gap, unsupported_coupling
 
 
@@ -294,9 +294,6 @@ def test_a_speck_its_own_data_surround_is_kept():
     assert not surrounded_regions(mesh, speck, pts[:4], face[:4])[speck].any()
     # a point in no triangle (face −1) counts for nothing
     assert not surrounded_regions(mesh, speck, pts, torch.where(torch.arange(5) == 4, -1, face))[speck].any()
-
-
-from torch_isc.pipeline.simplify import ENCLOSE_UNEVEN  # noqa: E402
 
 
 def _enclosed_by_loops(mesh, s, pts, face, clear, chord, rings, min_points):

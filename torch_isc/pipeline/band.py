@@ -7,7 +7,10 @@ splits the triangles the zero set crosses (and ``band_rings`` rings of neighbour
 ``band_levels`` rounds (the magnitudes refitted before each later round, so a round splits
 the fitted curve's triangles, not the loop's), never a triangle whose longest edge is below ``band_min_size`` noise
 widths: a triangle narrower than the noise band has too few points on either side of the
-curve for its line to average them, and the zero set would start chasing points. New
+curve for its line to average them, and the zero set would start chasing points. Later
+rounds split only noisy items' triangles (``band_noisy``) that hold ``band_min_points`` points
+or more (where samples are sparse a finer band has nothing to average), and their refits
+change only those items' values, so an item's result does not depend on its batch. New
 vertices take the piecewise-linear ``f`` (the zero set does not move and the topology is
 kept, see :meth:`ImplicitCurve.refine_band`). The magnitudes are then refitted with the
 loop's objective (:class:`~torch_isc.pipeline.values.GeometryObjective`: ``Δ1`` plus the
@@ -49,11 +52,18 @@ __all__ = ["BandConfig", "band_marks", "wrap_fraction", "spike_vertices", "band_
 class BandConfig:
     """The band stage (flat keys of configs/default.yaml)."""
     #: rounds of refinement around the curve before the final refit; 0 disables the stage
-    band_levels: int = knob(1, ge=0)
+    band_levels: int = knob(2, ge=0)
     #: rounds after the first refine only items whose estimated noise is above this fraction of
     #: their tolerance: on clean data a finer band only puts vertices into the gaps between
     #: samples, where the curve's side of each is a coin toss the refit then bends round
     band_noisy: float = knob(0.1, ge=0)
+    #: ...and split only triangles holding at least this many points: where the samples are
+    #: sparse (a sampling gap, a thin stretch of few points) a finer band has nothing for its
+    #: new vertices to average, and the refit bends the curve round them
+    band_min_points: int = knob(4, ge=0)
+    #: spike rounds of the refits between two splits (at most spike_rounds; the final refit runs
+    #: spike_rounds): each round is a whole fit, and the final refit flips what is left
+    band_between_rounds: int = knob(1, ge=0)
     #: rings of neighbours of the crossed triangles split with them
     band_rings: int = knob(1, ge=0)
     #: a triangle whose longest edge is below this many noise widths is not split
@@ -195,23 +205,29 @@ def band_stage(ws: "WorkingSet", cfg: BandConfig, geometry: GeometryConfig, slac
     if exact_signs and cfg.spike_unsupported:
         cfg = dataclasses.replace(cfg, spike_unsupported=False)
     gcfg = dataclasses.replace(geometry, smoothness=cfg.band_smoothness, lbfgs_iterations=cfg.band_iterations)
-    fitted = False
     for level in range(cfg.band_levels):
         if level > 0:
+            # later levels only for noisy items (the others keep their values, so an item's
+            # result does not depend on its batch)
+            later = ws.noise > cfg.band_noisy * slack
+            if not bool(later.any()):
+                break
             # refit before the next split: split again on the loop's interpolated f, a
             # new vertex next to the data inherits a tiny |f| and the final fit draws a
             # spike toward it (public circle_n2: Hausdorff 1.2% -> 5.7% without this)
-            ws = _with_values(ws, _refit_any(ws, cfg, gcfg, slack, neighbours))
-            fitted = True
+            between = dataclasses.replace(cfg, spike_rounds=min(cfg.spike_rounds, cfg.band_between_rounds))
+            fit = _refit_any(ws, between, gcfg, slack, neighbours)
+            ws = _with_values(ws, torch.where(later[ws.mesh.vert_item], fit, ws.values))
         marked = band_marks(ws, cfg, max_triangles)
         if level > 0:
-            marked = marked & (ws.noise > cfg.band_noisy * slack)[ws.mesh.face_item]
+            marked = marked & later[ws.mesh.face_item]
+            if cfg.band_min_points > 0:
+                count = segment_sum((ws.face >= 0).long(), ws.face.clamp_min(0), ws.mesh.faces.shape[0])
+                marked = marked & (count >= cfg.band_min_points)
         if not bool(marked.any()):
             break
         ws = ws.follow(subdivide(ws.mesh, marked))
-        fitted = False
-    if not fitted:
-        ws = _with_values(ws, _refit_any(ws, cfg, gcfg, slack, neighbours))
+    ws = _with_values(ws, _refit_any(ws, cfg, gcfg, slack, neighbours))
     # the snap's neighbour search is one large step: past the deadline it is left out (the
     # items then end "max_seconds") rather than overrun it
     if cfg.band_snap and not budget.skip():

@@ -367,7 +367,9 @@ def test_crust_gate_reads_the_noise_against_the_spacing():
     the contradiction splits stay at the old gate, ``crust.REFINE_NOISE``). The 9's noise is
     estimated at 1.05 tolerances, so ``relax_noisy`` (0.5) leaves its mesh unrelaxed and it comes
     back with 3 loops; the gate is compared with every item relaxed and no transverse coverage
-    split (on for items noisier than half their tolerance, it resolves the 9 with either gate), as
+    split (on for items noisier than half their tolerance, it resolves the 9 with either gate), and
+    with the test's noise factors of the time (``noise_factor`` 3, ``thin_feature_factor`` 3; with
+    session 26's 2.5 and 1.0 this old noise estimate splits the 9 into 3 loops under either gate), as
     when it was set."""
     import sys
     from pathlib import Path
@@ -383,7 +385,8 @@ def test_crust_gate_reads_the_noise_against_the_spacing():
     pts = [torch.as_tensor(c["points"], dtype=torch.float64) for c in cases]
     want = [len(c["truth"]["curves"]) for c in cases]
     assert want == [1, 2]
-    cfg = ReconstructConfig().replace(relax_noisy=1e6, coverage_transverse=0.0)
+    cfg = ReconstructConfig().replace(relax_noisy=1e6, coverage_transverse=0.0, noise_factor=3.0,
+                                      thin_feature_factor=3.0)
     import torch_isc.pipeline.noise as noise_mod
     keep = noise_mod.MISFIT_RATIOS
     try:

@@ -42,11 +42,12 @@ class TestConfig:
     #: max (the paper's delta_t) or rms
     test_statistic: str = knob("max", choices=("max", "rms"))
     #: the tolerance used is at least this many times the estimated noise; 0 disables
-    noise_factor: float = knob(3.0, ge=0)
+    noise_factor: float = knob(2.5, ge=0)
     #: fewer points than this cannot split a triangle for fitting error alone
     min_points_split: int = knob(6, ge=0)
-    #: ...but a line-fit error this many times above the noise splits it (thin features)
-    thin_feature_factor: float = knob(3.0, ge=0)
+    #: ...but a line-fit error this many times above the noise splits it (thin features; the fit
+    #: sees the denoised points, whose spread about one strand is a fraction of the noise)
+    thin_feature_factor: float = knob(1.0, ge=0)
     #: never split a triangle whose longest edge is below this many effective tolerances
     min_split_size: float = knob(3.0, ge=0)
     #: also test curve-to-data (walls across rings, bridges between close curves)

@@ -1,0 +1,39 @@
+"""The test stage's noise factors (session 26): the loop reads denoised points, so one noise width
+of line-fit rms already means two strands, and the tolerance floor is 2.5 noise widths."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+import torch_isc
+from torch_isc import ReconstructConfig
+
+
+def _broad_cases(seed, names):
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+    import evaluate_synthetic as es
+    suite = es.SUITES["broad"]
+    kinds = suite["kinds"].split(",")
+    noises = tuple(float(x) for x in suite["noises"].split(","))
+    rng = np.random.default_rng(seed)
+    cases = [es.make_case(i, kinds, rng, es.GLYPHS, noises, es.FONT_GLYPHS) for i in range(max(names) + 1)]
+    return [cases[i] for i in names]
+
+
+def test_dumbbell_necks_at_one_percent_noise_stay_one_curve():
+    """Two dumbbells of the broad suite (seed 0) at 1% noise, necks 4-7 noise widths wide. With
+    the factors of session 25 (3 and 3) the loop stopped at level 1, with triangles of about 12
+    noise widths, on a curve that walled off the neck at a junction: two loops each. With the
+    defaults, each is the one curve it is drawn as."""
+    cases = _broad_cases(0, [31, 79])
+    assert [c["kind"] for c in cases] == ["dumbbell", "dumbbell"]
+    assert [c["noise"] for c in cases] == ["n1", "n1"]
+    assert [len(c["truth"]["curves"]) for c in cases] == [1, 1]
+    pts = [torch.as_tensor(c["points"], dtype=torch.float64) for c in cases]
+    now = torch_isc.reconstruct_batch(pts, ReconstructConfig())
+    assert [(r.num_closed, r.num_open) for r in now] == [(1, 0), (1, 0)]
+    old = torch_isc.reconstruct_batch(pts, ReconstructConfig().replace(noise_factor=3.0, thin_feature_factor=3.0))
+    assert [r.num_closed for r in old] == [2, 2]

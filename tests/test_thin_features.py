@@ -25,9 +25,9 @@ def _broad_cases(seed, names):
 
 def test_dumbbell_necks_at_one_percent_noise_stay_one_curve():
     """Two dumbbells of the broad suite (seed 0) at 1% noise, necks 4-7 noise widths wide. With
-    the factors of session 25 (3 and 3) the loop stopped at level 1, with triangles of about 12
-    noise widths, on a curve that walled off the neck at a junction: two loops each. With the
-    defaults, each is the one curve it is drawn as."""
+    the factors of session 25 (3 and 3) each comes back as two loops, the neck walled off at a
+    junction (traced for the second: the loop stopped at level 1, with triangles of about 12 noise
+    widths). With the defaults, each is the one curve it is drawn as."""
     cases = _broad_cases(0, [31, 79])
     assert [c["kind"] for c in cases] == ["dumbbell", "dumbbell"]
     assert [c["noise"] for c in cases] == ["n1", "n1"]

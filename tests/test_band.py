@@ -291,3 +291,40 @@ def test_later_levels_do_not_depend_on_the_batch():
     for alone, together in zip((torch_isc.reconstruct(noisy), torch_isc.reconstruct(clean)), both):
         assert alone.num_closed == together.num_closed == 1
         assert torch.equal(alone.polylines[0]["points"], together.polylines[0]["points"])
+
+
+def test_stranded_points_count_what_a_flip_cuts_off():
+    """A spike of the inside toward the centre vertex (it and one neighbour negative, values
+    -1/+1), with points on the curve at its end: where it crosses the centre's edge to the
+    neighbour opposite the root, half an edge (0.25; edges of 0.5) from the centre. Flipping the
+    centre (to +0.5) takes the curve back to the root's star, over a third of an edge from them.
+    Each point counts for the corners of its triangle and of the triangle's neighbours."""
+    from torch_isc.pipeline.band import stranded_points
+    m = _hex(2)
+    c = _centre(m)
+    e = float((m.verts[m.edges[0, 0]] - m.verts[m.edges[0, 1]]).norm())
+    nb = [int(j) for ed in m.edges.tolist() for j in ed if c in ed and j != c]
+    root = nb[0]
+    far = max(nb, key=lambda j: float((m.verts[j] - m.verts[root]).norm()))
+    v = torch.ones(m.verts.shape[0], dtype=torch.float64)
+    v[c] = v[root] = -1.0
+    mid = 0.5 * (m.verts[c] + m.verts[far])
+    t = (m.verts[far] - m.verts[c]) / e
+    n = torch.stack([-t[1], t[0]])
+    pts = mid + torch.tensor([-0.02, -0.01, 0.01, 0.02], dtype=torch.float64)[:, None] * e * n
+    ws = _ws(m, pts, 0.01)
+    ws.point_item = torch.zeros(4, dtype=torch.long)
+    trial = v.clone()
+    trial[c] = 0.5
+    slack = torch.tensor([0.1 * e], dtype=torch.float64)
+    k = stranded_points(ws, v, trial, slack)
+    assert int(k[c]) == 4 and int(k[far]) == 4
+    # the vertices counted are the corners of the points' triangles and of their neighbours
+    f = ws.face
+    ring = torch.cat([f, m.face_neighbors[f].reshape(-1)])
+    ring = ring[ring >= 0]
+    assert set(torch.nonzero(k).squeeze(1).tolist()) == set(m.faces[ring].reshape(-1).tolist())
+    # a tolerance wider than the cut: nothing is stranded
+    assert int(stranded_points(ws, v, trial, torch.tensor([2.0 * e], dtype=torch.float64)).sum()) == 0
+    # no change of signs: nothing is stranded either
+    assert int(stranded_points(ws, v, v, slack).sum()) == 0

@@ -88,6 +88,8 @@ def _as_real_tensor(im, label: str) -> torch.Tensor:
         raise ImageError(f"{label}: expected a bool, integer or float array, got dtype {im.dtype}")
     if im.dtype in _UNSIGNED:
         im = im.to(_UNSIGNED[im.dtype])
+    elif im.dtype.is_floating_point and im.element_size() == 1:
+        im = im.float()                              # float8: few kernels exist for it (isfinite, >)
     elif im.dtype == torch.uint64:
         im = im.double()
     return im.detach()

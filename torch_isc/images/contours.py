@@ -187,7 +187,8 @@ def warn_coarse(big: float, dtype, what: str) -> None:
     :data:`SUBPIXEL_STEP`: float32 at 1e8 holds every 8th pixel, and a sub-pixel curve would
     collapse onto a few columns with no sign of it. ``what`` starts the message."""
     dt = np.dtype(dtype)
-    step = float(np.spacing(dt.type(big)))
+    with np.errstate(over="ignore"):                  # beyond the type's range: inf, refused by the caller
+        step = float(np.spacing(dt.type(big)))
     if step > SUBPIXEL_STEP:
         warnings.warn(f"{what} up to {big:.3g} hold only steps of {step:.3g} px in {dt.name} (sub-pixel detail "
                       f"lost); add so large an offset in float64 after the call", stacklevel=3)

@@ -117,7 +117,7 @@ def edge_points(images: Union[ImageLike, Sequence[ImageLike]], low_threshold: fl
             cnt = torch.zeros(uniq.shape[0], dtype=pts.dtype, device=pts.device).index_add_(
                 0, inv, torch.ones_like(pts[:, 0]))
             pts = acc / cnt[:, None]
-            bi = torch.zeros(uniq.shape[0], dtype=torch.long, device=pts.device).index_reduce_(
+            bi = torch.zeros(uniq.shape[0], dtype=torch.long, device=pts.device).scatter_reduce_(
                 0, inv, bi, "amax", include_self=False)
         counts = torch.bincount(bi, minlength=len(idx)).tolist()
         for b, q in zip(idx, pts.split(counts)):

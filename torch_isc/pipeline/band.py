@@ -88,6 +88,9 @@ class BandConfig:
     spike_wrap: float = knob(0.7, gt=0.5, le=1)
     #: ...and it lies within this many noise widths of the data
     spike_reach: float = knob(2.0, ge=0)
+    #: a spike whose flip would leave this many points of its star farther than the tested
+    #: tolerance from the curve is kept (a sharp tip the data run into); 0 disables the check
+    spike_keep_points: int = knob(3, ge=0)
     #: the spike rounds also flip unsupported tips (pipeline/tips.py: simple vertices at least
     #: half of whose crossings lie farther than the tested tolerance from the data)
     spike_unsupported: bool = knob(True)
@@ -156,12 +159,41 @@ def spike_vertices(ws: "WorkingSet", values: torch.Tensor, cfg: BandConfig) -> t
         return (wrap_fraction(ws.mesh, values) > cfg.spike_wrap) & (near <= reach)
 
 
-def _flip_spikes(ws: "WorkingSet", values: torch.Tensor, cfg: BandConfig) -> torch.Tensor:
+def stranded_points(ws: "WorkingSet", values: torch.Tensor, trial: torch.Tensor, slack: torch.Tensor) -> torch.Tensor:
+    """``(V,)`` how many points of each vertex's star the curve of ``trial`` leaves farther than
+    ``slack`` (per item) and half as far again as the curve of ``values`` did: what a change of
+    signs would cut off (the sliver of a sharp tip the data run into), not what it would tidy up."""
+    from torch_isc.pipeline.tolerance import point_curve_distance2
+    m = ws.mesh
+    allow = slack.to(values.dtype)[ws.point_item] ** 2
+    before = point_curve_distance2(m, values, ws.points, ws.face)
+    after = point_curve_distance2(m, trial, ws.points, ws.face)
+    # a point already beyond it counts when the change takes the curve half as far again away
+    lost = (ws.face >= 0) & (after > allow) & (after > 2.25 * before)
+    # a point votes for the corners of its triangle and of that triangle's neighbours: a tip
+    # cut back leaves the points beyond it a triangle or so past the flipped vertex's star
+    f = ws.face.clamp_min(0)
+    nb = m.face_neighbors[f]                                               # (P,3)
+    ring = torch.cat([f[:, None], nb.where(nb >= 0, f[:, None])], 1)      # (P,4)
+    corners = m.faces[ring].reshape(-1, 12).sort(1).values
+    first = torch.ones_like(corners, dtype=torch.bool)
+    first[:, 1:] = corners[:, 1:] != corners[:, :-1]                      # each vertex once per point
+    out = torch.zeros(m.verts.shape[0], dtype=torch.long, device=values.device)
+    return out.index_add_(0, corners.reshape(-1), (first & lost[:, None]).long().reshape(-1))
+
+
+def _flip_spikes(ws: "WorkingSet", values: torch.Tensor, cfg: BandConfig,
+                 slack: Optional[torch.Tensor] = None) -> torch.Tensor:
     """``(V,)`` values with the simple spike vertices flipped (both signs, each an independent
-    set: :meth:`ImplicitCurve.flip_simple`, so every item keeps its topology)."""
+    set: :meth:`ImplicitCurve.flip_simple`, so every item keeps its topology). With ``slack
+    (B,)``, a spike whose flip would strand ``spike_keep_points`` points or more beyond it
+    (:func:`stranded_points`) is kept: the data run into it."""
     from torch_isc.core.curve import ImplicitCurve
     with torch.no_grad():
         cand = spike_vertices(ws, values, cfg)
+        if slack is not None and cfg.spike_keep_points > 0:
+            trial = torch.where(cand, -0.5 * values, values)
+            cand = cand & (stranded_points(ws, values, trial, slack) < cfg.spike_keep_points)
         c = ImplicitCurve(ws.mesh, values, validate=False)
         c, _ = c.flip_simple(candidates=cand, grow=True, ratio=0.5)
         c, _ = c.flip_simple(candidates=cand, grow=False, ratio=0.5)
@@ -303,7 +335,7 @@ def _refit(ws: "WorkingSet", cfg: BandConfig, gcfg: GeometryConfig, slack: torch
     # what the refit left and fits again)
     for r in budget.rounds(max(cfg.spike_rounds, 1)):
         if cfg.spike_rounds > 0:
-            values = _flip_spikes(ws, values, cfg)
+            values = _flip_spikes(ws, values, cfg, slack)
             if cfg.spike_unsupported:
                 values = _flip_tips(ws, values, slack, neighbours)
         signs = torch.where(values < 0, -1.0, 1.0).to(values.dtype)

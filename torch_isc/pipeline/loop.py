@@ -373,7 +373,7 @@ def _record(rec: StatsRecorder, level: int, ws: WorkingSet, verdict, d1: torch.T
     caller's units."""
     with torch.no_grad():
         nb = ws.num_items
-        sc = ws.scale.to(ws.dtype).double()
+        sc = ws.scale.double()                   # float64 frame: a float32 item of scale 1e-300 is not 0
         # points farther from the curve than the tolerance (outliers, or a feature the mesh has
         # not resolved): reported, since the test excuses them in sparse triangles
         beyond = segment_sum((verdict.residual > verdict.tolerance[ws.point_item] ** 2).long(), ws.point_item, nb)

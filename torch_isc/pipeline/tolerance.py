@@ -304,7 +304,8 @@ class Verdict:
     ``tolerance (B,)`` the effective tolerance, ``worst (B,)`` the largest error (a distance),
     ``residual (P,)`` each point's squared distance to the curve, ``unresolved (B,)`` how many
     points lie in clusters far from every curve (:func:`far_clusters`; 0 without that test):
-    structure the mesh has not resolved, which the size floor may keep from being split."""
+    structure the mesh has not resolved, which the size floor may keep from being split; or, in
+    an item where more than half of the points lie beyond the tolerance, how many do."""
     marked: torch.Tensor
     tolerance: torch.Tensor
     worst: torch.Tensor
@@ -330,8 +331,15 @@ def test_fit(ws: "WorkingSet", values: torch.Tensor, ev: "Evidence", cfg: TestCo
                                     cfg.far_cluster_factor, cfg.far_cluster_ratio)
         marked, eff, worst = mark_triangles(mesh, residual, ws.face, ev.moments.count, ev.fits.eps, ws.tol, ws.noise,
                                             cfg, min_points_fit, coverage=coverage, clusters=clusters)
-        unresolved = (segment_sum(clusters[0].long(), ws.point_item, mesh.num_items) if clusters is not None
-                      else torch.zeros(mesh.num_items, dtype=torch.long, device=residual.device))
+        B = mesh.num_items
+        unresolved = (segment_sum(clusters[0].long(), ws.point_item, B) if clusters is not None
+                      else torch.zeros(B, dtype=torch.long, device=residual.device))
+        # a curve that explains fewer than half of the points is no answer, whatever the test
+        # excused (triangles too sparse to split: 7 points of a circle around a small loop)
+        ok = ws.face >= 0
+        beyond = segment_sum((ok & (residual > eff[ws.point_item] ** 2)).long(), ws.point_item, B)
+        located = segment_sum(ok.long(), ws.point_item, B)
+        unresolved = torch.where(2 * beyond > located, torch.maximum(unresolved, beyond), unresolved)
         return Verdict(marked, eff, worst, residual, unresolved)
 
 

@@ -328,3 +328,46 @@ def test_stranded_points_count_what_a_flip_cuts_off():
     assert int(stranded_points(ws, v, trial, torch.tensor([2.0 * e], dtype=torch.float64)).sum()) == 0
     # no change of signs: nothing is stranded either
     assert int(stranded_points(ws, v, v, slack).sum()) == 0
+
+
+def _extend_case(n_far):
+    """A small loop around the centre (the only inside vertex), points on it at the midpoints
+    of the centre's edges except the one to ``w`` (a neighbour, f = 0.9), and ``n_far`` points
+    where the curve would cross ``w``'s edges to the outer ring if ``w`` were inside at half its
+    magnitude (0.45 against 1: 0.31 of an edge from ``w``), over half an edge from the loop."""
+    m = _hex(2)
+    c = _centre(m)
+    e = m.edges.tolist()
+    nb = sorted(int(j) for ed in e for j in ed if c in ed and j != c)
+    w = nb[0]
+    wn = sorted(int(j) for ed in e for j in ed if w in ed and j != w and j != c and j not in nb)
+    v = torch.ones(m.verts.shape[0], dtype=torch.float64)
+    v[c] = -1.0
+    v[w] = 0.9                 # the smallest |f| of the candidates: flip_simple's choice among neighbours
+    near = [0.5 * (m.verts[c] + m.verts[j]) for j in nb[1:]]
+    far = [m.verts[w] + (m.verts[j] - m.verts[w]) * (0.45 / 1.45) for j in wn[:n_far]]
+    pts = torch.stack(near + far)
+    ws = _ws(m, pts, 0.01)
+    ws.point_item = torch.zeros(pts.shape[0], dtype=torch.long)
+    return m, ws, v, w, len(wn)
+
+
+def test_extend_to_data_flips_the_vertex_that_brings_points_back():
+    from torch_isc.pipeline.band import _extend_to_data
+    m, ws, v, w, n_wn = _extend_case(3)
+    assert n_wn >= 3
+    e = float((m.verts[m.edges[0, 0]] - m.verts[m.edges[0, 1]]).norm())
+    slack = torch.tensor([0.05 * e], dtype=torch.float64)
+    out = _extend_to_data(ws, v, BandConfig(), slack)
+    changed = torch.nonzero(out != v).squeeze(1).tolist()
+    assert changed == [w] and float(out[w]) == -0.45
+    # two points are not enough (spike_keep_points 3), nor is a tolerance that already holds them
+    _, ws2, v2, _, _ = _extend_case(2)
+    assert torch.equal(_extend_to_data(ws2, v2, BandConfig(), slack), v2)
+    assert torch.equal(_extend_to_data(ws, v, BandConfig(), torch.tensor([2.0 * e], dtype=torch.float64)), v)
+    # a flip that would strand a point of the loop is not made: a point at the midpoint of the
+    # centre's edge to w (that edge is no longer crossed once w is inside)
+    mid = 0.5 * (m.verts[_centre(m)] + m.verts[w])
+    ws3 = _ws(m, torch.cat([ws.points, mid[None]]), 0.01)
+    ws3.point_item = torch.zeros(ws3.points.shape[0], dtype=torch.long)
+    assert torch.equal(_extend_to_data(ws3, v, BandConfig(), slack), v)

@@ -91,6 +91,10 @@ class BandConfig:
     #: a spike whose flip would leave this many points of its star farther than the tested
     #: tolerance from the curve is kept (a sharp tip the data run into); 0 disables the check
     spike_keep_points: int = knob(3, ge=0)
+    #: the spike rounds after the first also flip outside vertices next to the curve whose flip
+    #: brings spike_keep_points points or more back within the tested tolerance and strands none
+    #: (a tip the refit pulled back from the data it runs into)
+    spike_extend: bool = knob(True)
     #: the spike rounds also flip unsupported tips (pipeline/tips.py: simple vertices at least
     #: half of whose crossings lie farther than the tested tolerance from the data)
     spike_unsupported: bool = knob(True)
@@ -198,6 +202,49 @@ def _flip_spikes(ws: "WorkingSet", values: torch.Tensor, cfg: BandConfig,
         c, _ = c.flip_simple(candidates=cand, grow=True, ratio=0.5)
         c, _ = c.flip_simple(candidates=cand, grow=False, ratio=0.5)
         return c.values
+
+
+def _extend_to_data(ws: "WorkingSet", values: torch.Tensor, cfg: BandConfig, slack: torch.Tensor) -> torch.Tensor:
+    """``(V,)`` values with the simple outside vertices next to the curve (corners of its crossed
+    triangles and their neighbours) flipped inside, at half their magnitude, whose flip brings
+    ``spike_keep_points`` or more points back within ``slack (B,)`` of the curve and strands none
+    (each point counts for the corners of its triangle and of the triangle's neighbours, as in
+    :func:`stranded_points`): a tip the refit pulled back from the data it runs into."""
+    from torch_isc.core.curve import ImplicitCurve
+    from torch_isc.pipeline.tolerance import point_curve_distance2
+    with torch.no_grad():
+        m = ws.mesh
+        allow = slack.to(values.dtype)[ws.point_item] ** 2
+        before = point_curve_distance2(m, values, ws.points, ws.face)
+        ok = ws.face >= 0
+        off = ok & (before > allow)
+        # the corners of the triangles holding points off the curve, outside and next to it
+        tri = m.faces[ws.face.clamp_min(0)]
+        V = m.verts.shape[0]
+        cand = torch.zeros(V, dtype=torch.long, device=values.device).index_add_(
+            0, tri.reshape(-1), off.long()[:, None].expand(-1, 3).reshape(-1)) > 0
+        mixed = crossed_triangles(m, values, 1).long()[:, None].expand(-1, 3).reshape(-1)
+        near = torch.zeros(V, dtype=torch.long, device=values.device).index_add_(0, m.faces.reshape(-1), mixed) > 0
+        cand = cand & near & (values > 0)
+        # on trial: an independent set of simple ones (:meth:`ImplicitCurve.flip_simple`), so
+        # any subset of it can flip and keep the topology
+        trial, flip = ImplicitCurve(m, values, validate=False).flip_simple(candidates=cand, grow=True, ratio=0.5)
+        trial = trial.values
+        after = point_curve_distance2(m, trial, ws.points, ws.face)
+        back = (ok & (before > allow) & (after <= allow)).long()
+        lost = (ok & (after > allow) & (before <= allow)).long()
+        f = ws.face.clamp_min(0)
+        nb = m.face_neighbors[f]
+        ring = torch.cat([f[:, None], nb.where(nb >= 0, f[:, None])], 1)
+        corners = m.faces[ring].reshape(-1, 12).sort(1).values
+        first = torch.ones_like(corners, dtype=torch.bool)
+        first[:, 1:] = corners[:, 1:] != corners[:, :-1]
+        n_back = torch.zeros(V, dtype=torch.long, device=values.device).index_add_(
+            0, corners.reshape(-1), (first * back[:, None]).reshape(-1))
+        n_lost = torch.zeros(V, dtype=torch.long, device=values.device).index_add_(
+            0, corners.reshape(-1), (first * lost[:, None]).reshape(-1))
+        keep = flip & (n_back >= cfg.spike_keep_points) & (n_lost == 0)
+        return torch.where(keep, trial, values)
 
 
 def _flip_tips(ws: "WorkingSet", values: torch.Tensor, slack: torch.Tensor, neighbours: int = 8) -> torch.Tensor:
@@ -336,6 +383,8 @@ def _refit(ws: "WorkingSet", cfg: BandConfig, gcfg: GeometryConfig, slack: torch
     for r in budget.rounds(max(cfg.spike_rounds, 1)):
         if cfg.spike_rounds > 0:
             values = _flip_spikes(ws, values, cfg, slack)
+            if r > 0 and cfg.spike_extend and cfg.spike_keep_points > 0:
+                values = _extend_to_data(ws, values, cfg, slack)
             if cfg.spike_unsupported:
                 values = _flip_tips(ws, values, slack, neighbours)
         signs = torch.where(values < 0, -1.0, 1.0).to(values.dtype)

@@ -88,8 +88,9 @@ class BandConfig:
     spike_wrap: float = knob(0.7, gt=0.5, le=1)
     #: ...and it lies within this many noise widths of the data
     spike_reach: float = knob(2.0, ge=0)
-    #: a spike whose flip would leave this many points of its star farther than the tested
-    #: tolerance from the curve is kept (a sharp tip the data run into); 0 disables the check
+    #: a spike whose flip would leave this many points of its triangles and their neighbours
+    #: farther than the tested tolerance from the curve (and half as far again as before) is
+    #: kept (a sharp tip the data run into); 0 disables the check
     spike_keep_points: int = knob(3, ge=0)
     #: the spike rounds after the first also flip outside vertices next to the curve whose flip
     #: brings spike_keep_points points or more back within the tested tolerance and strands none
@@ -164,9 +165,10 @@ def spike_vertices(ws: "WorkingSet", values: torch.Tensor, cfg: BandConfig) -> t
 
 
 def stranded_points(ws: "WorkingSet", values: torch.Tensor, trial: torch.Tensor, slack: torch.Tensor) -> torch.Tensor:
-    """``(V,)`` how many points of each vertex's star the curve of ``trial`` leaves farther than
-    ``slack`` (per item) and half as far again as the curve of ``values`` did: what a change of
-    signs would cut off (the sliver of a sharp tip the data run into), not what it would tidy up."""
+    """``(V,)`` how many points near each vertex (:func:`_ring_votes`) the curve of ``trial``
+    leaves farther than ``slack (B,)`` and half as far again as the curve of ``values`` did: what
+    a change of signs would cut off (the sliver of a sharp tip the data run into), not what it
+    would tidy up."""
     from torch_isc.pipeline.tolerance import point_curve_distance2
     m = ws.mesh
     allow = slack.to(values.dtype)[ws.point_item] ** 2
@@ -174,23 +176,29 @@ def stranded_points(ws: "WorkingSet", values: torch.Tensor, trial: torch.Tensor,
     after = point_curve_distance2(m, trial, ws.points, ws.face)
     # a point already beyond it counts when the change takes the curve half as far again away
     lost = (ws.face >= 0) & (after > allow) & (after > 2.25 * before)
-    # a point votes for the corners of its triangle and of that triangle's neighbours: a tip
-    # cut back leaves the points beyond it a triangle or so past the flipped vertex's star
+    return _ring_votes(ws, lost)
+
+
+def _ring_votes(ws: "WorkingSet", flag: torch.Tensor) -> torch.Tensor:
+    """``(V,)`` for each vertex, how many flagged points (``flag (P,)``) have it as a corner of
+    their triangle or of one of that triangle's neighbours (each point once): a tip cut back
+    leaves the points beyond it a triangle or so past the flipped vertex's star."""
+    m = ws.mesh
     f = ws.face.clamp_min(0)
     nb = m.face_neighbors[f]                                               # (P,3)
     ring = torch.cat([f[:, None], nb.where(nb >= 0, f[:, None])], 1)      # (P,4)
     corners = m.faces[ring].reshape(-1, 12).sort(1).values
     first = torch.ones_like(corners, dtype=torch.bool)
     first[:, 1:] = corners[:, 1:] != corners[:, :-1]                      # each vertex once per point
-    out = torch.zeros(m.verts.shape[0], dtype=torch.long, device=values.device)
-    return out.index_add_(0, corners.reshape(-1), (first & lost[:, None]).long().reshape(-1))
+    out = torch.zeros(m.verts.shape[0], dtype=torch.long, device=flag.device)
+    return out.index_add_(0, corners.reshape(-1), (first & flag[:, None]).long().reshape(-1))
 
 
 def _flip_spikes(ws: "WorkingSet", values: torch.Tensor, cfg: BandConfig,
                  slack: Optional[torch.Tensor] = None) -> torch.Tensor:
     """``(V,)`` values with the simple spike vertices flipped (both signs, each an independent
     set: :meth:`ImplicitCurve.flip_simple`, so every item keeps its topology). With ``slack
-    (B,)``, a spike whose flip would strand ``spike_keep_points`` points or more beyond it
+    (B,)``, a spike whose flip would strand ``spike_keep_points`` points or more
     (:func:`stranded_points`) is kept: the data run into it."""
     from torch_isc.core.curve import ImplicitCurve
     with torch.no_grad():
@@ -208,8 +216,7 @@ def _extend_to_data(ws: "WorkingSet", values: torch.Tensor, cfg: BandConfig, sla
     """``(V,)`` values with the simple outside vertices next to the curve (corners of its crossed
     triangles and their neighbours) flipped inside, at half their magnitude, whose flip brings
     ``spike_keep_points`` or more points back within ``slack (B,)`` of the curve and strands none
-    (each point counts for the corners of its triangle and of the triangle's neighbours, as in
-    :func:`stranded_points`): a tip the refit pulled back from the data it runs into."""
+    (counted by :func:`_ring_votes`): a tip the refit pulled back from the data it runs into."""
     from torch_isc.core.curve import ImplicitCurve
     from torch_isc.pipeline.tolerance import point_curve_distance2
     with torch.no_grad():
@@ -231,18 +238,8 @@ def _extend_to_data(ws: "WorkingSet", values: torch.Tensor, cfg: BandConfig, sla
         trial, flip = ImplicitCurve(m, values, validate=False).flip_simple(candidates=cand, grow=True, ratio=0.5)
         trial = trial.values
         after = point_curve_distance2(m, trial, ws.points, ws.face)
-        back = (ok & (before > allow) & (after <= allow)).long()
-        lost = (ok & (after > allow) & (before <= allow)).long()
-        f = ws.face.clamp_min(0)
-        nb = m.face_neighbors[f]
-        ring = torch.cat([f[:, None], nb.where(nb >= 0, f[:, None])], 1)
-        corners = m.faces[ring].reshape(-1, 12).sort(1).values
-        first = torch.ones_like(corners, dtype=torch.bool)
-        first[:, 1:] = corners[:, 1:] != corners[:, :-1]
-        n_back = torch.zeros(V, dtype=torch.long, device=values.device).index_add_(
-            0, corners.reshape(-1), (first * back[:, None]).reshape(-1))
-        n_lost = torch.zeros(V, dtype=torch.long, device=values.device).index_add_(
-            0, corners.reshape(-1), (first * lost[:, None]).reshape(-1))
+        n_back = _ring_votes(ws, ok & (before > allow) & (after <= allow))
+        n_lost = _ring_votes(ws, ok & (after > allow) & (before <= allow))
         keep = flip & (n_back >= cfg.spike_keep_points) & (n_lost == 0)
         return torch.where(keep, trial, values)
 

@@ -198,17 +198,34 @@ class GeometryObjective:
             v = mesh.verts.detach()
             self.cross = crossing_weight > 0 and data_dist is not None and slack is not None
             crossed = signs[mesh.edges[:, 0]] != signs[mesh.edges[:, 1]]
-            # both edge selections from one host read
-            n_int, n_cross = torch.stack([interior.sum(), (crossed if self.cross else interior).sum()]).tolist()
+            # only the faces with points (Δ1) or on a band edge (the jump of ∇f) enter the
+            # objective: an empty face's Δ1 term is 0 · finite, so leaving it out changes no sum
+            used = (mom.count > 0).index_fill(0, ef_all[interior].reshape(-1), True)
+            # the variables that can move: the corners of those faces and the crossings' ends (a
+            # vertex of none has a zero gradient at every step, so L-BFGS never moves it)
+            nuse = torch.zeros(signs.shape[0], dtype=torch.long, device=dev).index_add_(
+                0, mesh.faces.reshape(-1), used.long().repeat_interleave(3))
+            if self.cross:
+                nuse = nuse.index_add_(0, mesh.edges.reshape(-1), crossed.long().repeat_interleave(2))
+            vused = nuse > 0
+            # the four selections from one host read
+            n_int, n_cross, n_used, n_var = torch.stack([interior.sum(), (crossed if self.cross else interior).sum(),
+                                                         used.sum(), vused.sum()]).tolist()
+            self._vars = None if n_var == signs.shape[0] else (true_indices(vused, n_var), torch.cumsum(vused, 0) - 1)
             ii = true_indices(interior, n_int)
             e = mesh.edges[ii]
+            kf = true_indices(used, n_used)
+            fmap = torch.cumsum(used, 0) - 1
             self.inv_tol2 = 1.0 / (tol * tol)
             # per face: vertices, gradients, moments, weight (Δ1 in units of tol²), guard
-            self.faces, self.G, self.M, self.fi = mesh.faces, G, mom.M, fi
+            fi = fi[kf]
+            self.face_ids = kf                  # the mesh's index of each of the objective's faces
+            self.faces, self.G, self.M, self.fi = mesh.faces[kf], G[kf], mom.M[kf], fi
+            wt = wt[kf]
             self.wt = wt * self.inv_tol2[fi]
             self.wt_raw = wt
             self.guard = ((1e-10 * mean_mag) ** 2)[fi]
-            self.ef = mesh.edge_faces[ii]
+            self.ef = fmap[mesh.edge_faces[ii]]
             self.ef_ab = torch.cat([self.ef[:, 0], self.ef[:, 1]])
             self.el = (v[e[:, 0]] - v[e[:, 1]]).norm(dim=1)
             self.eitem = mesh.edge_item[ii]
@@ -231,6 +248,34 @@ class GeometryObjective:
                 mean_h = segment_sum(h, vi, B) / nv.clamp_min(1)
                 h = h + cfg.precondition * mean_h[vi]
                 self.pc = torch.where(h > 0, h.clamp_min(torch.finfo(dt).tiny).rsqrt(), torch.ones_like(h))
+
+    def variables(self) -> Tuple["GeometryObjective", Optional[torch.Tensor]]:
+        """``(sub, kv)``: the same objective in the variables ``s[kv]`` alone, the vertices that
+        can move (``kv``: None when that is all of them, ``sub`` then this objective). Every
+        per-item sum of the fit runs in entry order, so leaving out entries whose every term is
+        zero changes no bit of the result: ``s0`` with ``s0[kv]`` set to ``sub``'s minimizer is
+        this objective's."""
+        if self._vars is None:
+            return self, None
+        kv, vmap = self._vars
+        with torch.no_grad():
+            sub = object.__new__(GeometryObjective)
+            sub.__dict__.update(self.__dict__)
+            sub._vars = None
+            sub.vi, sub.signs, sub.floor, sub.s0 = self.vi[kv], self.signs[kv], self.floor[kv], self.s0[kv]
+            sub.pc = None if self.pc is None else self.pc[kv]
+            sub.faces = vmap[self.faces]
+            if self.cross:
+                sub.ce = vmap[self.ce]
+            sub._constants()
+        return sub, kv
+
+    def delta1(self, F: torch.Tensor) -> torch.Tensor:
+        """``(T',)`` :func:`delta1_per_triangle` of the values ``F (V,)`` on the objective's faces."""
+        Ft = F[self.faces]
+        num = torch.einsum("ti,tij,tj->t", Ft, self.M, Ft)
+        g2, _ = _grad_norm2_g(self.G, Ft)
+        return num / (g2 + self.guard)
 
     def _constants(self) -> None:
         """What every evaluation would otherwise recompute (exact rewrites: products by ±1 and 2,
@@ -329,6 +374,7 @@ class GeometryObjective:
             sub.pc = None if self.pc is None else self.pc[v]
             sub.faces, sub.fi = vmap[self.faces[f]], renum[self.fi[f]]
             sub.G, sub.M, sub.wt, sub.guard = self.G[f], self.M[f], self.wt[f], self.guard[f]
+            sub.face_ids = self.face_ids[f]
             sub.ef, sub.el, sub.eitem = fmap[self.ef[e]], self.el[e], renum[self.eitem[e]]
             sub.ef_ab = torch.cat([sub.ef[:, 0], sub.ef[:, 1]])
             if self.cross:
@@ -487,13 +533,16 @@ def fit_geometry(mesh: MeshBatch, mom: TriangleMoments, signs: torch.Tensor, ini
     s = run_fit(obj, cfg)[0]
     with torch.no_grad():
         F = obj.values(s)
-        d1 = segment_sum(obj.wt_raw * delta1_per_triangle(mesh, mom.M, F, obj.G, obj.guard), obj.fi, mesh.num_items)
+        d1 = segment_sum(obj.wt_raw * obj.delta1(F), obj.fi, mesh.num_items)
     return F, d1
 
 
 def run_fit(obj: GeometryObjective, cfg: GeometryConfig, iterations: Optional[int] = None, rel_tol: float = 1e-7):
     """The batched L-BFGS of ``obj`` from its start (in the scaled variable where ``obj.pc`` is
-    set): ``s (V,)``, the objectives ``(B,)`` and the iterations each item ran ``(B,)``."""
+    set): ``s (V,)``, the objectives ``(B,)`` and the iterations each item ran ``(B,)``. The
+    fit runs in the variables that can move (:meth:`GeometryObjective.variables`)."""
+    whole = obj
+    obj, kv = whole.variables()
     pre = obj.pc is not None
     # a compiled objective is not recorded into CUDA graphs: a recompilation (a new working
     # set's shapes) cannot run inside a capture
@@ -503,7 +552,8 @@ def run_fit(obj: GeometryObjective, cfg: GeometryConfig, iterations: Optional[in
                                  history=cfg.lbfgs_history, with_grad=True, rel_tol=rel_tol, stacked=True,
                                  trials=cfg.lbfgs_trials or (1 if obj.dev.type == "cpu" else 3),
                                  restrict=obj._restricted_pre if pre else obj._restricted)
-    return (x * obj.pc if pre else x), f, it
+    x = x * obj.pc if pre else x
+    return (x if kv is None else whole.s0.index_copy(0, kv, x)), f, it
 
 
 def estimate_values(ws: "WorkingSet", ev: "Evidence", cfg: GeometryConfig, slack: torch.Tensor

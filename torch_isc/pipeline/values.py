@@ -58,6 +58,30 @@ class GeometryConfig:
         check_section(self)
 
 
+def _sum_last(x: torch.Tensor) -> torch.Tensor:
+    """``x.sum(-1)`` over a last dim of 2 or 3, as ``(x0 + x1) + x2``: the reduction's own order
+    (the same bits), and on a CPU 5-15x faster than a reduction over so short a dim."""
+    s = x[..., 0] + x[..., 1]
+    return s + x[..., 2] if x.shape[-1] == 3 else s
+
+
+def _sum_rows(x: torch.Tensor) -> torch.Tensor:
+    """``x.sum(-2)`` over a dim of 3 (the corners of a face), as :func:`_sum_last`."""
+    return (x[..., 0, :] + x[..., 1, :]) + x[..., 2, :]
+
+
+def _add_rows(x: torch.Tensor, index: torch.Tensor, src: torch.Tensor) -> torch.Tensor:
+    """``x.index_add(1, index, src)`` for ``x (K, N, c)``, as one index_add over the rows of
+    ``x`` flattened to ``(K·N, c)``: each row still gets its entries in index order (the same
+    bits), and on a CPU an index_add along dim 0 is several times faster than along dim 1."""
+    K, N = x.shape[0], x.shape[1]
+    if K == 1:
+        return x[0].index_add(0, index, src[0])[None]
+    off = (torch.arange(K, device=x.device) * N)[:, None]
+    flat = x.reshape(K * N, *x.shape[2:]).index_add(0, (index[None] + off).reshape(-1), src.reshape(-1, *src.shape[2:]))
+    return flat.view(x.shape)
+
+
 def _grad_norm2(mesh: MeshBatch, values: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
     return _grad_norm2_g(G, values[mesh.faces])
 
@@ -432,10 +456,10 @@ class GeometryObjective:
         e = torch.exp(s.clamp(-60.0, 60.0))
         F = torch.addcmul(self.sfloor, self.signs, e)        # (K,V) signs·(e + floor), exactly
         Ft = F[:, faces]                                     # (K,T,3)
-        GMF = (self.GM * Ft[..., None]).sum(-2)              # (K,T,5) ∇f_t, then M_t F_t
+        GMF = _sum_rows(self.GM * Ft[..., None])             # (K,T,5) ∇f_t, then M_t F_t
         grad, MF = GMF[..., :2], GMF[..., 2:]
-        g2 = (grad * grad).sum(-1)
-        num = (MF * Ft).sum(-1)
+        g2 = _sum_last(grad * grad)
+        num = _sum_last(MF * Ft)
         rden = (g2 + guard).reciprocal()
         q = num * rden
         terms = [q]                                          # the per-entry terms of the per-item sums
@@ -444,15 +468,15 @@ class GeometryObjective:
             # ∇f and |∇f|² of both faces of every band edge in one gather: a's rows, then b's
             gg = torch.cat([grad, g2[..., None]], -1)[:, self.ef_ab]     # (K,2E,3)
             diff = gg[:, :E, :2] - gg[:, E:, :2]
-            terms += [(diff * diff).sum(-1), gg[:, :E, 2] + gg[:, E:, 2]]   # jump, size (times 2)
+            terms += [_sum_last(diff * diff), gg[:, :E, 2] + gg[:, E:, 2]]   # jump, size (times 2)
         if self.cross:
             cl, clim = self.c_len, self.c_lim
             m4 = F[:, self.ce4].abs()                        # (K,C,4) |F| at both ends, then swapped
             m, mf = m4[..., :2], m4[..., 2:]
-            msum = m.sum(-1)
+            msum = _sum_last(m)
             a = cl[:, None] * m / msum[..., None]
             over = (clim - a).clamp_min(0)
-            terms.append((over * over).sum(-1))
+            terms.append(_sum_last(over * over))
         # w·q per face, el·jump and el·size per band edge, w·over² per crossing: one scatter
         sums = F.new_zeros((K, self.item_zero.shape[0] * 4)).index_add_(
             1, self.sum_idx, self.sum_w * torch.cat(terms, 1)).view(K, -1, 4)
@@ -469,8 +493,8 @@ class GeometryObjective:
             # (dj + cs·ga, cs·gb − dj) with dj = 2 d obj / d jump · (ga − gb), for a's rows then b's
             upd = (c[:, None, :, 2, None] * gg[..., :2].view(K, 2, E, 2)
                    + c[..., :2].transpose(1, 2)[..., None] * diff[:, None])
-            dgrad = dgrad.index_add(1, self.ef_ab, upd.view(K, 2 * E, 2))
-        dFt = dFt + (G * dgrad[..., None, :]).sum(-1)
+            dgrad = _add_rows(dgrad, self.ef_ab, upd.view(K, 2 * E, 2))
+        dFt = dFt + _sum_last(G * dgrad[..., None, :])
         dF = torch.zeros_like(F).index_add_(1, faces.reshape(-1), dFt.reshape(K, -1))
         if self.cross:
             obj = obj + sums[..., 3]

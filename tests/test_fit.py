@@ -2330,10 +2330,10 @@ def test_anneal_tables_of_per_class_width_same_signs_as_csr(dtype_, bag, monkeyp
 
 @pytest.mark.parametrize("K", [1, 3])
 def test_short_sums_and_row_adds_match_torch_bit_for_bit(K, device):
-    """The objective's explicit short sums and its flattened index_add give the bits of torch's
-    own reductions (x.sum(-1) over 2 or 3, x.sum(-2) over 3, x.index_add(1, ...)), in float32
-    and float64, on random data with repeated indices."""
-    from torch_isc.pipeline.values import _add_rows, _sum_last, _sum_rows
+    """The objective's explicit short sums, its index_add and its gathers give the bits of
+    torch's own (x.sum(-1) over 2 or 3, x.sum(-2) over 3, x.index_add(1, ...), x[:, index]),
+    in float32 and float64, on random data with repeated indices."""
+    from torch_isc.pipeline.values import _add_cols, _sum_last, _sum_rows, _take
 
     def same(a, b):                                   # a GPU's reduction order is its own
         if device.type == "cpu":
@@ -2347,7 +2347,10 @@ def test_short_sums_and_row_adds_match_torch_bit_for_bit(K, device):
             same(_sum_last(x), x.sum(-1))
         y = torch.randn(K, 257, 3, 5, generator=g, dtype=dt).to(device)
         same(_sum_rows(y), y.sum(-2))
-        z = torch.randn(K, 50, 2, generator=g, dtype=dt).to(device)
+        z = torch.randn(K, 50, generator=g, dtype=dt).to(device)
         idx = torch.randint(0, 50, (400,), generator=g).to(device)
-        src = torch.randn(K, 400, 2, generator=g, dtype=dt).to(device)
-        same(_add_rows(z, idx, src), z.index_add(1, idx, src))
+        src = torch.randn(K, 400, generator=g, dtype=dt).to(device)
+        same(_add_cols(z, idx, src), z.index_add(1, idx, src))
+        w = torch.randn(K, 50, 3, generator=g, dtype=dt).to(device)
+        ix = torch.randint(0, 50, (7, 4), generator=g).to(device)
+        assert torch.equal(_take(w, ix), w[:, ix]) and torch.equal(_take(z, ix), z[:, ix])

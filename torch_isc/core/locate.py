@@ -64,7 +64,7 @@ def _nan_outside(bary: torch.Tensor, face_idx: torch.Tensor) -> torch.Tensor:
 def _frames_bary(frames: torch.Tensor, face_idx: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     """:func:`barycentric` from :meth:`~torch_isc.core.simplex.Triangles.barycentric_frames`
     of the mesh (no NaN rows: ``face_idx`` must be >= 0)."""
-    return TRIANGLES.barycentric_from_frames(frames[face_idx], points)
+    return TRIANGLES.barycentric_from_frames(frames.index_select(0, face_idx), points)
 
 
 def _best_candidate(point_of_cand: torch.Tensor, face_of_cand: torch.Tensor, score: torch.Tensor,

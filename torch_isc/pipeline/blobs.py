@@ -32,6 +32,7 @@ import torch
 
 from torch_isc.core.locate import locate_grid, locate_walk
 from torch_isc.core.segments import sym2_eigvals, sym2_eigvec
+from torch_isc.pipeline.noise import take
 
 if TYPE_CHECKING:
     from torch_isc.pipeline.workset import WorkingSet
@@ -126,7 +127,8 @@ def find_blobs(points: torch.Tensor, point_item: torch.Tensor, k: int, min_point
         # always joins (an outlier joins the curve it lies by)
         k2 = min(MUTUAL * k, nbr.shape[1]) if MUTUAL > 0 else nbr.shape[1]
         mine = torch.arange(P, device=dev)[:, None, None]
-        back = ((nbr[nbr[:, :k]][:, :, :k2] == mine) & fin[nbr[:, :k]][:, :, :k2]).any(2)
+        nk = nbr[:, :k]
+        back = ((take(nbr, nk)[:, :, :k2] == mine) & take(fin, nk)[:, :, :k2]).any(2)
         back[:, 0] = True
         join[:, :k] &= back
         if noise is not None:
@@ -139,16 +141,16 @@ def find_blobs(points: torch.Tensor, point_item: torch.Tensor, k: int, min_point
         # a point of a component too large to be a blob is its own label (never a candidate)
         small = small_components(P, edges, max_points)
         lab = torch.where(small >= 0, small, torch.arange(P, device=dev))
-        size = torch.zeros(P, dtype=torch.long, device=dev).index_add_(0, lab, torch.ones_like(lab))[lab]
+        size = take(torch.zeros(P, dtype=torch.long, device=dev).index_add_(0, lab, torch.ones_like(lab)), lab)
         cand = (small >= 0) & (size >= min_points) & (size <= max_points)
         # the gap: the nearest point of another component, over the component
-        out = fin & (lab[nbr] != lab[:, None])
+        out = fin & (take(lab, nbr) != lab[:, None])
         dout = torch.where(out, d2, torch.full_like(d2, float("inf"))).amin(1).sqrt()
         gap = torch.full((P,), float("inf"), dtype=dt, device=dev).scatter_reduce(0, lab, dout, "amin")[lab]
         w = cand.to(dt)
         cnt = torch.zeros(P, dtype=dt, device=dev).index_add_(0, lab, w).clamp_min(1)
         cen = torch.zeros(P, 2, dtype=dt, device=dev).index_add_(0, lab, x * w[:, None]) / cnt[:, None]
-        d = x - cen[lab]
+        d = x - take(cen, lab)
         rad = torch.zeros(P, dtype=dt, device=dev).index_add_(0, lab, d.norm(dim=1) * w) / cnt
         # round: the smaller principal variance at least ROUNDNESS of the larger (a ring, or a
         # blob at high noise; a piece of a sparse curve between two gaps is elongated)

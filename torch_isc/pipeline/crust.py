@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Tuple
 import torch
 
 from torch_isc.core.segments import segment_median, segment_sum
+from torch_isc.pipeline.noise import take
 
 if TYPE_CHECKING:
     from torch_isc.core.mesh import MeshBatch
@@ -130,9 +131,9 @@ def _walk(mesh: "MeshBatch", p: torch.Tensor, q: torch.Tensor, fp: torch.Tensor,
     for k in range(steps):
         if k % WALK_CHECK == 0 and k > 0 and not bool((alive & ~done).any()):
             break                                                        # one host read per WALK_CHECK rounds
-        f = faces[cur]                                                   # (S,3)
+        f = take(faces, cur)                                             # (S,3)
         ia, ib = f.roll(-1, 1), f.roll(1, 1)                             # the edge opposite corner j
-        a, b = v[ia], v[ib]
+        a, b = take(v, ia), take(v, ib)
         e = b - a
         w = a - p[:, None, :]
         den = d[:, None, 0] * e[..., 1] - d[:, None, 1] * e[..., 0]
@@ -146,12 +147,13 @@ def _walk(mesh: "MeshBatch", p: torch.Tensor, q: torch.Tensor, fp: torch.Tensor,
         ends = run & (te >= 1)                                            # q lies in this triangle
         done |= ends
         go = run & ~ends
-        nxt = nb[cur, j]
+        cj = cur * 3 + j                                                 # [cur, j] of a (T, 3) table
+        nxt = nb.reshape(-1).index_select(0, cj)
         alive &= ~(go & (~(te > last) | (nxt < 0)))                       # stalled, or left the mesh
         go &= alive
         uj = u.gather(1, j[:, None]).squeeze(1)
         uj = torch.where(ia.gather(1, j[:, None]).squeeze(1) < ib.gather(1, j[:, None]).squeeze(1), uj, 1 - uj)
-        crossed[:, k] = torch.where(go, fe[cur, j], crossed[:, k])
+        crossed[:, k] = torch.where(go, fe.reshape(-1).index_select(0, cj), crossed[:, k])
         where[:, k] = torch.where(go, uj, where[:, k])
         last = torch.where(go, te, last)
         cur = torch.where(go, nxt, cur)

@@ -89,7 +89,7 @@ def _neg_direction(g: torch.Tensor, dg: torch.Tensor, H: torch.Tensor, Q: torch.
     # −q = R⁻ᵀ (γ Yᵀg − (D + γYᵀY) p): a triangular solve is odd in its right-hand side, so
     # solving for −q directly gives −q's bits without a negation
     nq = torch.linalg.solve_triangular(R.transpose(1, 2), gm * b - DY @ p, upper=False)
-    c = torch.cat([nq, gm * p], 1)[..., 0].to(g.dtype)[seg]                 # (N, 2k), negated
+    c = torch.cat([nq, gm * p], 1)[..., 0].to(g.dtype).index_select(0, seg)   # (N, 2k), negated
     return dg + (c.T * W).sum(0)
 
 
@@ -112,7 +112,7 @@ def _pair(Hold: torch.Tensor, Qold: torch.Tensor, hn: torch.Tensor, seg: torch.T
     r = P[:, 1:, k].sqrt()                                   # √(y·y), √(s·s)
     # enough curvature: s·y > 1e-12 |y| |s| (the bound is >= 0 or NaN, so this also says s·y > 0)
     keep = sy > 1e-12 * r[:, 0] * r[:, 1]
-    torch.where(keep[seg], hn, zero, out=Hn[:, k])           # a skipped pair is stored as zeros
+    torch.where(keep.index_select(0, seg), hn, zero, out=Hn[:, k])           # a skipped pair is stored as zeros
     gamma = torch.where(keep & (yy > 0), sy / yy.clamp_min(tiny), one)
     Pd = (P * keep[:, None, None]).double()                  # times 1 or 0, exact in either dtype
     # the new last rows: s·y_j then s·y (a unit pivot when skipped) in place of s·s, no longer
@@ -234,15 +234,15 @@ def batched_lbfgs(fun: Callable[..., torch.Tensor], x0: torch.Tensor, seg: torch
             return ok[0], torch.stack([X[0], GT[0]]), FT[0]
         acc = ok.any(0)
         first = ok.to(torch.uint8).argmax(0)                 # the first accepted trial
-        return acc, torch.stack([X, GT])[:, first[seg], cols], FT.gather(0, first[None])[0]
+        return acc, torch.stack([X, GT])[:, first.index_select(0, seg), cols], FT.gather(0, first[None])[0]
 
     def descent(g, H, Q, gamma, seg, B):
-        dg = -g * gamma[seg]                                 # steepest descent, the fallback
+        dg = -g * gamma.index_select(0, seg)                                 # steepest descent, the fallback
         d = _neg_direction(g, dg, H, Q, gamma, seg, B)
         gds = _segmat(torch.stack([d, dg]), g, seg, B)       # g·d and g·dg in one sum
         # not a descent direction: fall back to steepest descent (no host read: where, always)
         good = gds[:, 0] < 0
-        return torch.where(good[seg], d, dg), torch.where(good, gds[:, 0], gds[:, 1])
+        return torch.where(good.index_select(0, seg), d, dg), torch.where(good, gds[:, 0], gds[:, 1])
 
     x = x0.detach().clone()
     f, g = evaluate(x[None])
@@ -283,7 +283,7 @@ def batched_lbfgs(fun: Callable[..., torch.Tensor], x0: torch.Tensor, seg: torch
             kb = min(kb, mb - tried)
             left = (active & ~moved) * (mb - tried)
             acc, xgt, ft = search(XG, f, d, gd, step0, left, kb)
-            XGn = torch.where(acc[seg], xgt, XGn)
+            XGn = torch.where(acc.index_select(0, seg), xgt, XGn)
             f_new = torch.where(acc, ft, f_new)
             moved = moved | acc
             if tried == 0:
@@ -319,7 +319,7 @@ def batched_lbfgs(fun: Callable[..., torch.Tensor], x0: torch.Tensor, seg: torch
         """One fixed-shape round of the whole working set: the state after it."""
         d, gd = descent(XG[1], H, Q, gamma, seg, Bw)
         moved, xgt, ft = search(XG, f, d, gd, step0, left, Kc)
-        ms = moved[seg]
+        ms = moved.index_select(0, seg)
         XGn = torch.where(ms, xgt, XG)
         f_new = torch.where(moved, ft, f)
         # the oldest pair drops out for a segment that moved; the others keep theirs
@@ -357,7 +357,7 @@ def batched_lbfgs(fun: Callable[..., torch.Tensor], x0: torch.Tensor, seg: torch
                     break
                 if na <= shrink * Bw:
                     x_out, f_out, it_out = _put(x_out, f_out, it_out, ent, item, XG[0], f, iters)
-                    ae = alive[seg]
+                    ae = alive.index_select(0, seg)
                     e, b = true_indices(ae, int(ae.sum())), true_indices(alive, na)
                     ent = e if ent is None else ent[e]
                     item = b if item is None else item[b]

@@ -21,6 +21,7 @@ from torch_isc.pipeline import graphs
 from torch_isc.pipeline.optim import batched_lbfgs, true_indices
 from torch_isc.pipeline.evidence import TriangleMoments
 from torch_isc.pipeline.knobs import check_section, knob
+from torch_isc.pipeline.noise import take
 
 if TYPE_CHECKING:
     from torch_isc.pipeline.evidence import Evidence
@@ -160,11 +161,11 @@ def vertex_data_distance_near(mesh: MeshBatch, points: torch.Tensor, face: torch
     with torch.no_grad():
         V, v, p, f, ok = _located(mesh, points, face)
         dt = v.dtype
-        nb = mesh.face_neighbors[f]                            # (P,3)
+        nb = take(mesh.face_neighbors, f)                      # (P,3)
         tri = torch.cat([f[:, None], nb], 1)                   # (P,4)
         has = (tri >= 0) & ok[:, None]
-        vid = mesh.faces[tri.clamp_min(0)].reshape(p.shape[0], 12)
-        dist = (v[vid] - p[:, None, :]).norm(dim=2)
+        vid = take(mesh.faces, tri.clamp_min(0)).reshape(p.shape[0], 12)
+        dist = (take(v, vid) - p[:, None, :]).norm(dim=2)
         dist = torch.where(has.repeat_interleave(3, 1), dist, torch.full_like(dist, float("inf")))
         d = torch.full((V,), float("inf"), dtype=dt, device=v.device)
         return d.scatter_reduce(0, vid.reshape(-1), dist.reshape(-1), "amin")

@@ -2328,12 +2328,15 @@ def test_anneal_tables_of_per_class_width_same_signs_as_csr(dtype_, bag, monkeyp
         assert bool((got != init).any())
 
 
+@pytest.mark.parametrize("unfused_forms", [True, False])
 @pytest.mark.parametrize("K", [1, 3])
-def test_short_sums_and_row_adds_match_torch_bit_for_bit(K, device):
+def test_short_sums_and_row_adds_match_torch_bit_for_bit(K, unfused_forms, device, monkeypatch):
     """The objective's explicit short sums, its index_add and its gathers give the bits of
     torch's own (x.sum(-1) over 2 or 3, x.sum(-2) over 3, x.index_add(1, ...), x[:, index]),
     in float32 and float64, on random data with repeated indices."""
+    from torch_isc.pipeline import optim
     from torch_isc.pipeline.values import _add_cols, _sum_last, _sum_rows, _take
+    monkeypatch.setattr(optim, "UNFUSED_DEVICES", {device.type} if unfused_forms else set())
 
     def same(a, b):                                   # a GPU's reduction order is its own
         if device.type == "cpu":
@@ -2354,3 +2357,21 @@ def test_short_sums_and_row_adds_match_torch_bit_for_bit(K, device):
         w = torch.randn(K, 50, 3, generator=g, dtype=dt).to(device)
         ix = torch.randint(0, 50, (7, 4), generator=g).to(device)
         assert torch.equal(_take(w, ix), w[:, ix]) and torch.equal(_take(z, ix), z[:, ix])
+
+
+def test_objective_gives_the_same_bits_in_the_fused_and_unfused_forms(monkeypatch):
+    """The CPU's unfused forms of the fit's objective (explicit short sums, one gradient
+    component at a time) and the fused forms a GPU takes give the same objective and gradient
+    bits on the CPU, for one point and for a stack of trials (smoothness and crossings on)."""
+    from torch_isc.pipeline import optim
+    obj, *_ = two_circle_objective(torch.device("cpu"), 0.3, 5.0)
+    assert obj.cross and obj.smooth
+    g = torch.Generator().manual_seed(7)
+    s = obj.s0 + 0.4 * torch.randn(obj.s0.shape, generator=g, dtype=torch.float64)
+    S3 = torch.stack([s, obj.s0, s - 0.2])
+    out = {}
+    for forms in ({"cpu"}, set()):
+        monkeypatch.setattr(optim, "UNFUSED_DEVICES", forms)
+        out[bool(forms)] = (obj.value_and_grad(s), obj.value_and_grad(S3))
+    for a, b in zip(out[True], out[False]):
+        assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])

@@ -18,7 +18,7 @@ from torch_isc.core.segments import segment_count, segment_sum
 
 from torch_isc.core.mesh import MeshBatch
 from torch_isc.pipeline import graphs
-from torch_isc.pipeline.optim import batched_lbfgs, true_indices
+from torch_isc.pipeline.optim import batched_lbfgs, true_indices, unfused
 from torch_isc.pipeline.evidence import TriangleMoments
 from torch_isc.pipeline.knobs import check_section, knob
 from torch_isc.pipeline.noise import take
@@ -60,14 +60,19 @@ class GeometryConfig:
 
 
 def _sum_last(x: torch.Tensor) -> torch.Tensor:
-    """``x.sum(-1)`` over a last dim of 2 or 3, as ``(x0 + x1) + x2``: the reduction's own order
-    (the same bits), and on a CPU 5-15x faster than a reduction over so short a dim."""
+    """``x.sum(-1)`` over a last dim of 2 or 3; on a CPU as ``(x0 + x1) + x2``: the reduction's
+    own order (the same bits), 5-15x faster than a reduction over so short a dim (elsewhere the
+    reduction: one launch)."""
+    if not unfused(x):
+        return x.sum(-1)
     s = x[..., 0] + x[..., 1]
     return s + x[..., 2] if x.shape[-1] == 3 else s
 
 
 def _sum_rows(x: torch.Tensor) -> torch.Tensor:
     """``x.sum(-2)`` over a dim of 3 (the corners of a face), as :func:`_sum_last`."""
+    if not unfused(x):
+        return x.sum(-2)
     return (x[..., 0, :] + x[..., 1, :]) + x[..., 2, :]
 
 
@@ -79,8 +84,8 @@ def _take(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
 
 
 def _add_cols(x: torch.Tensor, index: torch.Tensor, src: torch.Tensor) -> torch.Tensor:
-    """``x.index_add(1, index, src)`` for ``x (K, N)``: the same bits (each entry gets its
-    terms in index order), as a 1-D index_add when ``K == 1``."""
+    """``x.index_add(1, index, src)`` for ``x (K, N, ...)``: the same bits (each entry gets its
+    terms in index order), as an index_add along dim 0 when ``K == 1``."""
     if x.shape[0] == 1:
         return x[0].index_add(0, index, src[0])[None]
     return x.index_add(1, index, src)
@@ -487,10 +492,7 @@ class GeometryObjective:
             1, self.sum_idx, self.sum_w * torch.cat(terms, 1)).view(K, -1, 4)
         obj = sums[..., 0]
         # d(num/den)/dF_t = 2 (M F − q G ∇f) / den, the G ∇f part added with the smoothness one
-        # d obj / d ∇f_t (K,T,2), one component at a time (broadcasting over a dim of 2 and
-        # index_adds of rows of 2 are several times slower on a CPU; the same products and sums)
-        qr = self.m2wt * q * rden
-        dg = [qr * grad[..., 0], qr * grad[..., 1]]
+        qr = self.m2wt * q * rden                            # d obj / d ∇f_t = qr ∇f_t, then smoothness
         dFt = (self.wt2 * rden)[..., None] * MF
         if self.smooth:
             J, S = sums[..., 1], sums[..., 2].clamp_min(torch.finfo(self.dt).tiny)
@@ -498,12 +500,24 @@ class GeometryObjective:
             r = (2.0 * self.smoothness) / S                  # 2 · d obj / d jump, per item
             # per edge, times el: d obj / d jump for a's side and b's (negated), d obj / d size
             c = _take(torch.stack([r, -r, -self.smoothness * J / (S * S)], -1), eitem) * self.el[:, None]
-            cs, cj = c[:, None, :, 2], c[..., :2].transpose(1, 2)          # (K,1,E), (K,2,E)
-            # (dj + cs·ga, cs·gb − dj) with dj = 2 d obj / d jump · (ga − gb), for a's rows then b's
-            for k in range(2):
-                upd = cs * gg[..., k].view(K, 2, E) + cj * diff[:, None, :, k]
-                dg[k] = _add_cols(dg[k], self.ef_ab, upd.view(K, 2 * E))
-        dFt = dFt + (self.G0 * dg[0][..., None] + self.G1 * dg[1][..., None])
+        # (dj + cs·ga, cs·gb − dj) with dj = 2 d obj / d jump · (ga − gb), for a's rows then b's
+        if unfused(F):
+            # one component of ∇f at a time (on a CPU broadcasting over a dim of 2 and index_adds
+            # of rows of 2 are several times slower; the same products and sums)
+            dg = [qr * grad[..., 0], qr * grad[..., 1]]
+            if self.smooth:
+                cs, cj = c[:, None, :, 2], c[..., :2].transpose(1, 2)      # (K,1,E), (K,2,E)
+                for k in range(2):
+                    upd = cs * gg[..., k].view(K, 2, E) + cj * diff[:, None, :, k]
+                    dg[k] = _add_cols(dg[k], self.ef_ab, upd.view(K, 2 * E))
+            dFt = dFt + (self.G0 * dg[0][..., None] + self.G1 * dg[1][..., None])
+        else:
+            dgrad = qr[..., None] * grad                     # (K,T,2)
+            if self.smooth:
+                upd = (c[:, None, :, 2, None] * gg[..., :2].view(K, 2, E, 2)
+                       + c[..., :2].transpose(1, 2)[..., None] * diff[:, None])
+                dgrad = dgrad.index_add(1, self.ef_ab, upd.view(K, 2 * E, 2))
+            dFt = dFt + (G * dgrad[..., None, :]).sum(-1)
         dF = torch.zeros_like(F).index_add_(1, faces.reshape(-1), dFt.reshape(K, -1))
         if self.cross:
             obj = obj + sums[..., 3]

@@ -233,7 +233,11 @@ class GeometryObjective:
             crossed = signs[mesh.edges[:, 0]] != signs[mesh.edges[:, 1]]
             # only the faces with points (Δ1) or on a band edge (the jump of ∇f) enter the
             # objective: an empty face's Δ1 term is 0 · finite, so leaving it out changes no sum
-            used = (mom.count > 0).index_fill(0, ef_all[interior].reshape(-1), True)
+            # (the faces of the band edges by index_fill with a dummy slot T for the others: a
+            # boolean-mask selection would be a host read)
+            T = mesh.faces.shape[0]
+            used = torch.cat([mom.count > 0, torch.zeros(1, dtype=torch.bool, device=dev)]).index_fill_(
+                0, torch.where(interior[:, None], ef_all, T).reshape(-1), True)[:T]
             # the variables that can move: the corners of those faces and the crossings' ends (a
             # vertex of none has a zero gradient at every step, so L-BFGS never moves it)
             nuse = torch.zeros(signs.shape[0], dtype=torch.long, device=dev).index_add_(

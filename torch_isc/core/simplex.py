@@ -163,13 +163,18 @@ class Triangles:
                         cand: torch.Tensor) -> torch.Tensor:
         """``(P,)`` the smallest squared distance of each point to the pieces of its candidate
         simplices ``cand (P, K)`` (-1: none; inf when no candidate holds a piece)."""
-        valid = (cand >= 0) & has[cand.clamp_min(0)]
-        s = pieces[cand.clamp_min(0)]                                    # (P,K,2,2)
+        # gathers by index_select and sums of two written out: the same values, several times
+        # faster on a CPU than advanced indexing and reductions over a dim of 2
+        c = cand.clamp_min(0)
+        valid = (cand >= 0) & has.index_select(0, c.reshape(-1)).view(c.shape)
+        s = pieces.index_select(0, c.reshape(-1)).view(*c.shape, 2, 2)     # (P,K,2,2)
         p = points.to(pieces.dtype)[:, None, :]
         a, d = s[:, :, 0], s[:, :, 1] - s[:, :, 0]
-        tt = (((p - a) * d).sum(-1) / (d * d).sum(-1).clamp_min(torch.finfo(pieces.dtype).tiny)).clamp(0, 1)
+        pd, dd = (p - a) * d, d * d
+        tt = ((pd[..., 0] + pd[..., 1]) / (dd[..., 0] + dd[..., 1]).clamp_min(torch.finfo(pieces.dtype).tiny)).clamp(0, 1)
         q = a + tt[..., None] * d
-        d2 = ((p - q) ** 2).sum(-1)
+        e = (p - q) ** 2
+        d2 = e[..., 0] + e[..., 1]
         d2 = torch.where(valid, d2, torch.full_like(d2, float("inf")))
         return d2.min(1).values
 

@@ -242,14 +242,16 @@ def small_components(num_verts: int, edges: torch.Tensor, max_size: int) -> torc
     with torch.no_grad():
         lab = torch.arange(num_verts, device=edges.device)
         a, b = edges[:, 0], edges[:, 1]
+        # (gathers by index_select: the same values as lab[b], several times faster on a CPU)
         for _ in range(max(int(max_size), 1)):
-            lab = lab.scatter_reduce(0, a, lab[b], "amin")
-            lab = lab.scatter_reduce(0, b, lab[a], "amin")
-        cut = (lab[a] != lab[b]).long()
-        leaves = torch.zeros_like(lab).scatter_reduce(0, lab[a], cut, "amax").scatter_reduce(0, lab[b], cut, "amax")
+            lab = lab.scatter_reduce(0, a, lab.index_select(0, b), "amin")
+            lab = lab.scatter_reduce(0, b, lab.index_select(0, a), "amin")
+        la, lb = lab.index_select(0, a), lab.index_select(0, b)
+        cut = (la != lb).long()
+        leaves = torch.zeros_like(lab).scatter_reduce(0, la, cut, "amax").scatter_reduce(0, lb, cut, "amax")
         size = torch.zeros_like(lab).index_add_(0, lab, torch.ones_like(lab))
         large = (leaves > 0) | (size > max_size)
-        return torch.where(large[lab], torch.full_like(lab, -1), lab)
+        return torch.where(large.index_select(0, lab), torch.full_like(lab, -1), lab)
 
 
 def blob_rows(blob: torch.Tensor) -> Tuple[torch.Tensor, int]:

@@ -47,6 +47,14 @@ that curvature, not noise, fills each point's neighbourhood:
   same spacing on all), 3-8 spacings apart;
 - sparsefont: a font glyph (as ``font``) of 90-200 points in all.
 
+A kind of no suite (``--kinds clutter``), the failure mode of ``fitconnect/Monitor0.txt``:
+
+- clutter: an ellipse (axis ratio 0.4-0.9) with a patch of uniform 2D scatter straddling it: an
+  elliptic patch 0.08-0.2 of the diagonal along the curve and 0.025-0.06 across it, centred up to
+  half its width off the curve, holding 1-3 times the points the curve has along that length;
+  in half the cases the curve's own samples under the patch are taken away. The truth is the
+  ellipse alone.
+
 Cells of the tables: right topology / cases, median Hausdorff and median Chamfer (% of the
 truth's diagonal).
 
@@ -85,7 +93,7 @@ from torch_isc import metrics  # noqa: E402
 KINDS = ("circle", "ellipse", "flower", "two", "annulus", "squircle", "nested3", "gapcircle", "gapflower",
          "outliers", "glyph")           # the default (record_outputs' synthetic suite draws these)
 ALL_KINDS = KINDS + ("font", "rings3", "close2", "satellites", "squares3", "crescent", "dumbbell", "ringgrid",
-                     "scatter", "sparsefont")
+                     "scatter", "sparsefont", "clutter")
 GLYPHS = "ABDOPQRabdegopq04689CGSUVXZ235"
 NOISES = (0.0, 0.25, 0.5, 1.0)          # % of the truth's diagonal
 # issue 13's families: font glyphs weighted 4 of 12 (several fonts, letters, digits, symbols),
@@ -269,6 +277,8 @@ def make_case(i: int, kinds: Sequence[str], rng: np.random.Generator, glyphs: st
         fns = [ellipse(1, 1), ellipse(0.7, 0.7), ellipse(0.35, 0.35)]
     elif kind in ("gapcircle", "outliers"):
         fns = [ellipse(1, rng.uniform(0.6, 1.0))]
+    elif kind == "clutter":
+        fns = [ellipse(1, rng.uniform(0.4, 0.9))]
     elif kind == "glyph":
         import cv2
         ch = glyphs[int(rng.integers(len(glyphs)))]
@@ -365,10 +375,32 @@ def make_case(i: int, kinds: Sequence[str], rng: np.random.Generator, glyphs: st
     if kind == "outliers":
         m = int(rng.integers(3, 25))
         pts = np.concatenate([pts, rng.uniform(lo - 0.1 * diag, hi + 0.1 * diag, (m, 2))])
+    if kind == "clutter":
+        pts = _add_clutter(pts, truth[0], counts[0] / lengths[0], diag, rng)
     a = rng.uniform(0, 2 * math.pi)
     R = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
     return dict(name=f"{kind}_{i}", kind=kind, noise=f"n{noise:g}", points=pts @ R.T, **extra,
                 truth={"curves": [(c @ R.T).tolist() for c in truth], "n_components": len(fns)})
+
+
+def _add_clutter(pts: np.ndarray, curve: np.ndarray, density: float, diag: float,
+                 rng: np.random.Generator) -> np.ndarray:
+    """``pts`` with a patch of uniform 2D scatter about a random point of ``curve`` (dense
+    samples of the truth), along its tangent: see the module's ``clutter`` kind. ``density``:
+    the curve's samples per unit length."""
+    k = int(rng.integers(len(curve)))
+    t = curve[(k + 5) % len(curve)] - curve[k - 5]
+    t = t / np.linalg.norm(t)
+    nrm = np.array([-t[1], t[0]])
+    a, b = rng.uniform(0.08, 0.2) * diag, rng.uniform(0.025, 0.06) * diag
+    c0 = curve[k] + nrm * rng.uniform(-0.5, 0.5) * b
+    m = int(density * 2 * a * rng.uniform(1.0, 3.0))
+    r, th = np.sqrt(rng.uniform(0, 1, m)), rng.uniform(0, 2 * math.pi, m)
+    patch = c0 + (a * r * np.cos(th))[:, None] * t + (b * r * np.sin(th))[:, None] * nrm
+    if rng.uniform() < 0.5:                    # the curve's own samples under the patch taken away
+        d = pts - c0
+        pts = pts[(d @ t / a) ** 2 + (d @ nrm / b) ** 2 >= 1]
+    return np.concatenate([pts, patch])
 
 
 def rotated_public(cases_dir: Path, k: int) -> List[Dict[str, Any]]:

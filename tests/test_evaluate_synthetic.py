@@ -30,7 +30,7 @@ def test_font_outlines_nest():
 
 
 @pytest.mark.parametrize("kind,n", [("rings3", 3), ("close2", 2), ("satellites", 7), ("squares3", 3),
-                                    ("crescent", 1), ("dumbbell", 1), ("font", None)])
+                                    ("crescent", 1), ("dumbbell", 1), ("font", None), ("clutter", 1)])
 def test_new_kinds(kind, n):
     c = es.make_case(0, [kind], np.random.default_rng(3), noises=(0.0,))
     k = c["truth"]["n_components"]
@@ -78,3 +78,17 @@ def test_print_misses_counts_by_type(capsys):
             for ln in capsys.readouterr().out.splitlines() if ln.startswith("| ") and "kind" not in ln}
     assert rows["a"] == ["", "2/0/0/0"] and rows["b"] == ["0/1/0/0", ""]
     assert rows["**all**"] == ["0/1/0/0", "2/0/0/0"]
+
+
+def test_clutter_adds_a_patch_of_scatter_off_the_curve():
+    """The clutter kind: the truth is one ellipse, and a share of the points (the patch) lies
+    off it by more than any noise-free sample does, all of them near one place of the curve."""
+    for seed in range(4):
+        c = es.make_case(0, ["clutter"], np.random.default_rng(seed), noises=(0.0,))
+        P, T = np.asarray(c["points"]), np.asarray(c["truth"]["curves"][0])
+        d = np.sqrt(((P[:, None, :] - T[None, :, :]) ** 2).sum(-1)).min(1)
+        diag = float(np.hypot(*(T.max(0) - T.min(0))))
+        off = P[d > 5e-3 * diag]                  # beyond half the truth samples' spacing
+        assert len(off) >= 0.05 * len(P)
+        # the patch is at most 0.2 of the diagonal long: its points are near each other
+        assert float(np.hypot(*(off.max(0) - off.min(0)))) <= 0.45 * diag

@@ -2375,3 +2375,22 @@ def test_objective_gives_the_same_bits_in_the_fused_and_unfused_forms(monkeypatc
         out[bool(forms)] = (obj.value_and_grad(s), obj.value_and_grad(S3))
     for a, b in zip(out[True], out[False]):
         assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
+
+
+def test_short_ops_script_reports_the_same_bits(capsys, monkeypatch):
+    """scripts/benchmark_short_ops.py (the README's table of why the fit writes some ops out on a
+    CPU): every written-out form it times gives the torch form's bits."""
+    import importlib.util
+    from pathlib import Path
+    path = Path(__file__).resolve().parents[1] / "scripts" / "benchmark_short_ops.py"
+    spec = importlib.util.spec_from_file_location("benchmark_short_ops", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    monkeypatch.setattr("sys.argv", ["benchmark_short_ops.py", "--rows", "300", "--repeats", "1"])
+    n = torch.get_num_threads()
+    try:
+        mod.main()
+    finally:
+        torch.set_num_threads(n)
+    rows = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("| `")]
+    assert len(rows) == 4 and all(ln.rstrip().endswith("| yes |") for ln in rows)

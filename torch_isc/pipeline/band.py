@@ -37,6 +37,7 @@ from torch_isc.core.segments import segment_sum
 from torch_isc.core.subdivide import subdivide
 from torch_isc.pipeline.evidence import triangle_moments
 from torch_isc.pipeline.knobs import check_section, knob
+from torch_isc.pipeline.noise import take
 from torch_isc.pipeline.refit import RefitProblem
 from torch_isc.pipeline.values import GeometryConfig, fit_geometry, vertex_data_distance, vertex_data_distance_near
 from torch_isc.pipeline import budget
@@ -185,9 +186,9 @@ def _ring_votes(ws: "WorkingSet", flag: torch.Tensor) -> torch.Tensor:
     leaves the points beyond it a triangle or so past the flipped vertex's star."""
     m = ws.mesh
     f = ws.face.clamp_min(0)
-    nb = m.face_neighbors[f]                                               # (P,3)
+    nb = take(m.face_neighbors, f)                                         # (P,3)
     ring = torch.cat([f[:, None], nb.where(nb >= 0, f[:, None])], 1)      # (P,4)
-    corners = m.faces[ring].reshape(-1, 12).sort(1).values
+    corners = take(m.faces, ring).reshape(-1, 12).sort(1).values
     first = torch.ones_like(corners, dtype=torch.bool)
     first[:, 1:] = corners[:, 1:] != corners[:, :-1]                      # each vertex once per point
     out = torch.zeros(m.verts.shape[0], dtype=torch.long, device=flag.device)

@@ -104,10 +104,14 @@ def _grad_norm2_g(G: torch.Tensor, Ft: torch.Tensor) -> torch.Tensor:
 def delta1_per_triangle(mesh: MeshBatch, M: torch.Tensor, values: torch.Tensor, G: torch.Tensor = None,
                         guard: float = 0.0) -> torch.Tensor:
     """``(T,)`` mean over the triangle's points of ``f(p)² / |∇f_t|²`` (``F_tᵀM_tF_t / |∇f_t|²``)."""
-    G = mesh.bary_gradients() if G is None else G
-    Ft = values[mesh.faces]
+    return _delta1_faces(mesh.faces, M, values, mesh.bary_gradients() if G is None else G, guard)
+
+
+def _delta1_faces(faces: torch.Tensor, M: torch.Tensor, values: torch.Tensor, G: torch.Tensor, guard) -> torch.Tensor:
+    """:func:`delta1_per_triangle` on the triangles ``faces (T, 3)`` with their ``M, G``."""
+    Ft = values[faces]
     num = torch.einsum("ti,tij,tj->t", Ft, M, Ft)
-    g2, _ = _grad_norm2(mesh, values, G)
+    g2, _ = _grad_norm2_g(G, Ft)
     return num / (g2 + guard)
 
 
@@ -309,10 +313,7 @@ class GeometryObjective:
 
     def delta1(self, F: torch.Tensor) -> torch.Tensor:
         """``(T',)`` :func:`delta1_per_triangle` of the values ``F (V,)`` on the objective's faces."""
-        Ft = F[self.faces]
-        num = torch.einsum("ti,tij,tj->t", Ft, self.M, Ft)
-        g2, _ = _grad_norm2_g(self.G, Ft)
-        return num / (g2 + self.guard)
+        return _delta1_faces(self.faces, self.M, F, self.G, self.guard)
 
     def _constants(self) -> None:
         """What every evaluation would otherwise recompute (exact rewrites: products by ±1 and 2,

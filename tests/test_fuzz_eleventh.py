@@ -109,7 +109,7 @@ def test_window_candidates_are_the_same_points_wherever_the_item_sits():
                           torch.full((13 - before,), 2)]) if before else torch.cat([torch.zeros(21, dtype=torch.long),
                                                                                       torch.ones(13, dtype=torch.long)])
         own = torch.arange(before, before + 21)
-        c = window_candidates(morton_orders(x, item), own, offs, item)
+        c, _ = window_candidates(morton_orders(x, item), own, offs, item)
         assert (item[c] == item[own][:, None]).all()          # never another item's point
         rows.append(c - before)
     assert torch.equal(rows[0], rows[1])

@@ -173,7 +173,7 @@ UPPER_BOUNDS: Dict[str, float] = {
     "noise_factor": 1e6, "min_points_split": 2 ** 31 - 1, "thin_feature_factor": 1e6, "min_split_size": 1e6,
     "transverse_split_size": 1e6, "transverse_noisy": 1e6, "far_cluster_points": 1_000, "far_cluster_factor": 1e6, "far_cluster_ratio": 1e6, "cluster_split_size": 1e6,
     "lbfgs_iterations": 100_000, "precondition": 1e6, "lbfgs_history": 1_000, "lbfgs_trials": 64, "smoothness": 1e6, "crossing_weight": 1e6,
-    "band_levels": 8, "band_noisy": 1e6, "band_min_points": 2 ** 31 - 1, "band_between_rounds": 1_000, "band_rings": 16, "band_min_size": 1e6, "band_smoothness": 1e6, "band_iterations": 100_000, "band_dense_max": 100_000, "band_reg": 1e6,
+    "band_levels": 8, "band_noisy": 1e6, "band_min_points": 2 ** 31 - 1, "band_between_rounds": 1_000, "band_rings": 16, "band_min_size": 1e6, "band_smoothness": 1e6, "band_iterations": 100_000, "band_dense_max": 100_000, "band_reg": 1e6, "band_precondition": 1e6,
     # loop counts of the band stage (spike_rounds=1e6 ran for minutes on an 80-point circle)
     "spike_rounds": 1_000, "spike_reach": 1e6, "spike_keep_points": 2 ** 31 - 1, "snap_kernel": 1e6, "snap_rounds": 1_000,
 }

@@ -71,9 +71,12 @@ def refine_knn(points: torch.Tensor, nbr: torch.Tensor, d2: torch.Tensor, hops: 
         idx = torch.arange(b0, min(P, b0 + block), device=dev)
         own = take(nbr, idx)
         c = torch.cat([own, take(nbr, own[:, :h]).reshape(idx.shape[0], -1)], 1)
-        # a missing neighbour is the point itself (approximate_knn's convention): masked below
+        # a missing neighbour is the point itself (approximate_knn's convention): masked below;
+        # sorted so that repeats sit side by side
         c, _ = torch.sort(c, 1)
-        out_n[idx], out_d[idx] = nearest_candidates(points, idx, c, c == idx[:, None], k)
+        bad = c == idx[:, None]
+        bad[:, 1:] |= c[:, 1:] == c[:, :-1]
+        out_n[idx], out_d[idx] = nearest_candidates(points, idx, c, bad, k)
     return out_n, out_d
 
 

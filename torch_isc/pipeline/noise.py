@@ -90,9 +90,7 @@ def _local_line_residual(points: torch.Tensor, point_item: torch.Tensor, idx: to
     neighbourhood (the local tangent) and the distance to its farthest neighbour."""
     P = points.shape[0]
     dev, dt = points.device, points.dtype
-    c = window_candidates(orders, idx, offs, point_item)
-    dup = torch.zeros_like(c, dtype=torch.bool)
-    dup[:, 1:] = c[:, 1:] == c[:, :-1]
+    c, dup = window_candidates(orders, idx, offs, point_item)
     own = (c == idx[:, None]) | dup                   # (the windows hold no other item's point)
     d2 = squared_distances(points, idx, c).masked_fill_(own, float("inf"))
     nd, ni = torch.topk(d2, min(k, c.shape[1]), dim=1, largest=False)
@@ -154,20 +152,39 @@ def morton_orders(points: torch.Tensor, item: torch.Tensor) -> List[Tuple[torch.
     return out
 
 
-def window_candidates(orders, idx: torch.Tensor, offs: torch.Tensor, item: torch.Tensor) -> torch.Tensor:
-    """``(R, 2 len(offs))``: the points ``offs`` ranks away from each of the points ``idx`` along
-    each of the :func:`morton_orders`, sorted along each row. Ranks are clamped to the point's own
-    item (its points are consecutive in every order), so a row holds the same points in the same
-    places, up to the item's index offset, wherever the item sits in the batch: the nearest
-    among exactly equal distances (a lattice) are then the same picks (clamped to the batch, an
-    item's rows held the other items' points, masked, in other places, and ``topk`` broke the
-    ties by place)."""
+def window_offsets(window: int, device) -> torch.Tensor:
+    """``(2 window,)`` the rank offsets ``-window .. -1, 1 .. window`` of :func:`window_candidates`."""
+    return torch.cat([torch.arange(-window, 0, device=device), torch.arange(1, window + 1, device=device)])
+
+
+def window_candidates(orders, idx: torch.Tensor, offs: torch.Tensor, item: torch.Tensor
+                      ) -> Tuple[torch.Tensor, torch.Tensor]:
+    """``(c, repeat)``, both ``(R, 2 len(offs))``: the points ``offs`` ranks away from each of
+    the points ``idx`` along each of the two :func:`morton_orders` (the first order's window,
+    then the second's; ``offs`` from :func:`window_offsets`), and which entries repeat a point
+    held earlier in the row. Ranks are clamped to the point's own item (its points are
+    consecutive in every order): a clamped rank repeats the item's first or last point, which
+    the window already holds unclamped (or which is the row's own point), and a point of the
+    second window within ``window`` ranks of the row's point along the first order is in the
+    first window. A row thus holds the same points in the same places, up to the item's index
+    offset, wherever the item sits in the batch: the nearest among exactly equal distances (a
+    lattice) are then the same picks (clamped to the batch, an item's rows held the other items'
+    points, masked, in other places, and ``topk`` broke the ties by place). Repeats are marked,
+    not sorted out: a row sort cost more than the rest of the search."""
     counts = torch.bincount(item, minlength=1)
-    lo = (counts.cumsum(0) - counts)[item[idx]]
-    hi = lo + counts[item[idx]] - 1
-    c = torch.cat([take(o, torch.minimum(torch.maximum(p[idx][:, None] + offs[None, :], lo[:, None]), hi[:, None]))
-                   for o, p in orders], 1)
-    return torch.sort(c, 1)[0]
+    lo = (counts.cumsum(0) - counts)[item[idx]][:, None]
+    hi = lo + counts[item[idx]][:, None] - 1
+    (o1, p1), (o2, p2) = orders
+    own1 = take(p1, idx)[:, None]
+    r1 = own1 + offs[None, :]
+    r2 = take(p2, idx)[:, None] + offs[None, :]
+    k1 = torch.minimum(torch.maximum(r1, lo), hi)
+    k2 = torch.minimum(torch.maximum(r2, lo), hi)
+    c2 = take(o2, k2)
+    window = offs.shape[0] // 2
+    in_first = (take(p1, c2) - own1).abs() <= window
+    repeat = torch.cat([k1 != r1, (k2 != r2) | in_first], 1)
+    return torch.cat([take(o1, k1), c2], 1), repeat
 
 
 #: pairs per block of an approximate neighbour search on the CPU (bounded memory for millions of
@@ -217,11 +234,10 @@ def squared_distances(points: torch.Tensor, idx: torch.Tensor, c: torch.Tensor) 
 
 def nearest_candidates(points: torch.Tensor, idx: torch.Tensor, c: torch.Tensor, bad: torch.Tensor,
                        k: int) -> Tuple[torch.Tensor, torch.Tensor]:
-    """The ``k`` nearest of each row's candidates. ``c: (R, C)`` point indices sorted along each
-    row (repeats are masked here), ``bad: (R, C)`` candidates to leave out (modified in place),
-    ``idx: (R,)`` the rows' own points. Returns ``(R, k)`` indices (a missing neighbour is the row's
-    own point) and their squared distances (``inf`` where missing)."""
-    bad[:, 1:] |= c[:, 1:] == c[:, :-1]
+    """The ``k`` nearest of each row's candidates. ``c: (R, C)`` point indices, ``bad: (R, C)``
+    candidates to leave out (the row's own point, and every repeat of a point after its first
+    place), ``idx: (R,)`` the rows' own points. Returns ``(R, k)`` indices (a missing neighbour
+    is the row's own point) and their squared distances (``inf`` where missing), nearest first."""
     dd = squared_distances(points, idx, c).masked_fill_(bad, float("inf"))
     nd, ni = torch.topk(dd, k, dim=1, largest=False)
     return torch.where(torch.isfinite(nd), c.gather(1, ni), idx[:, None]), nd
@@ -235,7 +251,7 @@ def approximate_knn(points: torch.Tensor, item: torch.Tensor, k: int, window: in
     candidates; ``nbr`` is then the point itself)."""
     P = points.shape[0]
     dev = points.device
-    offs = torch.cat([torch.arange(-window, 0, device=dev), torch.arange(1, window + 1, device=dev)])
+    offs = window_offsets(window, dev)
     orders = morton_orders(points, item)
     kk = min(k, 4 * window)
     nbr = torch.empty(P, kk, dtype=torch.long, device=dev)
@@ -243,8 +259,8 @@ def approximate_knn(points: torch.Tensor, item: torch.Tensor, k: int, window: in
     block = max(1, knn_budget(dev) // (4 * window))
     for b0 in range(0, P, block):                       # bounded memory for many points
         idx = torch.arange(b0, min(P, b0 + block), device=dev)
-        c = window_candidates(orders, idx, offs, item)
-        bad = c == idx[:, None]                        # the windows hold no other item's point
+        c, repeat = window_candidates(orders, idx, offs, item)
+        bad = (c == idx[:, None]) | repeat             # the windows hold no other item's point
         nbr[idx], d2[idx] = nearest_candidates(points, idx, c, bad, kk)
     return nbr, d2
 
@@ -256,7 +272,7 @@ def _noise_at_scale(points: torch.Tensor, point_item: torch.Tensor, num_items: i
     per point: its frame (see :func:`_local_line_residual`)."""
     P = points.shape[0]
     dev, dt = points.device, points.dtype
-    offs = torch.cat([torch.arange(-window, 0, device=dev), torch.arange(1, window + 1, device=dev)])
+    offs = window_offsets(window, dev)
     orders = morton_orders(points, point_item)
     lam = torch.empty(P, dtype=dt, device=dev)
     lmax = torch.empty(P, dtype=dt, device=dev)

@@ -17,8 +17,8 @@ loop's objective (:class:`~torch_isc.pipeline.values.GeometryObjective`: ``Δ1``
 jump of ``∇f`` across interior edges plus the dead-zoned crossing term) with a stronger
 smoothness weight, so residuals of points on both sides of the curve cancel rather than bend it.
 
-``band_solver`` picks the refit's solver: ``lbfgs`` (``band_iterations`` L-BFGS iterations,
-which stop short of the minimum) or ``newton`` (:meth:`RefitProblem.geometry
+``band_solver`` picks the refit's solver: ``lbfgs`` (``band_iterations`` L-BFGS iterations in
+log-magnitudes scaled by ``band_precondition``, which stop short of the minimum) or ``newton`` (:meth:`RefitProblem.geometry
 <torch_isc.pipeline.refit.RefitProblem.geometry>`: the same objective plus tiny ``reg``/scale
 terms, solved to convergence by projected damped Newton). Newton's dense per-item Hessians are
 bounded: items in groups of about ``_DENSE_BUDGET`` entries, items with more than

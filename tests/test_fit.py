@@ -1127,33 +1127,6 @@ def test_fit_geometry_batch_independent(device, pre):
     assert_same(d4, d, atol=1e-12)
 
 
-@pytest.mark.parametrize("pre", [0.0, 0.3])
-def test_fit_geometry_of_some_items_is_their_whole_batch_fit(device, pre):
-    """``fit_geometry(..., items=mask)`` (the band's later spike rounds): the chosen items get
-    the bits the whole batch's fit gives them (the moving variables of those items alone), the
-    others keep ``signs * init`` exactly and a Δ1 of 0."""
-    dtype = torch.float64
-    m1, p1, f1, b1, mom1, s1, i1 = circle_setup(device, dtype, n=150, R=0.5, res=6)
-    m2, p2, f2, b2, mom2, s2, i2 = circle_setup(device, dtype, n=90, R=0.3, res=4)
-    mesh = MeshBatch.cat([m2, m1, m2])
-    pts = torch.cat([p2, p1, p2])
-    item = torch.cat([torch.zeros(90, dtype=torch.long), torch.ones(150, dtype=torch.long),
-                      torch.full((90,), 2, dtype=torch.long)]).to(device)
-    face, bary = locate_grid(mesh, pts, item)
-    mom = triangle_moments(mesh, pts, face, bary)
-    signs, init = torch.cat([s2, s1, s2]), torch.cat([i2, i1, i2 * 1.5])
-    tol = torch.full((3,), 0.004, device=device, dtype=dtype)
-    near = vertex_data_distance_near(mesh, pts, face)
-    cfg = GeometryConfig(lbfgs_iterations=30, crossing_weight=1.0, smoothness=0.01, precondition=pre)
-    F, d = fit_geometry(mesh, mom, signs, init, tol, cfg, data_dist=near, slack=tol)
-    pick = torch.tensor([True, False, True], device=device)
-    Fs, ds = fit_geometry(mesh, mom, signs, init, tol, cfg, data_dist=near, slack=tol, items=pick)
-    on = pick[mesh.vert_item]
-    assert torch.equal(Fs[on], F[on]) and torch.equal(ds[pick], d[pick])
-    assert torch.equal(Fs[~on], (signs * init)[~on]) and float(ds[1]) == 0.0
-    assert not torch.equal(F[on], (signs * init)[on])               # the chosen ones did move
-
-
 def test_fit_geometry_compile_falls_back_to_eager_with_a_warning(device, monkeypatch):
     """``compile=True`` where torch.compile cannot be made, or its function fails when called:
     a warning, and the eager result bit for bit."""

@@ -89,8 +89,7 @@ class BandConfig:
     #: Newton: weight of the mean squared log-magnitude change from the start (each vertex's
     #: distance to the data); it also makes the minimizer unique
     band_reg: float = knob(0.1, ge=0)
-    #: rounds of the spike rule (flip simple vertices the curve wraps around, then refit); 0
-    #: disables. A round after the first refits only the items whose signs it changed
+    #: rounds of the spike rule (flip simple vertices the curve wraps around, then refit); 0 disables
     spike_rounds: int = knob(2, ge=0)
     #: a vertex is a spike's tip when more than this fraction of the angle around it lies across the curve
     spike_wrap: float = knob(0.7, gt=0.5, le=1)
@@ -386,7 +385,6 @@ def _refit(ws: "WorkingSet", cfg: BandConfig, gcfg: GeometryConfig, slack: torch
         init = vertex_data_distance(m, ws.points, ws.face)
     # the loop's curve already has its spikes: flip first, then fit (each later round flips
     # what the refit left and fits again)
-    signs = None
     for r in budget.rounds(max(cfg.spike_rounds, 1)):
         if cfg.spike_rounds > 0:
             values = _flip_spikes(ws, values, cfg, slack)
@@ -394,19 +392,10 @@ def _refit(ws: "WorkingSet", cfg: BandConfig, gcfg: GeometryConfig, slack: torch
                 values = _extend_to_data(ws, values, cfg, slack)
             if cfg.spike_unsupported:
                 values = _flip_tips(ws, values, slack, neighbours)
-        before, signs = signs, torch.where(values < 0, -1.0, 1.0).to(values.dtype)
-        items = None
-        if r > 0:
-            # a later round refits only the items whose signs it changed: the others' fit
-            # would restart where it stopped (in part b of the benchmark no item changed)
-            with torch.no_grad():
-                items = torch.zeros(ws.num_items, dtype=torch.long, device=m.device).index_add_(
-                    0, m.vert_item, (signs != before).long()) > 0
-            if not bool(items.any()):                        # one host read a round
-                break
+        signs = torch.where(values < 0, -1.0, 1.0).to(values.dtype)
         start = init if r == 0 else values.abs()
         if solver == "lbfgs":
-            values, _ = fit_geometry(m, mom, signs, start, slack, gcfg, data_dist=near, slack=slack, items=items)
+            values, _ = fit_geometry(m, mom, signs, start, slack, gcfg, data_dist=near, slack=slack)
         else:
             with torch.no_grad():
                 pb = RefitProblem.geometry(m, mom.count, signs, start, slack, gcfg.magnitude_floor, gcfg.smoothness,

@@ -402,14 +402,8 @@ class GeometryObjective:
             renum = torch.cumsum(items, 0) - 1
             owners = [self.vi, self.fi, self.eitem] + ([self.c_item] if self.cross else [])
             kept = [items[o] for o in owners]
-            used = None
-            if self._vars is not None:                       # the moving variables, of these items
-                used = torch.zeros_like(self.signs, dtype=torch.bool).index_fill_(0, self._vars[0], True)[kept[0]]
-            sizes = torch.stack([items.sum()] + [k.sum() for k in kept]
-                                + ([] if used is None else [used.sum()])).tolist()
+            sizes = torch.stack([items.sum()] + [k.sum() for k in kept]).tolist()
             idx = [true_indices(k, c) for k, c in zip([items] + kept, sizes)]
-            sub._vars = None if used is None or sizes[-1] == sizes[1] else (
-                true_indices(used, sizes[-1]), torch.cumsum(used, 0) - 1)
             b, v, f, e = idx[:4]
             vmap, fmap = torch.cumsum(kept[0], 0) - 1, torch.cumsum(kept[1], 0) - 1
             sub.B = sizes[0]
@@ -560,8 +554,7 @@ def _compiled_value_and_grad():
 
 def fit_geometry(mesh: MeshBatch, mom: TriangleMoments, signs: torch.Tensor, init_mag: torch.Tensor,
                  tol: torch.Tensor, cfg: GeometryConfig, data_dist: Optional[torch.Tensor] = None,
-                 slack: Optional[torch.Tensor] = None, items: Optional[torch.Tensor] = None
-                 ) -> Tuple[torch.Tensor, torch.Tensor]:
+                 slack: Optional[torch.Tensor] = None) -> Tuple[torch.Tensor, torch.Tensor]:
     """Fit the magnitudes of every item, each with its own L-BFGS (batch-independent).
 
     The per-item objective is ``Δ1 / tol² + smoothness · J`` where ``J`` (dimensionless) is the
@@ -585,22 +578,10 @@ def fit_geometry(mesh: MeshBatch, mom: TriangleMoments, signs: torch.Tensor, ini
         init_mag: ``(V,)`` positive start. tol: ``(B,)`` tolerance per item (distance).
         data_dist: ``(V,)`` vertex distances to the data (inf: unknown, no term), see
         :func:`vertex_data_distance_near`. slack: ``(B,)`` dead zone (distance).
-        items: ``(B,)`` bool, the items to fit (the objective of those alone, with the same
-            bits as in the whole batch's fit); the others' values are ``signs · init_mag``
-            and their Δ1 is 0. None: every item.
     Returns:
         values ``(V,)`` and Δ1 per item ``(B,)``.
     """
     obj = GeometryObjective(mesh, mom, signs, init_mag, tol, cfg, data_dist, slack)
-    if items is not None:
-        with torch.no_grad():
-            sub = obj.restrict(items)
-            s = run_fit(sub, cfg)[0]
-            F = sub.values(s)
-            d1 = segment_sum(sub.wt_raw * sub.delta1(F), sub.fi, sub.B)
-            verts = items.index_select(0, mesh.vert_item).nonzero().squeeze(1)
-            out = (signs * init_mag).to(F.dtype).index_copy(0, verts, F)
-            return out, torch.zeros(mesh.num_items, dtype=d1.dtype, device=d1.device).masked_scatter(items, d1)
     s = run_fit(obj, cfg)[0]
     with torch.no_grad():
         F = obj.values(s)

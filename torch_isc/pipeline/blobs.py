@@ -143,91 +143,98 @@ def find_blobs(points: torch.Tensor, point_item: torch.Tensor, k: int, min_point
         lab = torch.where(small >= 0, small, torch.arange(P, device=dev))
         size = take(torch.zeros(P, dtype=torch.long, device=dev).index_add_(0, lab, torch.ones_like(lab)), lab)
         cand = (small >= 0) & (size >= min_points) & (size <= max_points)
+        # the rest concerns the candidates' points alone (their components are whole): every
+        # per-component sum below takes the same entries in the same order as over all points
+        # with zero weights elsewhere, so the same bits. One host read
+        ci = cand.nonzero().squeeze(1)
+        if ci.numel() == 0:
+            return none
+        xc, nc, d2c, fc, lc = take(x, ci), take(nbr, ci), take(d2, ci), take(fin, ci), take(lab, ci)
         # the gap: the nearest point of another component, over the component
-        out = fin & (take(lab, nbr) != lab[:, None])
-        dout = torch.where(out, d2, torch.full_like(d2, float("inf"))).amin(1).sqrt()
-        gap = torch.full((P,), float("inf"), dtype=dt, device=dev).scatter_reduce(0, lab, dout, "amin")[lab]
-        w = cand.to(dt)
-        cnt = torch.zeros(P, dtype=dt, device=dev).index_add_(0, lab, w).clamp_min(1)
-        cen = torch.zeros(P, 2, dtype=dt, device=dev).index_add_(0, lab, x * w[:, None]) / cnt[:, None]
-        d = x - take(cen, lab)
-        rad = torch.zeros(P, dtype=dt, device=dev).index_add_(0, lab, d.norm(dim=1) * w) / cnt
+        out = fc & (take(lab, nc) != lc[:, None])
+        dout = torch.where(out, d2c, torch.full_like(d2c, float("inf"))).amin(1).sqrt()
+        gap = torch.full((P,), float("inf"), dtype=dt, device=dev).scatter_reduce(0, lc, dout, "amin")
+        cnt = torch.zeros(P, dtype=dt, device=dev).index_add_(0, lc, torch.ones_like(dout)).clamp_min(1)
+        cen = torch.zeros(P, 2, dtype=dt, device=dev).index_add_(0, lc, xc) / cnt[:, None]
+        d = xc - take(cen, lc)
+        rad = torch.zeros(P, dtype=dt, device=dev).index_add_(0, lc, d.norm(dim=1)) / cnt
         # round: the smaller principal variance at least ROUNDNESS of the larger (a ring, or a
         # blob at high noise; a piece of a sparse curve between two gaps is elongated)
         cov = torch.zeros(P, 3, dtype=dt, device=dev).index_add_(
-            0, lab, torch.stack([d[:, 0] ** 2, d[:, 0] * d[:, 1], d[:, 1] ** 2], 1) * w[:, None]) / cnt[:, None]
+            0, lc, torch.stack([d[:, 0] ** 2, d[:, 0] * d[:, 1], d[:, 1] ** 2], 1)) / cnt[:, None]
         lo, hi = sym2_eigvals(cov[:, 0], cov[:, 1], cov[:, 2])
         round_ = lo >= ROUNDNESS * hi
-        need = GAP_RADII * rad
         if noise is not None:
             # the radius the noise leaves: a ring of radius r under noise σ (per coordinate) has
             # mean squared distance r² + 2σ² to its centre, so a small satellite's measured radius
-            # is mostly noise and the gap it needs is inflated with it
+            # is mostly noise and the gap it needs is inflated with it (σ of a component: its
+            # label is one of its points)
             sg = noise.to(dt)[point_item]
-            rms2 = torch.zeros(P, dtype=dt, device=dev).index_add_(0, lab, (d * d).sum(1) * w) / cnt
+            rms2 = torch.zeros(P, dtype=dt, device=dev).index_add_(0, lc, (d * d).sum(1)) / cnt
             # and the gap between two noisy bands is their nearest pair: the noise of each side
             # takes up to about GAP_NOISE noise widths off it
             r_eff = torch.minimum(rad, (rms2 - 2 * sg ** 2).clamp_min(0).sqrt())
-            need = torch.maximum((GAP_RADII * r_eff)[lab] - 2 * GAP_NOISE * sg, gap_noise_widths * sg)
+            sgc = take(sg, ci)
+            need = torch.maximum(take(GAP_RADII * r_eff, lc) - 2 * GAP_NOISE * sgc, gap_noise_widths * sgc)
             # a ring whose radius the noise leaves is below MIN_RADIUS noise widths cannot be told
             # from a clump of a noisy band cut off by the graph (its loop would fit the noise)
             round_ = round_ & (r_eff >= MIN_RADIUS * sg)
         else:
-            need = need[lab]
+            need = take(GAP_RADII * rad, lc)
         # one-sided: a piece of a curve has the rest of the curve on both sides of it, a small
         # closed curve beside another has its neighbour on one side. The mean of the unit
         # directions from the centroid to each point's nearest outside point: near 1 when they
         # are all on one side, near 0 when they are on opposite sides
-        jo = torch.where(out, d2, torch.full_like(d2, float("inf"))).argmin(1)
-        xo = x[nbr.gather(1, jo[:, None]).squeeze(1)]
-        u = xo - cen[lab]
+        jo = torch.where(out, d2c, torch.full_like(d2c, float("inf"))).argmin(1)
+        o = nc.gather(1, jo[:, None]).squeeze(1)
+        xo = take(x, o)
+        u = xo - take(cen, lc)
         u = u / u.norm(dim=1, keepdim=True).clamp_min(torch.finfo(dt).tiny)
-        has = torch.isfinite(dout) & cand
-        su = torch.zeros(P, 2, dtype=dt, device=dev).index_add_(0, lab, u * has[:, None].to(dt))
-        nh = torch.zeros(P, dtype=dt, device=dev).index_add_(0, lab, has.to(dt))
+        has = torch.isfinite(dout)
+        su = torch.zeros(P, 2, dtype=dt, device=dev).index_add_(0, lc, u * has[:, None].to(dt))
+        nh = torch.zeros(P, dtype=dt, device=dev).index_add_(0, lc, has.to(dt))
         side = (nh == 0) | (su.norm(dim=1) >= ONE_SIDED * nh)
         if tangents is not None:
             # off the curve's side, not on its continuation past a gap (the open end of a noisy
             # band is one-sided and round like a satellite). From each point's own nearest
-            # outside point o, whose curve sees a point off its side along its normal
-            o = nbr.gather(1, jo[:, None]).squeeze(1)
+            # outside point o, whose curve sees a point off its side along its normal.
             # o's neighbours outside the point's component: computed once per o, used by the
             # descent and then by the axis estimate below
-            no = nbr[o]
-            wo = fin[o] & (lab[no] != lab[:, None])
+            no = take(nbr, o)
+            wo = take(fin, o) & (take(lab, no) != lc[:, None])
             # the approximate neighbour lists can miss the true nearest outside point (a ring of
             # 8 points 11 spacings off a dense circle gets circle points 12 spacings along): a
             # few steps of descent along o's own neighbours, which lie on o's curve
             for _ in range(NEAREST_DESCENT):
-                dn = torch.where(wo, ((x[no] - x[:, None, :]) ** 2).sum(-1), torch.full_like(d2, float("inf")))
+                dn = torch.where(wo, ((take(x, no) - xc[:, None, :]) ** 2).sum(-1), torch.full_like(d2c, float("inf")))
                 dmin, j = dn.min(1)
-                closer = dmin < ((xo - x) ** 2).sum(-1)
+                closer = dmin < ((xo - xc) ** 2).sum(-1)
                 o = torch.where(closer, no.gather(1, j[:, None]).squeeze(1), o)
-                xo = x[o]
-                no = nbr[o]
-                wo = fin[o] & (lab[no] != lab[:, None])
-            up = x - xo
+                xo = take(x, o)
+                no = take(nbr, o)
+                wo = take(fin, o) & (take(lab, no) != lc[:, None])
+            up = xc - xo
             up = up / up.norm(dim=1, keepdim=True).clamp_min(torch.finfo(dt).tiny)
             hw = has.to(dt)
             # two estimates of the tangent at o, each wrong in its own way: the data's (the
             # denoising fit's, whose radius may take in the blob's own points beside a noise
             # spike) and the major axis of o's neighbours outside the blob (which a sparse curve
             # spreads over other structure); only both along u mean a continuation
-            qn = x[no] - xo[:, None, :]
+            qn = take(x, no) - xo[:, None, :]
             wn = wo.to(dt)
             cw = wn.sum(1).clamp_min(1)
             qd = qn - ((qn * wn[..., None]).sum(1) / cw[:, None])[:, None, :]
             ca, cb, cd = ((wn * qd[..., 0] ** 2).sum(1) / cw, (wn * qd[..., 0] * qd[..., 1]).sum(1) / cw,
                           (wn * qd[..., 1] ** 2).sum(1) / cw)
             al = None
-            for t in (tangents.to(dt)[o], sym2_eigvec(ca, cb, cd, sym2_eigvals(ca, cb, cd)[1])):
+            for t in (take(tangents.to(dt), o), sym2_eigvec(ca, cb, cd, sym2_eigvals(ca, cb, cd)[1])):
                 # no axis (no neighbour outside the blob): no sign of a continuation
                 t = torch.nan_to_num(t / t.norm(dim=1, keepdim=True).clamp_min(torch.finfo(dt).tiny), 0.0, 0.0, 0.0)
-                a = torch.zeros(P, dtype=dt, device=dev).index_add_(0, lab, (t * up).sum(1).abs() * hw)
+                a = torch.zeros(P, dtype=dt, device=dev).index_add_(0, lc, (t * up).sum(1).abs() * hw)
                 al = a if al is None else torch.minimum(al, a)
             side &= (nh == 0) | (al < CONTINUES * nh)
-        blob = cand & (gap >= need) & round_[lab] & side[lab]
-        return torch.where(blob, lab, none)
+        blob = (take(gap, lc) >= need) & take(round_, lc) & take(side, lc)
+        return none.index_copy(0, ci, torch.where(blob, lc, torch.full_like(lc, -1)))
 
 
 def small_components(num_verts: int, edges: torch.Tensor, max_size: int) -> torch.Tensor:

@@ -115,6 +115,28 @@ def test_window_candidates_are_the_same_points_wherever_the_item_sits():
     assert torch.equal(rows[0], rows[1])
 
 
+@pytest.mark.parametrize("window", [2, 5, 12])
+def test_window_repeats_leave_each_point_once(window):
+    """``window_candidates`` marks repeats instead of sorting rows: each point a row holds, the
+    row's own point aside, is left unmarked exactly once (checked row by row against the row's
+    distinct points, the old sorted rows' content), on items smaller and larger than the window."""
+    from torch_isc.pipeline.noise import morton_orders, window_candidates, window_offsets
+    g = torch.Generator().manual_seed(window)
+    sizes = [1, 2, 3, window, 2 * window + 1, 40]
+    x = torch.rand(sum(sizes), 2, generator=g, dtype=torch.float64) * 2 - 1
+    item = torch.cat([torch.full((n,), i, dtype=torch.long) for i, n in enumerate(sizes)])
+    idx = torch.arange(x.shape[0])
+    c, repeat = window_candidates(morton_orders(x, item), idx, window_offsets(window, x.device), item)
+    assert c.shape == repeat.shape == (x.shape[0], 4 * window)
+    assert (item[c] == item[:, None]).all()
+    marked = 0
+    for i, (row, rep) in enumerate(zip(c.tolist(), repeat.tolist())):
+        kept = [v for v, r in zip(row, rep) if not r and v != i]
+        assert sorted(kept) == sorted(set(row) - {i})
+        marked += sum(rep)
+    assert marked > 0                                      # small items and both orders repeat
+
+
 @pytest.mark.parametrize("x", [np.uint8(1), np.array(1), 5])
 def test_a_scalar_mask_is_named_as_one(x):
     from torch_isc.images import find_contours

@@ -162,7 +162,8 @@ def window_candidates(orders, idx: torch.Tensor, offs: torch.Tensor, item: torch
     """``(c, repeat)``, both ``(R, 2 len(offs))``: the points ``offs`` ranks away from each of
     the points ``idx`` along each of the two :func:`morton_orders` (the first order's window,
     then the second's; ``offs`` from :func:`window_offsets`), and which entries repeat a point
-    held earlier in the row. Ranks are clamped to the point's own item (its points are
+    that the row holds unmarked in another place (each point but the row's own is left unmarked
+    exactly once). Ranks are clamped to the point's own item (its points are
     consecutive in every order): a clamped rank repeats the item's first or last point, which
     the window already holds unclamped (or which is the row's own point), and a point of the
     second window within ``window`` ranks of the row's point along the first order is in the
@@ -235,8 +236,8 @@ def squared_distances(points: torch.Tensor, idx: torch.Tensor, c: torch.Tensor) 
 def nearest_candidates(points: torch.Tensor, idx: torch.Tensor, c: torch.Tensor, bad: torch.Tensor,
                        k: int) -> Tuple[torch.Tensor, torch.Tensor]:
     """The ``k`` nearest of each row's candidates. ``c: (R, C)`` point indices, ``bad: (R, C)``
-    candidates to leave out (the row's own point, and every repeat of a point after its first
-    place), ``idx: (R,)`` the rows' own points. Returns ``(R, k)`` indices (a missing neighbour
+    candidates to leave out (the row's own point, and all but one copy of a point the row holds
+    twice), ``idx: (R,)`` the rows' own points. Returns ``(R, k)`` indices (a missing neighbour
     is the row's own point) and their squared distances (``inf`` where missing), nearest first."""
     dd = squared_distances(points, idx, c).masked_fill_(bad, float("inf"))
     nd, ni = torch.topk(dd, k, dim=1, largest=False)

@@ -194,6 +194,23 @@ def _annulus(n=300, seed=0):
     return torch.tensor(p + 0.004 * rng.standard_normal(p.shape))
 
 
+def test_the_refit_between_levels_takes_only_the_noisy_items():
+    """The band's second level refits only the items noisy enough for it (``band_noisy``), as a
+    working set of their own: a noisy annulus and a clean circle solved together give each the
+    bits it gets alone, in either order."""
+    t = torch.linspace(0, 2 * math.pi, 241, dtype=torch.float64)[:-1]
+    circle = torch.stack([t.cos(), t.sin()], 1) * 3.0 + 7.0
+    cfg = torch_isc.ReconstructConfig()
+    alone = [torch_isc.reconstruct(p, cfg) for p in (_annulus(), circle)]
+    assert alone[0].stats[-1].noise > 0.1 * alone[0].stats[-1].tolerance        # the annulus is noisy
+    assert alone[1].stats[-1].noise < 0.1 * alone[1].stats[-1].tolerance        # the circle is not
+    for order in ((0, 1), (1, 0)):
+        both = torch_isc.reconstruct_batch([(_annulus(), circle)[i] for i in order], cfg)
+        for i, r in zip(order, both):
+            assert torch.equal(r.curve.values, alone[i].curve.values)
+            assert torch.equal(r.curve.mesh.verts, alone[i].curve.mesh.verts)
+
+
 @pytest.mark.parametrize("kw", [{}, {"spike_rounds": 1}, {"band_iterations": 20}])
 def test_newton_refit_keeps_float32_invariance_with_margin(kw):
     """The converged refit makes the result a function of the objective, not of how far a

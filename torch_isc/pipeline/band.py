@@ -294,14 +294,21 @@ def band_stage(ws: "WorkingSet", cfg: BandConfig, geometry: GeometryConfig, slac
             # later levels only for noisy items (the others keep their values, so an item's
             # result does not depend on its batch)
             later = ws.noise > cfg.band_noisy * slack
-            if not bool(later.any()):
+            keep = later.nonzero().squeeze(1)                # one host read
+            if keep.numel() == 0:
                 break
             # refit before the next split: split again on the loop's interpolated f, a
             # new vertex next to the data inherits a tiny |f| and the final fit draws a
             # spike toward it (public circle_n2: Hausdorff 1.2% -> 5.7% without this)
             between = dataclasses.replace(cfg, spike_rounds=min(cfg.spike_rounds, cfg.band_between_rounds))
-            fit = _refit_any(ws, between, gcfg, slack, neighbours)
-            ws = _with_values(ws, torch.where(later[ws.mesh.vert_item], fit, ws.values))
+            lv = later[ws.mesh.vert_item]
+            if keep.numel() == ws.num_items:
+                fit = _refit_any(ws, between, gcfg, slack, neighbours)
+            else:
+                # only the later items are refitted (an item's fit does not depend on the
+                # others: the same bits), packed item by item as their vertices are
+                fit = ws.values.masked_scatter(lv, _refit_any(ws.select(keep), between, gcfg, slack[keep], neighbours))
+            ws = _with_values(ws, torch.where(lv, fit, ws.values))
         marked = band_marks(ws, cfg, max_triangles)
         if level > 0:
             marked = marked & later[ws.mesh.face_item]

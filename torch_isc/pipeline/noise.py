@@ -82,19 +82,26 @@ def _morton(q: torch.Tensor) -> torch.Tensor:
 
 
 def _local_line_residual(points: torch.Tensor, point_item: torch.Tensor, idx: torch.Tensor, orders, offs,
-                         k: int) -> Tuple[torch.Tensor, ...]:
-    """For the points ``idx``: the residual variance of a line fitted to each point and its ``k``
-    nearest candidates (its neighbours along the Morton ``orders``), the fit's point count, the
-    larger eigenvalue of the neighbourhood's covariance, the residual variance of a parabola
-    fitted to the same points, and the point's frame ``(n, 3)``: the unit major axis of the
-    neighbourhood (the local tangent) and the distance to its farthest neighbour."""
-    P = points.shape[0]
-    dev, dt = points.device, points.dtype
+                         ks: Tuple[int, ...]) -> List[Tuple[torch.Tensor, ...]]:
+    """For the points ``idx`` and each ``k`` of ``ks``: the residual variance of a line fitted to
+    each point and its ``k`` nearest candidates (its neighbours along the Morton ``orders``), the
+    fit's point count, the larger eigenvalue of the neighbourhood's covariance, the residual
+    variance of a parabola fitted to the same points, and the point's frame ``(n, 3)``: the unit
+    major axis of the neighbourhood (the local tangent) and the distance to its farthest
+    neighbour. The candidates are searched once: the ``k`` nearest are the first ``k`` of the
+    largest ``k``'s, nearest first."""
     c, dup = window_candidates(orders, idx, offs, point_item)
     own = (c == idx[:, None]) | dup                   # (the windows hold no other item's point)
     d2 = squared_distances(points, idx, c).masked_fill_(own, float("inf"))
-    nd, ni = torch.topk(d2, min(k, c.shape[1]), dim=1, largest=False)
+    nd, ni = torch.topk(d2, min(max(ks), c.shape[1]), dim=1, largest=False)
     nbr = c.gather(1, ni)
+    return [_line_fits(points, idx, nbr[:, :k], nd[:, :k]) for k in ks]
+
+
+def _line_fits(points: torch.Tensor, idx: torch.Tensor, nbr: torch.Tensor, nd: torch.Tensor) -> Tuple[torch.Tensor, ...]:
+    """:func:`_local_line_residual`'s fits of the points ``idx`` and their neighbours ``nbr``
+    (squared distances ``nd``, ``inf`` where missing)."""
+    dev, dt = points.device, points.dtype
     valid = torch.isfinite(nd)
     pts = torch.cat([points[idx][:, None, :], take(points, nbr)], 1)          # (n, k+1, 2)
     w = torch.cat([torch.ones(idx.shape[0], 1, dtype=torch.bool, device=dev), valid], 1).to(dt)
@@ -271,26 +278,34 @@ def _noise_at_scale(points: torch.Tensor, point_item: torch.Tensor, num_items: i
     """Per item: the median residual variance of the local parabola fits, the median aspect
     ``sqrt(λmax / λmin)`` of the neighbourhoods (line fits), and the number of points used;
     per point: its frame (see :func:`_local_line_residual`)."""
+    return _noise_at_scales(points, point_item, num_items, (k,), window)[0]
+
+
+def _noise_at_scales(points: torch.Tensor, point_item: torch.Tensor, num_items: int, ks: Tuple[int, ...],
+                     window: int) -> List[Tuple[torch.Tensor, ...]]:
+    """:func:`_noise_at_scale` for each neighbour count of ``ks``, from one candidate search."""
     P = points.shape[0]
     dev, dt = points.device, points.dtype
     offs = window_offsets(window, dev)
     orders = morton_orders(points, point_item)
-    lam = torch.empty(P, dtype=dt, device=dev)
-    lmax = torch.empty(P, dtype=dt, device=dev)
-    m = torch.empty(P, dtype=dt, device=dev)
-    quad = torch.empty(P, dtype=dt, device=dev)
-    frame = torch.empty(P, 3, dtype=dt, device=dev)
+    outs = [(torch.empty(P, dtype=dt, device=dev), torch.empty(P, dtype=dt, device=dev),
+             torch.empty(P, dtype=dt, device=dev), torch.empty(P, dtype=dt, device=dev),
+             torch.empty(P, 3, dtype=dt, device=dev)) for _ in ks]
     # the (points x candidates) arrays go in blocks: bounded memory for millions of points
     block = max(1, knn_budget(dev) // 2 // (4 * window))
     for b0 in range(0, P, block):
         idx = torch.arange(b0, min(P, b0 + block), device=dev)
-        lam[idx], m[idx], lmax[idx], quad[idx], frame[idx] = _local_line_residual(points, point_item, idx, orders,
-                                                                                  offs, k)
-    ok = m >= 4
-    var = segment_median(quad[ok], point_item[ok], num_items)
-    aspect = torch.sqrt(lmax / lam.clamp_min(torch.finfo(dt).tiny))
-    asp = segment_median(aspect[ok], point_item[ok], num_items)
-    return var, asp, segment_sum(ok.long(), point_item, num_items), frame
+        for out, got in zip(outs, _local_line_residual(points, point_item, idx, orders, offs, ks)):
+            for o, g in zip(out, got):
+                o[idx] = g
+    res = []
+    for lam, m, lmax, quad, frame in outs:
+        ok = m >= 4
+        var = segment_median(quad[ok], point_item[ok], num_items)
+        aspect = torch.sqrt(lmax / lam.clamp_min(torch.finfo(dt).tiny))
+        asp = segment_median(aspect[ok], point_item[ok], num_items)
+        res.append((var, asp, segment_sum(ok.long(), point_item, num_items), frame))
+    return res
 
 
 def estimate_noise(points: torch.Tensor, point_item: torch.Tensor, num_items: int,
@@ -359,11 +374,11 @@ def noise_and_frames(points: torch.Tensor, point_item: torch.Tensor, num_items: 
             z = torch.zeros(num_items, dtype=dt, device=dev)
             fr = torch.tensor([1.0, 0.0, 0.0], dtype=dt, device=dev).expand(P, 3).clone()
             return NoiseEstimate(z, fr)
-        var0, asp, _, frames = _noise_at_scale(points, point_item, num_items, k, window)
         # two clean strands closer than the neighbourhood (nested rings a few spacings apart)
         # read as a noisy band at k neighbours; the nearest few see one strand each
         k_s = max(3, k // 2)
-        var_s, _, _, frames_s = _noise_at_scale(points, point_item, num_items, k_s, window)
+        (var0, asp, _, frames), (var_s, _, _, frames_s) = _noise_at_scales(points, point_item, num_items,
+                                                                          (k, k_s), window)
         w_s = _ratio_ramp(var_s, var0, STRAND_RATIOS)
         frames = torch.where((w_s >= 0.5)[point_item][:, None], frames_s, frames)
         level = _blob_refit(points, point_item, num_items, var0, asp, source, k, window, min_points,

@@ -351,12 +351,11 @@ def test_nested_curves_a_few_spacings_apart_keep_their_alternation():
     it. The crust's sides hold the vertices to their side: one loop per curve. With
     ``crust_sides=0`` at least two of the four come back with another count. The first set (3
     spacings apart) is a coin toss at the last bit: right on an AVX2 CPU, its inner pair joined
-    on an AVX-512 one (the vectorized sums round differently), so three of four must be right."""
+    on an AVX-512 one (the vectorized sums round differently), so only the three wider sets must be."""
     sets = [_jittered_ellipses(0, 3, 3.0), _jittered_ellipses(0, 3, 4.0), _jittered_ellipses(2, 3, 4.0),
             _jittered_ellipses(2, 3, 6.0)]
     on = torch_isc.reconstruct_batch(sets, ReconstructConfig())
     assert all(r.num_open == 0 for r in on)
-    assert sum(r.num_closed == 3 for r in on) >= 3
     assert all(r.num_closed == 3 for r in on[1:])
     off = torch_isc.reconstruct_batch(sets, ReconstructConfig().replace(crust_sides=0.0))
     assert sum(r.num_closed != 3 for r in off) >= 2

@@ -90,11 +90,9 @@ def _local_line_residual(points: torch.Tensor, point_item: torch.Tensor, idx: to
     major axis of the neighbourhood (the local tangent) and the distance to its farthest
     neighbour. The candidates are searched once: the ``k`` nearest are the first ``k`` of the
     largest ``k``'s, nearest first."""
-    c, dup = window_candidates(orders, idx, offs, point_item)
-    own = (c == idx[:, None]) | dup                   # (the windows hold no other item's point)
-    d2 = squared_distances(points, idx, c).masked_fill_(own, float("inf"))
-    nd, ni = torch.topk(d2, min(max(ks), c.shape[1]), dim=1, largest=False)
-    nbr = c.gather(1, ni)
+    c, repeat = window_candidates(orders, idx, offs, point_item)
+    # (the windows hold no other item's point; a missing neighbour, the point itself, weighs 0)
+    nbr, nd = nearest_candidates(points, idx, c, (c == idx[:, None]) | repeat, min(max(ks), c.shape[1]))
     return [_line_fits(points, idx, nbr[:, :k], nd[:, :k]) for k in ks]
 
 
